@@ -1,0 +1,85 @@
+"""genesis_lite: a differentiable rigid-body simulator on Taichi with the API of Genesis.
+
+    import genesis_lite as gs
+    gs.init(backend=gs.cpu, precision="64")
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True))
+"""
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+import torch
+
+from . import materials, morphs, options
+from .errors import GenesisException
+from .options import integrator
+
+__version__ = "0.1.0"
+
+cpu = "cpu"
+gpu = "gpu"
+cuda = "gpu"
+
+logger = logging.getLogger("genesis_lite")
+
+# set by init()
+device = torch.device("cpu")
+tc_float = torch.float32
+np_float = np.float32
+ti_float = None
+backend = None
+_initialized = False
+
+
+def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, **taichi_kwargs):
+    """Initialise Taichi on `backend` (gs.cpu or gs.gpu, which is Taichi's CUDA backend) with
+    floats of `precision` bits ("32" or "64"). One call per process; later calls with the same
+    arguments are no-ops and different ones raise."""
+    global device, tc_float, np_float, ti_float, _initialized, _init_args
+    import taichi as ti
+
+    args = (backend, str(precision))
+    if _initialized:
+        if args != _init_args:
+            raise GenesisException(f"gs.init was already called with backend={_init_args[0]!r}, precision={_init_args[1]!r}; "
+                                   "genesis_lite is initialised once per process: restart Python to change it")
+        return
+    if str(precision) not in ("32", "64"):
+        raise ValueError(f"gs.init(precision={precision!r}): use \"32\" or \"64\"")
+    if backend not in (cpu, gpu):
+        raise ValueError(f"gs.init(backend={backend!r}): use gs.cpu or gs.gpu")
+    level = logging_level.upper() if isinstance(logging_level, str) else logging_level
+    logger.setLevel(level)
+    if backend == gpu:
+        if not torch.cuda.is_available():
+            raise GenesisException("gs.init(backend=gs.gpu): torch sees no CUDA device; use backend=gs.cpu")
+        arch, device = ti.cuda, torch.device("cuda", 0)
+    else:
+        arch, device = ti.cpu, torch.device("cpu")
+    ti_float = ti.f64 if str(precision) == "64" else ti.f32
+    tc_float = torch.float64 if str(precision) == "64" else torch.float32
+    np_float = np.float64 if str(precision) == "64" else np.float32
+    kw = dict(arch=arch, default_fp=ti_float, default_ip=ti.i32, debug=debug,
+              log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
+    kw.update(taichi_kwargs)
+    ti.init(**kw)
+    if seed is not None:
+        torch.manual_seed(seed)
+        np.random.seed(seed)
+    _init_args = args
+    _initialized = True
+
+
+def _assert_initialized():
+    if not _initialized:
+        raise GenesisException("genesis_lite is not initialised: call gs.init(backend=gs.cpu) first")
+
+
+from . import grad  # noqa: E402
+from .grad.creation import from_torch, ones, rand, tensor, zeros  # noqa: E402
+from .scene import Scene  # noqa: E402
+
+__all__ = ["init", "Scene", "options", "morphs", "materials", "integrator", "cpu", "gpu", "device",
+           "tensor", "zeros", "ones", "rand", "from_torch", "grad", "GenesisException"]

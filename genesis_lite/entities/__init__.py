@@ -1,0 +1,1 @@
+from .rigid_entity import RigidEntity, RigidJoint, RigidLink  # noqa: F401

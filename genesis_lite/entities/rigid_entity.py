@@ -1,0 +1,533 @@
+"""RigidEntity: a thin view (index ranges) over the rigid solver's state, with Genesis's API.
+
+Every getter returns a genesis_lite.grad.Tensor on gs.device in the scene precision, with a leading
+env axis when the scene was built with n_envs > 0. Every setter takes torch tensors, numpy arrays or
+lists; with requires_grad=True scenes, tensors that require grad carry gradients into the rollout.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional
+
+import numpy as np
+import torch
+
+from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
+
+from ..errors import GenesisException
+from ..grad.tensor import wrap
+
+
+@dataclass
+class RigidLink:
+    name: str
+    idx_local: int
+    idx: int
+    parent_idx_local: int
+    entity: "RigidEntity"
+
+    @property
+    def joint(self):
+        return self.entity.joints[self.idx_local]
+
+
+@dataclass
+class RigidJoint:
+    name: str
+    type: str
+    idx_local: int
+    link_idx_local: int
+    dof_start_local: int
+    n_dofs: int
+    q_start_local: int
+    n_qs: int
+
+    @property
+    def dof_idx_local(self):
+        """int for a 1-dof joint, a list for a free joint, None for a fixed one (Genesis convention)."""
+        if self.n_dofs == 1:
+            return self.dof_start_local
+        if self.n_dofs == 0:
+            return None
+        return list(range(self.dof_start_local, self.dof_start_local + self.n_dofs))
+
+    @property
+    def dofs_idx_local(self):
+        return list(range(self.dof_start_local, self.dof_start_local + self.n_dofs))
+
+    @property
+    def q_idx_local(self):
+        return self.q_start_local if self.n_qs == 1 else list(range(self.q_start_local, self.q_start_local + self.n_qs))
+
+
+def _quat_to_R(q):
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def _quat_to_rotvec(q):
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    s = q[..., 1:].norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(s, q[..., :1])
+    # angle / sin(angle/2) -> 2 as s -> 0, kept smooth for gradients
+    scale = torch.where(s > 1e-8, angle / s.clamp_min(1e-8), 2.0 + s * s / 3.0)
+    return q[..., 1:] * scale
+
+
+def _rotvec_to_quat(r):
+    a2 = (r * r).sum(-1, keepdim=True)
+    a = torch.sqrt(a2.clamp_min(1e-24))
+    small = a2 < 1e-12
+    sinc = torch.where(small, 0.5 - a2 / 48.0, torch.sin(a / 2) / a)
+    cos = torch.where(small, 1 - a2 / 8.0, torch.cos(a / 2))
+    return torch.cat([cos, r * sinc], -1)
+
+
+class RigidEntity:
+    """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
+
+    def __init__(self, scene, idx: int, model: EntityModel, morph, material):
+        self._scene = scene
+        self.idx = idx
+        self.model = model
+        self.morph = morph
+        self.material = material
+        self.name = model.name
+        self.links: List[RigidLink] = []
+        self.joints: List[RigidJoint] = []
+        q = d = 0
+        for i, l in enumerate(model.links):
+            self.links.append(RigidLink(l.name, i, -1, l.parent, self))
+            nq, nv = JOINT_NQ[l.joint_type], JOINT_NV[l.joint_type]
+            self.joints.append(RigidJoint(l.joint_name, l.joint_type, i, i, d, nv, q, nq))
+            q += nq
+            d += nv
+        self.n_links, self.n_qs, self.n_dofs = len(self.links), q, d
+        self._link_start = self._q_start = self._dof_start = -1
+
+    # ---------------------------------------------------------------- structure
+    def _on_build(self, link_start, q_start, dof_start):
+        self._link_start, self._q_start, self._dof_start = link_start, q_start, dof_start
+        for l in self.links:
+            l.idx = link_start + l.idx_local
+        # per-dof q index (for 1-dof joints) used by get/set_dofs_position
+        self._dof_q_local = np.full(self.n_dofs, -1, dtype=np.int64)
+        for j in self.joints:
+            if j.n_dofs == 1:
+                self._dof_q_local[j.dof_start_local] = j.q_start_local
+
+    @property
+    def n_joints(self):
+        return len(self.joints)
+
+    @property
+    def base_link(self):
+        return self.links[0]
+
+    @property
+    def is_built(self):
+        return self._scene.is_built
+
+    def get_joint(self, name: str) -> RigidJoint:
+        for j in self.joints:
+            if j.name == name:
+                return j
+        raise GenesisException(f"entity '{self.name}' has no joint '{name}'; its joints are {[j.name for j in self.joints]}"
+                               " (fixed joints are merged into their parent link)")
+
+    def get_link(self, name: str) -> RigidLink:
+        for l in self.links:
+            if l.name == name:
+                return l
+        raise GenesisException(f"entity '{self.name}' has no link '{name}'; its links are {[l.name for l in self.links]}"
+                               " (links attached by fixed joints are merged into their parent)")
+
+    # ---------------------------------------------------------------- index and value handling
+    @property
+    def _sim(self):
+        if not self._scene.is_built:
+            raise GenesisException(f"entity '{self.name}': call scene.build() before reading or setting its state")
+        return self._scene._rigid
+
+    def _idx(self, idx, n, what, start):
+        if idx is None:
+            out = torch.arange(n, device=self._device)
+        else:
+            t = torch.as_tensor(idx.detach().cpu() if isinstance(idx, torch.Tensor) else idx)
+            if t.dtype == torch.bool or t.is_floating_point():
+                raise GenesisException(f"entity '{self.name}': {what} must be integers, got dtype {t.dtype}")
+            t = t.reshape(-1).long()
+            if len(t) and (t.min() < 0 or t.max() >= n):
+                raise GenesisException(f"entity '{self.name}': {what} {t.tolist()} out of range; it has {n} "
+                                       f"({what.split('_')[0]} indices 0..{n - 1})")
+            out = t.to(self._device)
+        return out + start
+
+    @property
+    def _device(self):
+        import genesis_lite as gs
+
+        return gs.device
+
+    def _dofs(self, dofs_idx_local):
+        return self._idx(dofs_idx_local, self.n_dofs, "dofs_idx_local", self._dof_start)
+
+    def _links(self, links_idx_local):
+        return self._idx(links_idx_local, self.n_links, "links_idx_local", self._link_start)
+
+    def _qs(self, qs_idx_local):
+        return self._idx(qs_idx_local, self.n_qs, "qs_idx_local", self._q_start)
+
+    def _envs(self, envs_idx):
+        n = self._scene.n_envs
+        if envs_idx is None:
+            return torch.arange(max(n, 1), device=self._device)
+        if n == 0:
+            raise GenesisException(f"entity '{self.name}': envs_idx given but the scene was built without n_envs; "
+                                   "build with scene.build(n_envs=N) for batched environments")
+        return self._idx(envs_idx, n, "envs_idx", 0)
+
+    def _values(self, x, envs, n, what, trailing=()):
+        """x as a (len(envs), n, *trailing) tensor in the scene precision, keeping autograd history."""
+        import genesis_lite as gs
+
+        if isinstance(x, torch.Tensor):
+            if x.device.type != gs.device.type:
+                raise GenesisException(f"entity '{self.name}': {what} is on {x.device} but the scene lives on "
+                                       f"{gs.device}; move it with .to(gs.device)")
+            if not (x.is_floating_point() or x.dtype in (torch.int32, torch.int64)):
+                raise GenesisException(f"entity '{self.name}': {what} has dtype {x.dtype}; give floating-point values")
+            if x.requires_grad and not self._scene.sim_options.requires_grad:
+                raise GenesisException(
+                    f"entity '{self.name}': {what} requires grad but the scene was built without gradients, so it "
+                    "would receive none. Create the scene with gs.options.SimOptions(requires_grad=True), or pass "
+                    "x.detach().")
+            t = x.to(gs.tc_float)
+        else:
+            try:
+                t = torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=gs.tc_float, device=gs.device)
+            except (TypeError, ValueError) as e:
+                raise GenesisException(f"entity '{self.name}': {what} must be numbers ({e})") from None
+        want = (len(envs), n) + tuple(trailing)
+        batched = self._scene.n_envs > 0
+        shape = tuple(t.shape)
+        if shape == want[1:]:
+            t = t.unsqueeze(0).expand(want)
+        elif shape != want or not batched:
+            exp = f"{want[1:]}" + (f" or {want} (envs, ...)" if batched else "")
+            raise GenesisException(f"entity '{self.name}': {what} has shape {shape}; expected {exp}")
+        if torch.is_grad_enabled() and t.requires_grad:
+            pass
+        elif not torch.isfinite(t).all():
+            raise GenesisException(f"entity '{self.name}': {what} contains NaN or infinite values")
+        return t
+
+    def _out(self, t):
+        return wrap(t if self._scene.n_envs > 0 else t[0])
+
+    # ---------------------------------------------------------------- state getters
+    def get_qpos(self, qs_idx_local=None, envs_idx=None):
+        """Generalised positions (m, rad; free bases: xyz then quaternion wxyz)."""
+        q, _ = self._sim.get_state()
+        return self._out(q[self._envs(envs_idx)][:, self._qs(qs_idx_local)])
+
+    def get_dofs_velocity(self, dofs_idx_local=None, envs_idx=None):
+        """Dof velocities (m/s, rad/s; free bases: world-frame linear then angular velocity)."""
+        _, v = self._sim.get_state()
+        return self._out(v[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+
+    def _dof_positions(self, q):
+        """Per-dof positions: joint coordinates; for a free joint its xyz and rotation vector."""
+        cols = []
+        for j in self.joints:
+            qs = self._q_start + j.q_start_local
+            if j.n_dofs == 1:
+                cols.append(q[:, qs:qs + 1])
+            elif j.n_dofs == 6:
+                cols.append(q[:, qs:qs + 3])
+                cols.append(_quat_to_rotvec(q[:, qs + 3:qs + 7]))
+        return torch.cat(cols, -1) if cols else q[:, :0]
+
+    def get_dofs_position(self, dofs_idx_local=None, envs_idx=None):
+        """Dof positions (m, rad); a free joint's six are its xyz and its rotation vector."""
+        q, _ = self._sim.get_state()
+        local = self._dofs(dofs_idx_local) - self._dof_start
+        return self._out(self._dof_positions(q[self._envs(envs_idx)])[:, local])
+
+    def get_dofs_acc(self, dofs_idx_local=None, envs_idx=None):
+        """Dof accelerations of the last step (rad/s^2, m/s^2); no gradient."""
+        return self._out(self._scene._dofs_acc()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+
+    def get_dofs_force(self, dofs_idx_local=None, envs_idx=None):
+        """Actuator forces (N, N m) applied at the last step after force-range clipping; no gradient."""
+        return self._out(self._scene._dofs_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+
+    def _link_out(self, k, links_idx_local, envs_idx):
+        out = self._sim.link_outputs()[k]
+        return self._out(out[self._envs(envs_idx)][:, self._links(links_idx_local)])
+
+    def get_links_pos(self, links_idx_local=None, envs_idx=None):
+        """World positions of link frames (m)."""
+        return self._link_out(0, links_idx_local, envs_idx)
+
+    def get_links_quat(self, links_idx_local=None, envs_idx=None):
+        """World orientations of link frames (w, x, y, z)."""
+        return self._link_out(1, links_idx_local, envs_idx)
+
+    def get_links_vel(self, links_idx_local=None, envs_idx=None):
+        """World linear velocities of link frame origins (m/s)."""
+        return self._link_out(2, links_idx_local, envs_idx)
+
+    def get_links_ang(self, links_idx_local=None, envs_idx=None):
+        """World angular velocities of links (rad/s)."""
+        return self._link_out(3, links_idx_local, envs_idx)
+
+    def get_pos(self, envs_idx=None):
+        """Base link position (m)."""
+        return self._link_out(0, [0], envs_idx)[..., 0, :]
+
+    def get_quat(self, envs_idx=None):
+        """Base link orientation (w, x, y, z)."""
+        return self._link_out(1, [0], envs_idx)[..., 0, :]
+
+    def get_vel(self, envs_idx=None):
+        """Base link linear velocity (m/s)."""
+        return self._link_out(2, [0], envs_idx)[..., 0, :]
+
+    def get_ang(self, envs_idx=None):
+        """Base link angular velocity (rad/s)."""
+        return self._link_out(3, [0], envs_idx)[..., 0, :]
+
+    def get_mass_mat(self, envs_idx=None):
+        """Joint-space mass matrix (armature included) of this entity, (n_dofs, n_dofs); no gradient."""
+        M = self._scene._mass_matrix()
+        d = self._dofs(None)
+        M = M[:, d][:, :, d] + torch.diag_embed(self._sim.params["armature"].detach()[:, d])
+        return self._out(M[self._envs(envs_idx)])
+
+    def get_links_mass(self, links_idx_local=None, envs_idx=None):
+        return self._out(self._sim.params["mass"][self._envs(envs_idx)][:, self._links(links_idx_local)])
+
+    def get_mass(self, envs_idx=None):
+        return self.get_links_mass(envs_idx=envs_idx).sum(-1)
+
+    def _energies(self):
+        sim = self._sim
+        pos, quat = sim.link_outputs()[:2]
+        ls = self._links(None)
+        m = sim.params["mass"][:, ls]
+        com = sim.params["com"][:, ls]
+        c = pos[:, ls] + (_quat_to_R(quat[:, ls]) @ com.unsqueeze(-1)).squeeze(-1)
+        pe = -(m * (c * sim.params["gravity"][:, None, :]).sum(-1)).sum(-1)
+        _, v = sim.get_state()
+        d = self._dofs(None)
+        vd = v[:, d]
+        M = self._scene._mass_matrix()[:, d][:, :, d].to(vd.dtype)
+        ke = 0.5 * (vd.unsqueeze(1) @ M @ vd.unsqueeze(-1)).reshape(-1)
+        return ke, pe
+
+    def get_kinetic_energy(self, envs_idx=None):
+        """0.5 v^T M v (J), armature excluded."""
+        return self._out(self._energies()[0][self._envs(envs_idx)])
+
+    def get_potential_energy(self, envs_idx=None):
+        """Gravitational potential energy -sum m g.c (J), zero at the world origin."""
+        return self._out(self._energies()[1][self._envs(envs_idx)])
+
+    def get_total_energy(self, envs_idx=None):
+        ke, pe = self._energies()
+        return self._out((ke + pe)[self._envs(envs_idx)])
+
+    # ---------------------------------------------------------------- state setters
+    def _set_state(self, q=None, v=None):
+        sim = self._sim
+        q0, v0 = sim.get_state()
+        sim.set_state(q if q is not None else q0, v if v is not None else v0)
+
+    def set_qpos(self, qpos, qs_idx_local=None, envs_idx=None, zero_velocity=True):
+        """Set generalised positions (free bases: xyz then quaternion wxyz); zeroes the velocity like Genesis."""
+        envs, qs = self._envs(envs_idx), self._qs(qs_idx_local)
+        vals = self._values(qpos, envs, len(qs), "qpos")
+        from ..rigid_sim import _index_put
+
+        q0, v0 = self._sim.get_state()
+        q = _index_put(q0, envs, qs, vals)
+        v = None
+        if zero_velocity:
+            d = self._dofs(None)
+            v = _index_put(v0, envs, d, torch.zeros(len(envs), len(d), dtype=v0.dtype, device=v0.device))
+        self._set_state(q, v)
+
+    def set_dofs_position(self, position, dofs_idx_local=None, envs_idx=None, zero_velocity=True):
+        """Set dof positions (m, rad; a free joint's six are xyz and a rotation vector)."""
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        vals = self._values(position, envs, len(d), "position")
+        from ..rigid_sim import _index_put
+
+        q0, v0 = self._sim.get_state()
+        full = self._dof_positions(q0[envs])
+        full = _index_put(full, torch.arange(len(envs), device=full.device), d - self._dof_start, vals)
+        qe = q0[envs].clone()
+        cols = []
+        for j in self.joints:
+            qs = self._q_start + j.q_start_local
+            ds = j.dof_start_local
+            if j.n_dofs == 1:
+                cols.append((qs, full[:, ds:ds + 1]))
+            elif j.n_dofs == 6:
+                touched = bool(((d - self._dof_start >= ds + 3) & (d - self._dof_start < ds + 6)).any())
+                quat = _rotvec_to_quat(full[:, ds + 3:ds + 6]) if touched else q0[envs][:, qs + 3:qs + 7]
+                cols.append((qs, torch.cat([full[:, ds:ds + 3], quat], -1)))
+        parts, idx = [], []
+        for qs, val in cols:
+            parts.append(val)
+            idx.extend(range(qs, qs + val.shape[1]))
+        if parts:
+            qe = torch.cat(parts, -1)
+            q = _index_put(q0, envs, torch.tensor(idx, device=q0.device), qe)
+        else:
+            q = q0
+        v = None
+        if zero_velocity:
+            dd = self._dofs(None)
+            v = _index_put(v0, envs, dd, torch.zeros(len(envs), len(dd), dtype=v0.dtype, device=v0.device))
+        self._set_state(q, v)
+
+    def set_dofs_velocity(self, velocity, dofs_idx_local=None, envs_idx=None):
+        """Set dof velocities (m/s, rad/s; free bases: world-frame linear then angular)."""
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        vals = self._values(velocity, envs, len(d), "velocity")
+        from ..rigid_sim import _index_put
+
+        _, v0 = self._sim.get_state()
+        self._set_state(v=_index_put(v0, envs, d, vals))
+
+    def _free_base(self, what):
+        j = self.joints[0]
+        if j.type != "free":
+            raise GenesisException(f"entity '{self.name}': {what} needs a free base, but it is fixed to the world; "
+                                   "load it with fixed=False")
+        return self._q_start + j.q_start_local
+
+    def set_pos(self, pos, envs_idx=None, zero_velocity=True):
+        """Set the base position (m) of a free-base entity."""
+        qs = self._free_base("set_pos")
+        self.set_qpos(pos, qs_idx_local=list(range(qs - self._q_start, qs - self._q_start + 3)), envs_idx=envs_idx,
+                      zero_velocity=zero_velocity)
+
+    def set_quat(self, quat, envs_idx=None, zero_velocity=True):
+        """Set the base orientation (w, x, y, z) of a free-base entity."""
+        qs = self._free_base("set_quat")
+        self.set_qpos(quat, qs_idx_local=list(range(qs - self._q_start + 3, qs - self._q_start + 7)),
+                      envs_idx=envs_idx, zero_velocity=zero_velocity)
+
+    # ---------------------------------------------------------------- control
+    def control_dofs_force(self, force, dofs_idx_local=None, envs_idx=None):
+        """Apply generalised forces (N, N m) from the next step on, until changed."""
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        self._sim.set_ctrl("force", self._values(force, envs, len(d), "force"), envs, d, 0)
+
+    def control_dofs_position(self, position, dofs_idx_local=None, envs_idx=None):
+        """PD position targets (m, rad): force = kp (target - q) - kv v, clipped to the force range."""
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        if (torch.as_tensor(self._dof_q_local)[(d - self._dof_start).cpu()] < 0).any():
+            raise GenesisException(f"entity '{self.name}': position control of free-joint dofs is not supported; "
+                                   "control them with control_dofs_force or control_dofs_velocity")
+        self._sim.set_ctrl("pos", self._values(position, envs, len(d), "position"), envs, d, 1)
+        self._sim.set_ctrl("vel", torch.zeros(len(envs), len(d), device=self._device), envs, d, None)
+
+    def control_dofs_velocity(self, velocity, dofs_idx_local=None, envs_idx=None):
+        """Velocity targets (m/s, rad/s): force = kv (target - v), clipped to the force range."""
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        self._sim.set_ctrl("vel", self._values(velocity, envs, len(d), "velocity"), envs, d, 2)
+
+    # ---------------------------------------------------------------- parameters
+    def _set_dof_param(self, name, values, dofs_idx_local, envs_idx, nonneg=True):
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        vals = self._values(values, envs, len(d), name)
+        if nonneg and (vals.detach() < 0).any():
+            raise GenesisException(f"entity '{self.name}': {name} must be >= 0, got {vals.detach().cpu().numpy()}")
+        self._sim.set_param(name, vals, envs, d)
+
+    def set_dofs_kp(self, kp, dofs_idx_local=None, envs_idx=None):
+        """Position gains (N/m, N m/rad) for control_dofs_position."""
+        self._set_dof_param("kp", kp, dofs_idx_local, envs_idx)
+
+    def set_dofs_kv(self, kv, dofs_idx_local=None, envs_idx=None):
+        """Velocity gains (N s/m, N m s/rad) for position and velocity control."""
+        self._set_dof_param("kv", kv, dofs_idx_local, envs_idx)
+
+    def set_dofs_damping(self, damping, dofs_idx_local=None, envs_idx=None):
+        """Viscous joint damping (N s/m, N m s/rad)."""
+        self._set_dof_param("damping", damping, dofs_idx_local, envs_idx)
+
+    def set_dofs_armature(self, armature, dofs_idx_local=None, envs_idx=None):
+        """Rotor inertia added to the mass matrix diagonal (kg, kg m^2)."""
+        self._set_dof_param("armature", armature, dofs_idx_local, envs_idx)
+
+    def set_dofs_frictionloss(self, frictionloss, dofs_idx_local=None, envs_idx=None):
+        """Dry joint friction (N, N m), smoothed over 0.01 rad/s."""
+        self._set_dof_param("frictionloss", frictionloss, dofs_idx_local, envs_idx)
+
+    def set_dofs_force_range(self, lower, upper, dofs_idx_local=None, envs_idx=None):
+        """Actuator force limits (N, N m) applied to every control mode."""
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        lo = self._values(lower, envs, len(d), "lower")
+        hi = self._values(upper, envs, len(d), "upper")
+        if (lo > hi).any():
+            raise GenesisException(f"entity '{self.name}': force range lower > upper")
+        self._sim.set_force_range(lo, hi, envs, d)
+
+    def _get_param(self, name, idx, envs_idx):
+        return self._out(self._sim.params[name][self._envs(envs_idx)][:, idx])
+
+    def get_dofs_kp(self, dofs_idx_local=None, envs_idx=None):
+        return self._get_param("kp", self._dofs(dofs_idx_local), envs_idx)
+
+    def get_dofs_kv(self, dofs_idx_local=None, envs_idx=None):
+        return self._get_param("kv", self._dofs(dofs_idx_local), envs_idx)
+
+    def get_dofs_damping(self, dofs_idx_local=None, envs_idx=None):
+        return self._get_param("damping", self._dofs(dofs_idx_local), envs_idx)
+
+    def get_dofs_armature(self, dofs_idx_local=None, envs_idx=None):
+        return self._get_param("armature", self._dofs(dofs_idx_local), envs_idx)
+
+    def get_dofs_force_range(self, dofs_idx_local=None, envs_idx=None):
+        sim, d, e = self._sim, self._dofs(dofs_idx_local), self._envs(envs_idx)
+        return self._out(sim.force_lo[e][:, d]), self._out(sim.force_hi[e][:, d])
+
+    def get_dofs_limit(self, dofs_idx_local=None):
+        lim = torch.as_tensor(self._sim.solver.np_dof_limit, dtype=torch.float64)[self._dofs(dofs_idx_local).cpu()]
+        return wrap(lim[:, 0]), wrap(lim[:, 1])
+
+    def set_links_mass(self, mass, links_idx_local=None, envs_idx=None):
+        """Link masses (kg)."""
+        envs, ls = self._envs(envs_idx), self._links(links_idx_local)
+        vals = self._values(mass, envs, len(ls), "mass")
+        if (vals.detach() < 0).any():
+            raise GenesisException(f"entity '{self.name}': link masses must be >= 0")
+        self._sim.set_param("mass", vals, envs, ls)
+
+    def set_links_inertia(self, inertia, links_idx_local=None, envs_idx=None):
+        """Link rotational inertia about the COM in link axes, (n, 3, 3) in kg m^2."""
+        envs, ls = self._envs(envs_idx), self._links(links_idx_local)
+        self._sim.set_param("inertia", self._values(inertia, envs, len(ls), "inertia", (3, 3)), envs, ls)
+
+    def set_links_COM(self, com, links_idx_local=None, envs_idx=None):
+        """Link centre of mass in the link frame (m), (n, 3)."""
+        envs, ls = self._envs(envs_idx), self._links(links_idx_local)
+        self._sim.set_param("com", self._values(com, envs, len(ls), "com", (3,)), envs, ls)
+
+    def get_links_inertia(self, links_idx_local=None, envs_idx=None):
+        return self._get_param("inertia", self._links(links_idx_local), envs_idx)
+
+    def get_links_COM(self, links_idx_local=None, envs_idx=None):
+        return self._get_param("com", self._links(links_idx_local), envs_idx)
+
+    def __repr__(self):
+        return f"<RigidEntity '{self.name}': {self.n_links} links, {self.n_dofs} dofs>"

@@ -1,0 +1,54 @@
+"""The autograd functions through which torch sees a simulation.
+
+One mechanism for every solver: a solver bridge implements `forward_step()`, `backward_step(saved,
+grads)`, `outputs(...)` and `backward_outputs(saved, grads)`; `StepFunction` makes one scene step a
+node of torch's graph, `OutputFunction` makes a getter one. torch then orders the backward calls
+(reverse time), sums gradients over steps and delivers them to leaf tensors.
+"""
+import torch
+
+from ..errors import GenesisException
+
+
+class StepFunction(torch.autograd.Function):
+    """(state_t, controls_t, parameters) -> state_{t+1}; the forward has already been set up in the
+    solver fields by the bridge, the backward replays the step and its adjoint."""
+
+    @staticmethod
+    def forward(ctx, bridge, *inputs):
+        ctx.bridge = bridge
+        ctx.token = bridge.rollout_token
+        ctx.extra = bridge.step_context()
+        ctx.save_for_backward(*inputs)
+        return bridge.forward_step()
+
+    @staticmethod
+    def backward(ctx, *grads):
+        bridge = ctx.bridge
+        bridge.check_token(ctx.token, "step")
+        in_grads = bridge.backward_step(ctx.saved_tensors, ctx.extra, grads, ctx.needs_input_grad[1:])
+        return (None,) + tuple(in_grads)
+
+
+class OutputFunction(torch.autograd.Function):
+    """state_t -> a getter's outputs (link poses, velocities) at that step."""
+
+    @staticmethod
+    def forward(ctx, bridge, *state):
+        ctx.bridge = bridge
+        ctx.token = bridge.rollout_token
+        ctx.save_for_backward(*state)
+        return bridge.outputs()
+
+    @staticmethod
+    def backward(ctx, *grads):
+        bridge = ctx.bridge
+        bridge.check_token(ctx.token, "getter")
+        return (None,) + tuple(bridge.backward_outputs(ctx.saved_tensors, grads))
+
+
+def require_token(current, token, what):
+    if token != current:
+        raise GenesisException(
+            f"backward through a {what} of a rollout that scene.reset() has ended: the simulation state of that "
+            "rollout is gone. Call loss.backward() before scene.reset(), then reset and run the next rollout.")

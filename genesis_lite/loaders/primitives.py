@@ -1,0 +1,300 @@
+"""Loaders for single-body morphs (Box, Sphere, Capsule, Cylinder, Mesh, Plane), plus the small
+geometry toolkit (rotations, mass properties, mesh files) that the URDF loader shares.
+
+Every body here is one link whose frame is the shape's own frame: primitives are centred on it
+(capsule and cylinder axes along z), a mesh keeps the origin of its file. Mass is
+`material.rho * volume`; inertia is about the centre of mass in the link axes.
+"""
+from __future__ import annotations
+
+import os
+from typing import Dict, Tuple
+
+import numpy as np
+
+from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc
+
+ROOT_JOINT_NAME = "root_joint"  # what Pinocchio calls the free-flyer it adds; entity-scoped
+
+
+# --------------------------------------------------------------------------------------------
+# Rotations (quaternions are w, x, y, z)
+# --------------------------------------------------------------------------------------------
+def quat_to_mat(q) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def mat_to_quat(R) -> np.ndarray:
+    """Shepperd's method: branch on the largest diagonal term so the division is well conditioned."""
+    R = np.asarray(R, dtype=float)
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr > max(R[0, 0], R[1, 1], R[2, 2]):
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        s = 2.0 * np.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] >= R[2, 2]:
+        s = 2.0 * np.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 0.0))
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 0.0))
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    # q and -q are the same rotation; a canonical sign keeps outputs reproducible
+    return -q if q[0] < 0 else q
+
+
+def quat_mul(a, b) -> np.ndarray:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def quat_from_z_to(n) -> np.ndarray:
+    """Shortest rotation taking +z onto the unit vector n."""
+    n = np.asarray(n, dtype=float)
+    n = n / np.linalg.norm(n)
+    c = n[2]
+    if c < -1.0 + 1e-12:
+        return np.array([0.0, 1.0, 0.0, 0.0])  # any half-turn about a horizontal axis
+    axis = np.cross([0.0, 0.0, 1.0], n)
+    q = np.array([1.0 + c, axis[0], axis[1], axis[2]])
+    return q / np.linalg.norm(q)
+
+
+def pose_matrix(pos, quat) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = quat_to_mat(quat)
+    T[:3, 3] = pos
+    return T
+
+
+# --------------------------------------------------------------------------------------------
+# Mass properties: (mass, com, inertia about com) in the shape's frame
+# --------------------------------------------------------------------------------------------
+def box_inertia(mass, half_extents) -> np.ndarray:
+    a, b, c = np.asarray(half_extents, dtype=float)
+    return mass / 3.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
+
+
+def sphere_inertia(mass, radius) -> np.ndarray:
+    return 0.4 * mass * radius**2 * np.eye(3)
+
+
+def cylinder_inertia(mass, radius, height) -> np.ndarray:
+    ixx = mass * (3.0 * radius**2 + height**2) / 12.0
+    return np.diag([ixx, ixx, 0.5 * mass * radius**2])
+
+
+def capsule_mass_inertia(rho, radius, height) -> Tuple[float, np.ndarray]:
+    """Cylinder of `height` capped by two hemispheres; each cap's COM sits 3r/8 beyond the cylinder end."""
+    r, h = radius, height
+    m_cyl = rho * np.pi * r * r * h
+    m_caps = rho * 4.0 / 3.0 * np.pi * r**3
+    izz = 0.5 * m_cyl * r * r + 0.4 * m_caps * r * r
+    ixx = m_cyl * (r * r / 4.0 + h * h / 12.0) + m_caps * (0.4 * r * r + h * h / 4.0 + 3.0 * h * r / 8.0)
+    return m_cyl + m_caps, np.diag([ixx, ixx, izz])
+
+
+def solid_mesh_mass_properties(vertices, faces, rho, what: str):
+    """Mass properties of a closed mesh; open or inconsistently wound meshes have no well-defined
+    volume, so their convex hull stands in."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    if not mesh.is_volume:
+        mesh = convex_hull(vertices, what)
+    mesh.density = float(rho)
+    return float(mesh.mass), np.array(mesh.center_mass, dtype=float), np.array(mesh.moment_inertia, dtype=float)
+
+
+def convex_hull(vertices, what: str):
+    import trimesh
+
+    try:
+        hull = trimesh.Trimesh(vertices=vertices, process=False).convex_hull
+    except Exception as e:  # qhull rejects flat or degenerate point sets
+        raise ValueError(f"{what}: cannot build a convex hull ({type(e).__name__}: {e}); the mesh must enclose a volume") from e
+    if not (hull.is_volume and hull.volume > 0):
+        raise ValueError(f"{what}: its convex hull has no volume (flat or degenerate mesh); use a mesh that encloses a volume")
+    return hull
+
+
+def geom_mass_properties(g: GeomDesc, rho: float, what: str):
+    """(mass, com, inertia about com) of a geom at density rho, expressed in the geom's parent link frame."""
+    if g.type == "box":
+        m = rho * 8.0 * float(np.prod(g.size))
+        c, I = np.zeros(3), box_inertia(m, g.size)
+    elif g.type == "sphere":
+        m = rho * 4.0 / 3.0 * np.pi * g.size[0] ** 3
+        c, I = np.zeros(3), sphere_inertia(m, g.size[0])
+    elif g.type == "cylinder":
+        r, hl = g.size
+        m = rho * np.pi * r * r * 2.0 * hl
+        c, I = np.zeros(3), cylinder_inertia(m, r, 2.0 * hl)
+    elif g.type == "capsule":
+        m, I = capsule_mass_inertia(rho, g.size[0], 2.0 * g.size[1])
+        c = np.zeros(3)
+    elif g.type == "mesh":
+        m, c, I = solid_mesh_mass_properties(g.vertices, g.faces, rho, what)
+    else:  # planes are static and massless
+        return 0.0, np.zeros(3), np.zeros((3, 3))
+    R = quat_to_mat(g.quat)
+    return m, R @ c + np.asarray(g.pos, dtype=float), R @ I @ R.T
+
+
+def combine_inertias(parts):
+    """Sum rigidly attached bodies [(mass, com, inertia about com)] given in one frame (parallel axis theorem)."""
+    if not parts:
+        return 0.0, np.zeros(3), np.zeros((3, 3))
+    m = float(sum(p[0] for p in parts))
+    if m > 0:
+        com = sum(p[0] * np.asarray(p[1]) for p in parts) / m
+    else:
+        com = np.zeros(3)
+    I = np.zeros((3, 3))
+    for mi, ci, Ii in parts:
+        d = np.asarray(ci) - com
+        I += Ii + mi * (d @ d * np.eye(3) - np.outer(d, d))
+    return m, com, 0.5 * (I + I.T)
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh files
+# --------------------------------------------------------------------------------------------
+# Robots reuse the same meshes across links and scenes are often rebuilt in one process; the key
+# includes mtime and size so an edited file is re-read.
+_MESH_CACHE: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = {}
+
+
+def load_mesh_file(path: str, what: str) -> Tuple[np.ndarray, np.ndarray]:
+    """(vertices float64 (n,3), faces int64 (m,3)) of a mesh file in its own units, all parts
+    concatenated. Returns fresh copies so callers may scale in place."""
+    import trimesh
+
+    path = os.path.realpath(path)
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise FileNotFoundError(f"{what}: mesh file '{path}' cannot be read ({e})") from e
+    key = (path, st.st_mtime_ns, st.st_size)
+    hit = _MESH_CACHE.get(key)
+    if hit is None:
+        try:
+            mesh = trimesh.load(path, force="mesh", process=True)
+        except Exception as e:
+            raise ValueError(f"{what}: failed to load mesh file '{path}' ({type(e).__name__}: {e}); "
+                             "use an STL, OBJ, PLY or DAE file trimesh can read") from e
+        V = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+        F = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+        if len(V) == 0 or len(F) == 0:
+            raise ValueError(f"{what}: failed to load mesh file '{path}': no triangles could be read from it; "
+                             "use a valid STL, OBJ, PLY or DAE file with a surface mesh")
+        if not np.all(np.isfinite(V)):
+            raise ValueError(f"{what}: mesh file '{path}' has non-finite vertex coordinates")
+        hit = (V, F)
+        _MESH_CACHE[key] = hit
+    return hit[0].copy(), hit[1].copy()
+
+
+def scale_mesh(V, F, scale):
+    """Apply a per-axis scale; a mirroring scale flips the triangles so normals still point out."""
+    s = np.broadcast_to(np.asarray(scale, dtype=float), (3,))
+    V = V * s
+    if np.prod(s) < 0:
+        F = F[:, ::-1].copy()
+    return V, F
+
+
+# --------------------------------------------------------------------------------------------
+# Morph loaders
+# --------------------------------------------------------------------------------------------
+def _root_link(morph, name, mass, com, inertia, geoms) -> EntityModel:
+    link = LinkDesc(
+        name=name,
+        parent=-1,
+        joint_name=ROOT_JOINT_NAME,
+        joint_type="fixed" if morph.fixed else "free",
+        joint_pos=np.array(morph.pos, dtype=float),
+        joint_quat=np.array(morph.quat, dtype=float),
+        mass=float(mass),
+        com=np.asarray(com, dtype=float),
+        inertia=np.asarray(inertia, dtype=float),
+        geoms=geoms,
+    )
+    return EntityModel(name=name, links=[link], source=f"gs.morphs.{type(morph).__name__}")
+
+
+def load_primitive(morph, material, name) -> EntityModel:
+    """Box, Sphere, Capsule, Cylinder or Plane -> a one-link EntityModel."""
+    from genesis_lite import morphs
+
+    rho = float(material.rho)
+    if isinstance(morph, morphs.Plane):
+        # the plane geom's normal is its +z, so the link is turned to carry +z onto the normal;
+        # the normal is read in the frame given by morph.quat (the world for the default quat)
+        link = LinkDesc(
+            name=name,
+            parent=-1,
+            joint_name=ROOT_JOINT_NAME,
+            joint_type="fixed",
+            joint_pos=np.array(morph.pos, dtype=float),
+            joint_quat=quat_mul(morph.quat, quat_from_z_to(morph.normal)),
+            geoms=[GeomDesc(type="plane")],
+        )
+        model = EntityModel(name=name, links=[link], source="gs.morphs.Plane")
+        model.validate()
+        return model
+
+    if isinstance(morph, morphs.Box):
+        g = GeomDesc(type="box", size=tuple(float(s) / 2.0 for s in morph.size))
+    elif isinstance(morph, morphs.Sphere):
+        g = GeomDesc(type="sphere", size=(float(morph.radius),))
+    elif isinstance(morph, morphs.Capsule):
+        g = GeomDesc(type="capsule", size=(float(morph.radius), float(morph.height) / 2.0))
+    elif isinstance(morph, morphs.Cylinder):
+        g = GeomDesc(type="cylinder", size=(float(morph.radius), float(morph.height) / 2.0))
+    else:
+        raise TypeError(f"load_primitive: {type(morph).__name__} is not a primitive morph")
+    m, c, I = geom_mass_properties(g, rho, f"entity '{name}'")
+    model = _root_link(morph, name, m, c, I, [g])
+    model.validate()
+    return model
+
+
+def load_mesh(morph, material, name) -> EntityModel:
+    """gs.morphs.Mesh -> one link in the file's frame (scaled); its convex hull is both the
+    collision shape and the body whose uniform density gives mass and inertia."""
+    path = os.path.abspath(morph.file)
+    what = f"gs.morphs.Mesh(file='{path}') for entity '{name}'"
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what}: no such file; give a path to an existing mesh file")
+    V, F = load_mesh_file(path, what)
+    V, F = scale_mesh(V, F, morph.scale)
+    hull = convex_hull(V, what)
+    hull.density = float(material.rho)
+    g = GeomDesc(
+        type="mesh",
+        vertices=np.array(hull.vertices, dtype=np.float64),
+        faces=np.array(hull.faces, dtype=np.int64),
+    )
+    model = _root_link(morph, name, hull.mass, hull.center_mass, hull.moment_inertia, [g])
+    model.source = path
+    model.validate()
+    return model

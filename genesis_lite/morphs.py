@@ -1,0 +1,133 @@
+"""Morphs: what an entity looks like (its shape or source file) and where it starts."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+
+
+def _vec(name, owner, v, n):
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"gs.morphs.{owner}({name}={v!r}): expected {n} finite numbers")
+    return a
+
+
+def _positive(name, owner, v):
+    if not (isinstance(v, (int, float, np.floating)) and np.isfinite(v) and v > 0):
+        raise ValueError(f"gs.morphs.{owner}({name}={v!r}): must be a positive number (m)")
+    return float(v)
+
+
+@dataclass
+class Morph:
+    """pos (m) and quat (w, x, y, z) of the entity's base in the world; fixed welds the base to the
+    world, otherwise it is a free floating base."""
+
+    pos: Sequence[float] = (0.0, 0.0, 0.0)
+    quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0)
+    fixed: bool = False
+
+    def __post_init__(self):
+        owner = type(self).__name__
+        self.pos = _vec("pos", owner, self.pos, 3)
+        q = _vec("quat", owner, self.quat, 4)
+        n = np.linalg.norm(q)
+        if n < 1e-9:
+            raise ValueError(f"gs.morphs.{owner}(quat={self.quat!r}): a zero quaternion is no orientation")
+        self.quat = q / n
+        self._check()
+
+    def _check(self):
+        pass
+
+
+@dataclass
+class FileMorph(Morph):
+    file: str = ""
+    scale: float = 1.0
+
+    def _check(self):
+        owner = type(self).__name__
+        if not self.file:
+            raise ValueError(f"gs.morphs.{owner}: `file` is required")
+        self.file = os.fspath(self.file)
+        if not os.path.isfile(self.file):
+            raise FileNotFoundError(f"gs.morphs.{owner}(file={self.file!r}): no such file; give a path to an existing file")
+        _positive("scale", owner, self.scale)
+
+
+@dataclass
+class URDF(FileMorph):
+    """A robot from a URDF file. Joints named in `links_to_keep` are not merged even if fixed."""
+
+    merge_fixed_links: bool = True
+    requires_jac_and_IK: bool = False
+
+
+@dataclass
+class Mesh(FileMorph):
+    """A single rigid body from a mesh file (STL, OBJ, DAE, ...); collision uses its convex hull."""
+
+    pass
+
+
+@dataclass
+class Box(Morph):
+    """size: full edge lengths (m)."""
+
+    size: Sequence[float] = (1.0, 1.0, 1.0)
+
+    def _check(self):
+        self.size = _vec("size", "Box", self.size, 3)
+        for s in self.size:
+            _positive("size", "Box", s)
+
+
+@dataclass
+class Sphere(Morph):
+    radius: float = 0.5
+
+    def _check(self):
+        _positive("radius", "Sphere", self.radius)
+
+
+@dataclass
+class Capsule(Morph):
+    """radius and height (m) of the cylindrical part, axis along the body's z."""
+
+    radius: float = 0.1
+    height: float = 0.5
+
+    def _check(self):
+        _positive("radius", "Capsule", self.radius)
+        _positive("height", "Capsule", self.height)
+
+
+@dataclass
+class Cylinder(Morph):
+    """radius and height (m), axis along the body's z."""
+
+    radius: float = 0.1
+    height: float = 0.5
+
+    def _check(self):
+        _positive("radius", "Cylinder", self.radius)
+        _positive("height", "Cylinder", self.height)
+
+
+@dataclass
+class Plane(Morph):
+    """An infinite static ground plane through pos with the given normal."""
+
+    normal: Sequence[float] = (0.0, 0.0, 1.0)
+    fixed: bool = True
+
+    def _check(self):
+        n = _vec("normal", "Plane", self.normal, 3)
+        if np.linalg.norm(n) < 1e-9:
+            raise ValueError("gs.morphs.Plane(normal=...): the normal must be non-zero")
+        self.normal = n / np.linalg.norm(n)
+        self.fixed = True

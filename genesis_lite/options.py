@@ -1,0 +1,97 @@
+"""Validated option dataclasses: SimOptions, RigidOptions (the Genesis names and defaults)."""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, fields
+from typing import Optional, Tuple
+
+import numpy as np
+
+
+class integrator(enum.IntEnum):
+    """Time integrators of the rigid solver."""
+
+    Euler = 0          # semi-implicit (symplectic) Euler
+    implicitfast = 1   # semi-implicit Euler, implicit in joint damping and PD gains
+    RK4 = 2            # classic 4th-order Runge-Kutta on (q, v)
+
+
+class _Options:
+    def __post_init__(self):
+        self._validate()
+
+    def _validate(self):
+        pass
+
+    def _err(self, name, value, what):
+        raise ValueError(f"{type(self).__name__}.{name}={value!r}: {what}")
+
+    def copy(self, **kw):
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d.update(kw)
+        return type(self)(**d)
+
+
+@dataclass
+class SimOptions(_Options):
+    """dt (s) per scene.step(); substeps split each step; gravity (m/s^2, world frame);
+    requires_grad keeps per-step state so torch can backpropagate through the rollout;
+    checkpoint_every is how many steps the gradient buffer keeps in memory before it checkpoints
+    (memory stays bounded for any horizon; None keeps every step)."""
+
+    dt: float = 0.01
+    substeps: int = 1
+    gravity: Tuple[float, float, float] = (0.0, 0.0, -9.81)
+    requires_grad: bool = False
+    checkpoint_every: Optional[int] = None
+
+    def _validate(self):
+        if not (isinstance(self.dt, (int, float)) and np.isfinite(self.dt) and self.dt > 0):
+            self._err("dt", self.dt, "the time step must be a positive finite number of seconds")
+        if not (isinstance(self.substeps, int) and self.substeps >= 1):
+            self._err("substeps", self.substeps, "must be an integer >= 1")
+        g = np.asarray(self.gravity, dtype=float)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            self._err("gravity", self.gravity, "must be three finite numbers (m/s^2)")
+        self.gravity = tuple(float(x) for x in g)
+        if self.checkpoint_every is not None and not (isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1):
+            self._err("checkpoint_every", self.checkpoint_every, "must be None or an integer >= 1")
+
+    @property
+    def substep_dt(self) -> float:
+        return self.dt / self.substeps
+
+
+@dataclass
+class RigidOptions(_Options):
+    """integrator: gs.integrator.Euler | implicitfast | RK4. enable_collision / enable_joint_limit
+    switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
+    collide. contact_stiffness (N/m per contact) and contact_damping (N s/m) set the penalty model;
+    joint_limit_stiffness / joint_limit_damping the limit springs."""
+
+    integrator: integrator = integrator.implicitfast
+    enable_collision: bool = True
+    enable_joint_limit: bool = True
+    enable_self_collision: bool = False
+    contact_stiffness: float = 3e4
+    contact_damping: float = 1e2
+    joint_limit_stiffness: float = 1e4
+    joint_limit_damping: float = 1e2
+    check_nan: bool = True
+
+    def _validate(self):
+        try:
+            self.integrator = integrator(self.integrator)
+        except ValueError:
+            self._err("integrator", self.integrator, "use gs.integrator.Euler, implicitfast or RK4")
+        for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
+                self._err(name, v, "must be a finite number >= 0")
+
+
+@dataclass
+class ViewerOptions(_Options):
+    """Accepted for Genesis compatibility; genesis_lite is headless."""
+
+    pass

@@ -1,0 +1,305 @@
+"""The scene's side of the rigid solver: torch mirrors of state, controls and parameters, their
+upload to the solver's fields, and the gradient bridge (grad/functions.py) for rigid steps.
+
+Invariant: slot 0 of the solver's state fields holds the current state. With gradients, the
+current state is also a pair of torch tensors (qpos, qvel) in the autograd graph; controls and
+parameters are torch tensors whose values are uploaded to the fields before the next launch.
+"""
+from __future__ import annotations
+
+import numpy as np
+import taichi as ti
+import torch
+
+from solvers.rigid.solver import RigidSolver
+
+from .errors import GenesisException, SimulationNaNError
+from .grad.functions import OutputFunction, StepFunction, require_token
+
+# name -> (solver field, trailing shape, axis it is indexed by)
+PARAMS = {
+    "mass": ("link_mass", (), "link"),
+    "com": ("link_com", (3,), "link"),
+    "inertia": ("link_inertia", (3, 3), "link"),
+    "damping": ("dof_damping", (), "dof"),
+    "armature": ("dof_armature", (), "dof"),
+    "frictionloss": ("dof_frictionloss", (), "dof"),
+    "kp": ("dof_kp", (), "dof"),
+    "kv": ("dof_kv", (), "dof"),
+    "gravity": ("gravity", (3,), "env"),
+}
+CTRL = ("force", "pos", "vel")
+
+
+class RigidSim:
+    def __init__(self, scene, models, n_envs, sim_options, rigid_options):
+        import genesis_lite as gs
+
+        self.scene = scene
+        self.B = max(n_envs, 1)
+        self.dtype = gs.tc_float
+        self.device = gs.device
+        self.requires_grad = sim_options.requires_grad
+        self.solver = RigidSolver(models, self.B, sim_options.dt, sim_options.substeps, int(rigid_options.integrator),
+                                  sim_options.gravity, gs.ti_float, self.requires_grad,
+                                  rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
+                                  rigid_options.joint_limit_damping)
+        s = self.solver
+        self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
+        self.rollout_token = 0
+        self.step_count = 0
+        self._backward_done = False
+        # parameters: base values from the model, then the user's setter calls replayed on top
+        self.param_base = {k: self._field_to_torch(getattr(s, f)) for k, (f, _, _) in PARAMS.items()}
+        self.param_ops = {k: [] for k in PARAMS}
+        self.params = dict(self.param_base)
+        self.force_lo = self._field_to_torch(s.dof_force_lo)
+        self.force_hi = self._field_to_torch(s.dof_force_hi)
+        self._params_dirty = set()
+        self.reset_controls()
+        q0 = torch.as_tensor(s.np_qpos0, dtype=self.dtype, device=self.device).reshape(1, -1).repeat(self.B, 1)
+        self.init_state = (q0, torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device))
+        self.set_state(*self.init_state)
+        self._outputs = None
+
+    # ---------------------------------------------------------------- helpers
+    def _field_to_torch(self, field):
+        return field.to_torch(device=self.device).to(self.dtype)
+
+    def _c(self, t):
+        return t.detach().to(self.dtype).contiguous()
+
+    def grad_tracking(self):
+        """True when this step must be recorded for torch (something upstream requires grad)."""
+        if not (self.requires_grad and torch.is_grad_enabled()):
+            return False
+        if self.qpos.requires_grad or self.qvel.requires_grad:
+            return True
+        if any(self.ctrl[k].requires_grad for k in CTRL):
+            return True
+        return any(p.requires_grad for p in self.params.values())
+
+    # ---------------------------------------------------------------- state
+    def set_state(self, qpos, qvel):
+        self.qpos, self.qvel = qpos, qvel
+        self._state_on_device = False
+        self._outputs = None
+
+    def get_state(self):
+        if self.qpos is None:
+            q = torch.empty(self.B, self.n_qs, dtype=self.dtype, device=self.device)
+            v = torch.empty(self.B, self.n_dofs, dtype=self.dtype, device=self.device)
+            if self.n_qs or self.n_dofs:
+                self.solver.kernel_get_state(0, q, v)
+            self.qpos, self.qvel = q, v
+        return self.qpos, self.qvel
+
+    def _upload(self):
+        s = self.solver
+        if not self._state_on_device:
+            q, v = self.get_state()
+            if self.n_qs or self.n_dofs:
+                s.kernel_set_state(0, self._c(q), self._c(v))
+            self._state_on_device = True
+        if self._ctrl_dirty:
+            if self.n_dofs:
+                s.kernel_set_ctrl(self._c(self.ctrl["force"]), self._c(self.ctrl["pos"]), self._c(self.ctrl["vel"]),
+                                  self.ctrl_mode)
+            self._ctrl_dirty = False
+        for k in self._params_dirty:
+            getattr(s, PARAMS[k][0]).from_torch(self._c(self.params[k]))
+        self._params_dirty = set()
+
+    # ---------------------------------------------------------------- controls and parameters
+    def reset_controls(self):
+        z = lambda: torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device)  # noqa: E731
+        self.ctrl = {k: z() for k in CTRL}
+        self.ctrl_mode = torch.zeros(self.B, self.n_dofs, dtype=torch.int32, device=self.device)
+        self._ctrl_dirty = True
+
+    def set_ctrl(self, kind, values, envs, idx, mode):
+        self.ctrl[kind] = _index_put(self.ctrl[kind], envs, idx, values)
+        if mode is not None:
+            self.ctrl_mode = self.ctrl_mode.clone()
+            self.ctrl_mode[envs[:, None], idx[None, :]] = mode
+        self._ctrl_dirty = True
+
+    def set_param(self, name, values, envs, idx):
+        self.param_ops[name].append((values, envs, idx))
+        self.params[name] = _index_put(self.params[name], envs, idx, values)
+        self._params_dirty.add(name)
+
+    def rebuild_params(self):
+        """A new rollout: parameter tensors are recomposed from the user's setter calls so a leaf
+        parameter keeps receiving gradients epoch after epoch."""
+        for name, ops in self.param_ops.items():
+            if not ops:
+                continue
+            p = self.param_base[name]
+            for values, envs, idx in ops:
+                p = _index_put(p, envs, idx, values)
+            self.params[name] = p
+            self._params_dirty.add(name)
+
+    def set_force_range(self, lo, hi, envs, idx):
+        self.force_lo = _index_put(self.force_lo, envs, idx, lo.detach())
+        self.force_hi = _index_put(self.force_hi, envs, idx, hi.detach())
+        self.solver.dof_force_lo.from_torch(self._c(self.force_lo))
+        self.solver.dof_force_hi.from_torch(self._c(self.force_hi))
+
+    # ---------------------------------------------------------------- stepping
+    def step(self):
+        if self._backward_done:
+            raise GenesisException("scene.step() after loss.backward(): this rollout's gradient buffers have been "
+                                   "consumed. Call scene.reset() to start a new rollout.")
+        self._upload()
+        if self.grad_tracking():
+            inputs = [self.qpos, self.qvel] + [self.ctrl[k] for k in CTRL] + [self.params[k] for k in PARAMS]
+            q, v = StepFunction.apply(self, *inputs)
+            self.qpos, self.qvel = q, v
+            self._state_on_device = True
+        else:
+            self.solver.step()
+            self.qpos = self.qvel = None
+        self.step_count += 1
+        self._outputs = None
+
+    def check_finite(self, entities):
+        """Raise SimulationNaNError naming the entity, the quantity and the step if the state is not finite."""
+        q, v = self.get_state()
+        for name, x in (("qpos", q), ("qvel", v)):
+            bad = ~torch.isfinite(x.detach())
+            if bad.any():
+                i_b, i = [int(a) for a in torch.nonzero(bad)[0]]
+                ent, local = _entity_of(entities, i, name)
+                raise SimulationNaNError(
+                    f"entity '{ent.name}': {name}[{local}] became {x[i_b, i].item()} at step {self.step_count}"
+                    f"{f' in env {i_b}' if self.scene.n_envs else ''}. The simulation diverged: reduce dt or raise "
+                    "substeps, lower gains/stiffness, or check the inputs set before this step.")
+
+    # ---------------------------------------------------------------- gradient bridge (rigid side)
+    def check_token(self, token, what):
+        require_token(self.rollout_token, token, what)
+        self._backward_done = True
+
+    def step_context(self):
+        return self.ctrl_mode
+
+    def forward_step(self):
+        s = self.solver
+        s.run_ops()
+        q = torch.empty(self.B, self.n_qs, dtype=self.dtype, device=self.device)
+        v = torch.empty(self.B, self.n_dofs, dtype=self.dtype, device=self.device)
+        s.kernel_get_state(0, q, v)
+        return q, v
+
+    def _zeros_like_state(self):
+        return (torch.zeros(self.B, self.n_qs, dtype=self.dtype, device=self.device),
+                torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device))
+
+    def _replay_inputs(self, qpos, qvel, ctrl=None, mode=None, params=None):
+        s = self.solver
+        s.kernel_clear_grads()
+        s.kernel_set_state(0, self._c(qpos), self._c(qvel))
+        if ctrl is not None:
+            s.kernel_set_ctrl(*[self._c(c) for c in ctrl], mode)
+            self._ctrl_dirty = True
+        if params is not None:
+            for k, p in zip(PARAMS, params):
+                getattr(s, PARAMS[k][0]).from_torch(self._c(p))
+                self._params_dirty.add(k)
+        self._state_on_device = False
+        self._outputs = None
+
+    def backward_step(self, saved, mode, grads, needs):
+        s = self.solver
+        qpos, qvel = saved[0], saved[1]
+        ctrl = saved[2:5]
+        params = saved[5:]
+        self._replay_inputs(qpos, qvel, ctrl, mode, params)
+        gq, gv = grads
+        zq, zv = self._zeros_like_state()
+        s.kernel_seed_state_grad(s.last_slot, self._c(gq) if gq is not None else zq, self._c(gv) if gv is not None else zv)
+        s.backward_ops()
+        out = []
+        gq0, gv0 = self._zeros_like_state()
+        s.kernel_get_state_grad(0, gq0, gv0)
+        out += [gq0 if needs[0] else None, gv0 if needs[1] else None]
+        if any(needs[2:5]):
+            gc = [torch.empty(self.B, self.n_dofs, dtype=self.dtype, device=self.device) for _ in CTRL]
+            s.kernel_get_ctrl_grad(*gc)
+            out += [g if n else None for g, n in zip(gc, needs[2:5])]
+        else:
+            out += [None] * 3
+        for k, n in zip(PARAMS, needs[5:]):
+            out.append(getattr(s, PARAMS[k][0]).grad.to_torch(device=self.device).to(self.dtype) if n else None)
+        _raise_if_nan_grad(out, self.step_count)
+        return out
+
+    def outputs(self):
+        """(links pos, quat, vel, ang) at the current state, each (B, n_links, 3 or 4)."""
+        if self._outputs is None:
+            self._upload()
+            s = self.solver
+            s.kernel_kinematics(0)
+            L = self.n_links
+            o = [torch.empty(self.B, L, k, dtype=self.dtype, device=self.device) for k in (3, 4, 3, 3)]
+            s.kernel_link_outputs(*o)
+            self._outputs = tuple(o)
+        return self._outputs
+
+    def link_outputs(self):
+        q, v = self.get_state()
+        if self.requires_grad and torch.is_grad_enabled() and (q.requires_grad or v.requires_grad):
+            out = OutputFunction.apply(self, q, v)
+            self._outputs = tuple(o.detach() for o in out)
+            return out
+        return self.outputs()
+
+    def backward_outputs(self, saved, grads):
+        s = self.solver
+        self._replay_inputs(saved[0], saved[1])
+        s.kernel_kinematics(0)
+        L = self.n_links
+        g = [self._c(x) if x is not None else torch.zeros(self.B, L, k, dtype=self.dtype, device=self.device)
+             for x, k in zip(grads, (3, 4, 3, 3))]
+        s.kernel_seed_link_grad(*g)
+        s.kernel_kinematics.grad(0)
+        gq, gv = self._zeros_like_state()
+        s.kernel_get_state_grad(0, gq, gv)
+        _raise_if_nan_grad([gq, gv], self.step_count)
+        return gq, gv
+
+    # ---------------------------------------------------------------- rollouts
+    def new_rollout(self, qpos, qvel):
+        self.rollout_token += 1
+        self._backward_done = False
+        self.step_count = 0
+        self.reset_controls()
+        self.rebuild_params()
+        self.set_state(qpos, qvel)
+
+
+def _index_put(base, envs, idx, values):
+    """base with base[envs][:, idx] = values, out of place (differentiable in base and values)."""
+    values = values.to(base.dtype)
+    out = base.clone()
+    out[envs[:, None], idx[None, :]] = values.reshape((len(envs), len(idx)) + base.shape[2:])
+    return out
+
+
+def _raise_if_nan_grad(grads, step):
+    for g in grads:
+        if g is not None and not torch.isfinite(g).all():
+            raise SimulationNaNError(
+                f"a gradient became NaN or infinite in the backward pass of step {step}: the rollout is not "
+                "differentiable there (a diverging state, a singular pose, or a saturated quantity). Shorten the "
+                "horizon, reduce dt, or check the loss.")
+
+
+def _entity_of(entities, i, name):
+    for ent in entities:
+        start, n = (ent._q_start, ent.n_qs) if name == "qpos" else (ent._dof_start, ent.n_dofs)
+        if start <= i < start + n:
+            return ent, i - start
+    return entities[0], i

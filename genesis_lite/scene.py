@@ -1,0 +1,177 @@
+"""Scene: holds entities, decides which solvers exist, and advances them together."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import List, Optional
+
+import numpy as np
+import torch
+
+from . import materials as gmat
+from . import morphs as gm
+from .errors import GenesisException
+from .options import RigidOptions, SimOptions
+
+
+@dataclass
+class SimState:
+    """A snapshot of the scene's state (detached tensors), for scene.reset(state)."""
+
+    qpos: torch.Tensor
+    qvel: torch.Tensor
+    step: int
+
+
+class Scene:
+    """A simulated world: add entities, build(), then step(). Options are validated dataclasses from
+    gs.options; `requires_grad=True` in SimOptions makes every getter part of torch's graph."""
+
+    def __init__(self, sim_options: Optional[SimOptions] = None, rigid_options: Optional[RigidOptions] = None,
+                 viewer_options=None, show_viewer: bool = False, **kwargs):
+        import genesis_lite as gs
+
+        gs._assert_initialized()
+        self.sim_options = sim_options if sim_options is not None else SimOptions()
+        self.rigid_options = rigid_options if rigid_options is not None else RigidOptions()
+        if not isinstance(self.sim_options, SimOptions):
+            raise TypeError(f"sim_options must be gs.options.SimOptions, got {type(self.sim_options).__name__}")
+        if not isinstance(self.rigid_options, RigidOptions):
+            raise TypeError(f"rigid_options must be gs.options.RigidOptions, got {type(self.rigid_options).__name__}")
+        unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options"}
+        if unknown:
+            raise TypeError(f"gs.Scene got unexpected arguments {sorted(unknown)}")
+        self.entities: List = []
+        self._built = False
+        self._rigid = None
+        self.n_envs = 0
+
+    # ---------------------------------------------------------------- construction
+    @property
+    def is_built(self):
+        return self._built
+
+    @property
+    def dt(self):
+        return self.sim_options.dt
+
+    @property
+    def t(self):
+        """Steps taken since the last reset."""
+        return self._rigid.step_count if self._rigid is not None else 0
+
+    @property
+    def rigid_solver(self):
+        return self._rigid.solver if self._rigid is not None else None
+
+    def add_entity(self, morph, material=None, surface=None, visualize_contact=False, name=None):
+        """Add a rigid entity described by `morph` (gs.morphs.*) made of `material` (gs.materials.Rigid)."""
+        from .entities.rigid_entity import RigidEntity
+        from .loaders import load_morph
+
+        if self._built:
+            raise GenesisException("scene.add_entity() after scene.build(): add every entity before building")
+        if not isinstance(morph, gm.Morph):
+            raise TypeError(f"add_entity expects a gs.morphs.* instance, got {type(morph).__name__}")
+        material = material if material is not None else gmat.Rigid()
+        if not isinstance(material, gmat.Rigid):
+            raise TypeError(f"add_entity: material must be gs.materials.Rigid, got {type(material).__name__}")
+        if name is None:
+            stem = os.path.splitext(os.path.basename(morph.file))[0] if isinstance(morph, gm.FileMorph) else type(morph).__name__.lower()
+            name = f"{stem}_{len(self.entities)}"
+        model = load_morph(morph, material, name)
+        model.validate()
+        ent = RigidEntity(self, len(self.entities), model, morph, material)
+        self.entities.append(ent)
+        return ent
+
+    def build(self, n_envs: int = 0, env_spacing=None, **kwargs):
+        """Allocate the solvers' fields for `n_envs` parallel environments (0: unbatched) and compile."""
+        from .rigid_sim import RigidSim
+
+        if self._built:
+            raise GenesisException("scene.build() called twice: a scene is built once; create a new gs.Scene")
+        if not (isinstance(n_envs, (int, np.integer)) and n_envs >= 0):
+            raise ValueError(f"scene.build(n_envs={n_envs!r}): n_envs must be an integer >= 0")
+        self.n_envs = int(n_envs)
+        ls = qs = ds = 0
+        for e in self.entities:
+            e._on_build(ls, qs, ds)
+            ls, qs, ds = ls + e.n_links, qs + e.n_qs, ds + e.n_dofs
+        self._rigid = RigidSim(self, [e.model for e in self.entities], self.n_envs, self.sim_options, self.rigid_options)
+        self._built = True
+        self._init_state = self.get_state()
+
+    # ---------------------------------------------------------------- running
+    def _sim(self, what):
+        if not self._built:
+            raise GenesisException(f"scene.{what}() before scene.build(): call scene.build() first")
+        return self._rigid
+
+    def step(self):
+        """Advance every solver by sim_options.dt."""
+        sim = self._sim("step")
+        sim.step()
+        if self.rigid_options.check_nan and (sim.requires_grad or sim.step_count % 16 == 0):
+            sim.check_finite(self.entities)
+
+    def get_state(self) -> SimState:
+        q, v = self._sim("get_state").get_state()
+        return SimState(q.detach().clone(), v.detach().clone(), self._rigid.step_count)
+
+    def reset(self, state: Optional[SimState] = None):
+        """Return to the state right after build() (or to `state` from get_state()). Controls are
+        cleared; parameters set with setters are kept. Starts a new rollout for gradients."""
+        sim = self._sim("reset")
+        state = state if state is not None else self._init_state
+        if not isinstance(state, SimState):
+            raise TypeError("scene.reset(state): state must come from scene.get_state()")
+        sim.new_rollout(state.qpos.clone(), state.qvel.clone())
+
+    def set_gravity(self, gravity, envs_idx=None):
+        """Gravity (m/s^2, world frame); differentiable."""
+        sim = self._sim("set_gravity")
+        ent = _SceneParams(self)
+        envs = ent._envs(envs_idx)
+        vals = ent._values(gravity, envs, 3, "gravity")
+        sim.set_param("gravity", vals, envs, torch.arange(3, device=vals.device))
+
+    # ---------------------------------------------------------------- solver-wide reads used by entities
+    def _mass_matrix(self):
+        sim = self._rigid
+        sim._upload()
+        s = sim.solver
+        s.kernel_mass_matrix(0)
+        M = s.mass_mat.to_torch(device=sim.device).to(sim.dtype)
+        low = torch.tril(M)
+        return low + low.transpose(-1, -2) - torch.diag_embed(torch.diagonal(M, dim1=-2, dim2=-1))
+
+    def _dofs_acc(self):
+        s = self._rigid.solver
+        a = s.qacc.to_torch(device=self._rigid.device).to(self._rigid.dtype)
+        if s.integrator == 2:
+            return (a[-4] + 2 * a[-3] + 2 * a[-2] + a[-1]) / 6.0
+        return a[-1]
+
+    def _dofs_force(self):
+        s = self._rigid.solver
+        return s.dof_tau.to_torch(device=self._rigid.device).to(self._rigid.dtype)
+
+
+class _SceneParams:
+    """Index/value validation for scene-level setters, sharing RigidEntity's rules."""
+
+    def __init__(self, scene):
+        from .entities.rigid_entity import RigidEntity
+
+        self._scene = scene
+        self.name = "scene"
+        self._envs = RigidEntity._envs.__get__(self)
+        self._values = RigidEntity._values.__get__(self)
+        self._idx = RigidEntity._idx.__get__(self)
+
+    @property
+    def _device(self):
+        import genesis_lite as gs
+
+        return gs.device

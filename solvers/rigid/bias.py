@@ -1,0 +1,51 @@
+"""Stage 3, bias forces: Coriolis, centrifugal and gravity by recursive Newton-Euler (qacc = 0)."""
+import taichi as ti
+
+from .math3d import func_cross_force, func_inertia_mul
+
+
+@ti.func
+def func_link_forces(s: ti.template(), i_b, e, src, h):
+    """Link accelerations with qacc = 0 (gravity as an upward world acceleration) and the forces they need."""
+    for i_l in range(s.n_links):
+        p = s.link_parent[i_l]
+        aw = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+        av = -s.gravity[i_b]
+        if p >= 0:
+            aw = s.cacc_w[i_b, p]
+            av = s.cacc_v[i_b, p]
+        d0 = s.link_dof_start[i_l]
+        for k in ti.static(range(6)):
+            if k < s.link_ndof[i_l]:
+                qd = s.qvel[src, i_b, d0 + k]
+                aw = aw + s.cdofd_w[i_b, d0 + k] * qd
+                av = av + s.cdofd_v[i_b, d0 + k] * qd
+        s.cacc_w[i_b, i_l] = aw
+        s.cacc_v[i_b, i_l] = av
+        m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]
+        n, f = func_inertia_mul(m, mc, J, aw, av)
+        wv, vv = s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l]
+        hn, hf = func_inertia_mul(m, mc, J, wv, vv)
+        cn, cf = func_cross_force(wv, vv, hn, hf)
+        s.cfrc_n[i_b, i_l] = n + cn
+        s.cfrc_f[i_b, i_l] = f + cf
+
+
+@ti.func
+def func_accumulate_forces(s: ti.template(), i_b, e, src, h):
+    for k in range(s.n_links):
+        i_l = s.n_links - 1 - k
+        p = s.link_parent[i_l]
+        if p >= 0:
+            s.cfrc_n[i_b, p] += s.cfrc_n[i_b, i_l]
+            s.cfrc_f[i_b, p] += s.cfrc_f[i_b, i_l]
+
+
+@ti.func
+def func_project_forces(s: ti.template(), i_b, e, src, h):
+    for i_d in range(s.n_dofs):
+        i_l = s.dof_link[i_d]
+        s.bias[i_b, i_d] = s.cdof_w[i_b, i_d].dot(s.cfrc_n[i_b, i_l]) + s.cdof_v[i_b, i_d].dot(s.cfrc_f[i_b, i_l])
+
+
+BIAS = (func_link_forces, func_accumulate_forces, func_project_forces)

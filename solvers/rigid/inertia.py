@@ -1,0 +1,109 @@
+"""Stage 2, inertia: composite rigid bodies -> joint-space mass matrix M, and its tree-sparse
+L^T D L factorisation (Featherstone) used to solve M qacc = force.
+
+The factorisation and solve are not differentiated by Taichi (their loops are too deep for its
+reverse mode); their adjoint is written out in `func_solve_grad`: for qacc = M^-1 f,
+f_bar = M^-1 qacc_bar and M_bar = -f_bar qacc^T.
+"""
+import taichi as ti
+
+from .math3d import func_inertia_mul
+
+
+@ti.func
+def func_link_inertia(s: ti.template(), i_b, e, src, h):
+    for i_l in range(s.n_links):
+        s.crb_m[i_b, i_l] = s.link_mass[i_b, i_l]
+        s.crb_h[i_b, i_l] = s.link_h[i_b, i_l]
+        s.crb_J[i_b, i_l] = s.link_J[i_b, i_l]
+
+
+@ti.func
+def func_composite_inertia(s: ti.template(), i_b, e, src, h):
+    for k in range(s.n_links):
+        i_l = s.n_links - 1 - k
+        p = s.link_parent[i_l]
+        if p >= 0:
+            s.crb_m[i_b, p] += s.crb_m[i_b, i_l]
+            s.crb_h[i_b, p] += s.crb_h[i_b, i_l]
+            s.crb_J[i_b, p] += s.crb_J[i_b, i_l]
+
+
+@ti.func
+def func_mass_matrix(s: ti.template(), i_b, e, src, h):
+    """Lower triangle M[i, j] (j an ancestor-or-self of i); other entries are never read."""
+    for ij in range(s.n_dofs * s.n_dofs):
+        i = ij // s.n_dofs
+        j = ij % s.n_dofs
+        if s.dof_anc[i, j] == 1:
+            i_l = s.dof_link[i]
+            n, f = func_inertia_mul(s.crb_m[i_b, i_l], s.crb_h[i_b, i_l], s.crb_J[i_b, i_l], s.cdof_w[i_b, i], s.cdof_v[i_b, i])
+            s.mass_mat[i_b, i, j] = s.cdof_w[i_b, j].dot(n) + s.cdof_v[i_b, j].dot(f)
+
+
+@ti.func
+def func_factor(s: ti.template(), i_b):
+    """In-place L^T D L of the (regularised) mass matrix into mass_fac; sparsity of the dof tree."""
+    n = s.n_dofs
+    for i in range(n):
+        for j in range(i + 1):
+            s.mass_fac[i_b, i, j] = s.mass_mat[i_b, i, j]
+    for kk in range(n):
+        k = n - 1 - kk
+        i = s.dof_parent[k]
+        while i >= 0:
+            a = s.mass_fac[i_b, k, i] / s.mass_fac[i_b, k, k]
+            j = i
+            while j >= 0:
+                s.mass_fac[i_b, i, j] -= a * s.mass_fac[i_b, k, j]
+                j = s.dof_parent[j]
+            s.mass_fac[i_b, k, i] = a
+            i = s.dof_parent[i]
+
+
+@ti.func
+def func_solve(s: ti.template(), i_b, x: ti.template(), e):
+    """x[e, i_b, :] <- M^-1 x[e, i_b, :] using the factor in mass_fac."""
+    n = s.n_dofs
+    for kk in range(n):
+        i = n - 1 - kk
+        j = s.dof_parent[i]
+        while j >= 0:
+            x[e, i_b, j] -= s.mass_fac[i_b, i, j] * x[e, i_b, i]
+            j = s.dof_parent[j]
+    for i in range(n):
+        x[e, i_b, i] /= s.mass_fac[i_b, i, i]
+    for i in range(n):
+        j = s.dof_parent[i]
+        while j >= 0:
+            x[e, i_b, i] -= s.mass_fac[i_b, i, j] * x[e, i_b, j]
+            j = s.dof_parent[j]
+
+
+@ti.func
+def func_factor_solve(s: ti.template(), i_b, e):
+    func_factor(s, i_b)
+    for i in range(s.n_dofs):
+        s.qacc[e, i_b, i] = s.force[i_b, i]
+    func_solve(s, i_b, s.qacc, e)
+
+
+@ti.func
+def func_solve_grad(s: ti.template(), i_b, e):
+    """Adjoint of qacc[e] = M^-1 force, with the factor of that evaluation still in mass_fac."""
+    for i in range(s.n_dofs):
+        s.solve_tmp[0, i_b, i] = s.qacc.grad[e, i_b, i]
+    func_solve(s, i_b, s.solve_tmp, 0)
+    for i in range(s.n_dofs):
+        s.force.grad[i_b, i] += s.solve_tmp[0, i_b, i]
+    for ij in range(s.n_dofs * s.n_dofs):
+        i = ij // s.n_dofs
+        j = ij % s.n_dofs
+        if s.dof_anc[i, j] == 1:
+            g = s.solve_tmp[0, i_b, i] * s.qacc[e, i_b, j]
+            if i != j:
+                g += s.solve_tmp[0, i_b, j] * s.qacc[e, i_b, i]
+            s.mass_mat.grad[i_b, i, j] -= g
+
+
+INERTIA = (func_link_inertia, func_composite_inertia, func_mass_matrix)

@@ -1,0 +1,76 @@
+"""Small rotation and spatial-algebra helpers shared by the rigid stages (Taichi functions).
+
+Spatial vectors are pairs of 3-vectors expressed in the world frame about the world origin:
+motion (w, v) and force (n, f), as in MuJoCo's com-based formulation.
+"""
+import taichi as ti
+
+
+@ti.func
+def func_quat_mul(a, b):
+    return ti.Vector([
+        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+    ])
+
+
+@ti.func
+def func_quat_to_R(q):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return ti.Matrix([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+@ti.func
+def func_axis_angle_quat(axis, angle):
+    h = 0.5 * angle
+    s = ti.sin(h)
+    return ti.Vector([ti.cos(h), axis[0] * s, axis[1] * s, axis[2] * s])
+
+
+@ti.func
+def func_rotvec_quat(w, dt):
+    """Quaternion of the rotation by angular velocity w over dt (exp map), smooth at w = 0.
+
+    The half angle h enters only through h^2 below the threshold, so the gradient stays finite there.
+    """
+    h2 = 0.25 * dt * dt * w.dot(w)
+    c = 1.0 - h2 / 2.0 + h2 * h2 / 24.0
+    sinc = 1.0 - h2 / 6.0 + h2 * h2 / 120.0
+    if h2 > 1e-6:
+        h = ti.sqrt(ti.max(h2, 1e-12))
+        c = ti.cos(h)
+        sinc = ti.sin(h) / h
+    k = 0.5 * dt * sinc
+    return ti.Vector([c, k * w[0], k * w[1], k * w[2]])
+
+
+@ti.func
+def func_normalize_quat(q):
+    return q / ti.sqrt(q.dot(q))
+
+
+@ti.func
+def func_cross_motion(aw, av, bw, bv):
+    """Spatial motion cross product (a x b) for motion vectors (w, v)."""
+    return aw.cross(bw), aw.cross(bv) + av.cross(bw)
+
+
+@ti.func
+def func_cross_force(aw, av, n, f):
+    """Spatial force cross product (a x* f) for motion a = (w, v) and force (n, f)."""
+    return aw.cross(n) + av.cross(f), aw.cross(f)
+
+
+@ti.func
+def func_inertia_mul(m, h, J, w, v):
+    """Spatial inertia (mass m, first moment h = m c, rotational inertia J about the origin) times
+    motion (w, v): returns the force pair (n, f)."""
+    f = m * v + w.cross(h)
+    n = J @ w + h.cross(v)
+    return n, f
