@@ -28,7 +28,7 @@ PARAMS = {
     "kv": ("dof_kv", (), "dof"),
     "gravity": ("gravity", (3,), "env"),
 }
-CTRL = ("force", "pos", "vel")
+CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dofs)
 
 
 class RigidSim:
@@ -53,6 +53,7 @@ class RigidSim:
         self.param_base = {k: self._field_to_torch(getattr(s, f)) for k, (f, _, _) in PARAMS.items()}
         self.param_ops = {k: [] for k in PARAMS}
         self.params = dict(self.param_base)
+        self._loaded_params = dict(self.params)  # the tensors whose values are in the fields now
         self.force_lo = self._field_to_torch(s.dof_force_lo)
         self.force_hi = self._field_to_torch(s.dof_force_hi)
         self._params_dirty = set()
@@ -75,7 +76,7 @@ class RigidSim:
             return False
         if self.qpos.requires_grad or self.qvel.requires_grad:
             return True
-        if any(self.ctrl[k].requires_grad for k in CTRL):
+        if self.ctrl.requires_grad:
             return True
         return any(p.requires_grad for p in self.params.values())
 
@@ -87,41 +88,61 @@ class RigidSim:
 
     def get_state(self):
         if self.qpos is None:
-            q = torch.empty(self.B, self.n_qs, dtype=self.dtype, device=self.device)
-            v = torch.empty(self.B, self.n_dofs, dtype=self.dtype, device=self.device)
-            if self.n_qs or self.n_dofs:
-                self.solver.kernel_get_state(0, q, v)
-            self.qpos, self.qvel = q, v
+            self.qpos, self.qvel = self._split(self._read_state(0))
         return self.qpos, self.qvel
+
+    def _read_state(self, slot):
+        x = torch.empty(self.B, self.n_qs + self.n_dofs, dtype=self.dtype, device=self.device)
+        if self.n_qs + self.n_dofs:
+            self.solver.kernel_get_state(slot, x)
+        return x
+
+    def _split(self, x):
+        return x[:, : self.n_qs], x[:, self.n_qs:]
+
+    def _write_state(self, q, v):
+        if self.n_qs + self.n_dofs:
+            self.solver.kernel_set_state(0, self._c(torch.cat([q, v], -1)))
 
     def _upload(self):
         s = self.solver
         if not self._state_on_device:
-            q, v = self.get_state()
-            if self.n_qs or self.n_dofs:
-                s.kernel_set_state(0, self._c(q), self._c(v))
+            self._write_state(*self.get_state())
             self._state_on_device = True
         if self._ctrl_dirty:
-            if self.n_dofs:
-                s.kernel_set_ctrl(self._c(self.ctrl["force"]), self._c(self.ctrl["pos"]), self._c(self.ctrl["vel"]),
-                                  self.ctrl_mode)
+            self._load_ctrl(self.ctrl, self.ctrl_mode)
             self._ctrl_dirty = False
         for k in self._params_dirty:
-            getattr(s, PARAMS[k][0]).from_torch(self._c(self.params[k]))
+            if self._loaded_params.get(k) is not self.params[k]:
+                getattr(s, PARAMS[k][0]).from_torch(self._c(self.params[k]))
+                self._loaded_params[k] = self.params[k]
         self._params_dirty = set()
 
     # ---------------------------------------------------------------- controls and parameters
     def reset_controls(self):
-        z = lambda: torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device)  # noqa: E731
-        self.ctrl = {k: z() for k in CTRL}
+        self.ctrl = torch.zeros(self.B, 3, self.n_dofs, dtype=self.dtype, device=self.device)
         self.ctrl_mode = torch.zeros(self.B, self.n_dofs, dtype=torch.int32, device=self.device)
+        self._loaded_mode = None
         self._ctrl_dirty = True
 
+    def _load_ctrl(self, ctrl, mode):
+        if not self.n_dofs:
+            return
+        self.solver.kernel_set_ctrl(self._c(ctrl))
+        if self._loaded_mode is not mode:
+            self.solver.kernel_set_ctrl_mode(mode)
+            self._loaded_mode = mode
+
     def set_ctrl(self, kind, values, envs, idx, mode):
-        self.ctrl[kind] = _index_put(self.ctrl[kind], envs, idx, values)
+        row = CTRL.index(kind)
+        out = self.ctrl.clone()
+        out[envs[:, None], row, idx[None, :]] = values.to(self.dtype).reshape(len(envs), len(idx))
+        self.ctrl = out
         if mode is not None:
-            self.ctrl_mode = self.ctrl_mode.clone()
-            self.ctrl_mode[envs[:, None], idx[None, :]] = mode
+            m = self.ctrl_mode.clone()
+            m[envs[:, None], idx[None, :]] = mode
+            if not torch.equal(m, self.ctrl_mode):
+                self.ctrl_mode = m
         self._ctrl_dirty = True
 
     def set_param(self, name, values, envs, idx):
@@ -154,9 +175,8 @@ class RigidSim:
                                    "consumed. Call scene.reset() to start a new rollout.")
         self._upload()
         if self.grad_tracking():
-            inputs = [self.qpos, self.qvel] + [self.ctrl[k] for k in CTRL] + [self.params[k] for k in PARAMS]
-            q, v = StepFunction.apply(self, *inputs)
-            self.qpos, self.qvel = q, v
+            inputs = [self.qpos, self.qvel, self.ctrl] + [self.params[k] for k in PARAMS]
+            self.qpos, self.qvel = self._split(StepFunction.apply(self, *inputs))
             self._state_on_device = True
         else:
             self.solver.step()
@@ -186,53 +206,48 @@ class RigidSim:
         return self.ctrl_mode
 
     def forward_step(self):
-        s = self.solver
-        s.run_ops()
-        q = torch.empty(self.B, self.n_qs, dtype=self.dtype, device=self.device)
-        v = torch.empty(self.B, self.n_dofs, dtype=self.dtype, device=self.device)
-        s.kernel_get_state(0, q, v)
-        return q, v
-
-    def _zeros_like_state(self):
-        return (torch.zeros(self.B, self.n_qs, dtype=self.dtype, device=self.device),
-                torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device))
+        self.solver.run_ops()
+        return self._read_state(self.solver.last_slot)
 
     def _replay_inputs(self, qpos, qvel, ctrl=None, mode=None, params=None):
         s = self.solver
         s.kernel_clear_grads()
-        s.kernel_set_state(0, self._c(qpos), self._c(qvel))
+        self._write_state(qpos, qvel)
         if ctrl is not None:
-            s.kernel_set_ctrl(*[self._c(c) for c in ctrl], mode)
+            self._load_ctrl(ctrl, mode)
             self._ctrl_dirty = True
         if params is not None:
             for k, p in zip(PARAMS, params):
-                getattr(s, PARAMS[k][0]).from_torch(self._c(p))
-                self._params_dirty.add(k)
+                if self._loaded_params.get(k) is not p:
+                    getattr(s, PARAMS[k][0]).from_torch(self._c(p))
+                    self._loaded_params[k] = p
+                    self._params_dirty.add(k)
         self._state_on_device = False
         self._outputs = None
 
     def backward_step(self, saved, mode, grads, needs):
+        """Gradients of one step's inputs (qpos, qvel, ctrl, *params) given the gradient of its
+        packed output state."""
         s = self.solver
-        qpos, qvel = saved[0], saved[1]
-        ctrl = saved[2:5]
-        params = saved[5:]
+        qpos, qvel, ctrl, params = saved[0], saved[1], saved[2], saved[3:]
         self._replay_inputs(qpos, qvel, ctrl, mode, params)
-        gq, gv = grads
-        zq, zv = self._zeros_like_state()
-        s.kernel_seed_state_grad(s.last_slot, self._c(gq) if gq is not None else zq, self._c(gv) if gv is not None else zv)
+        (gx,) = grads
+        if gx is None:
+            gx = torch.zeros(self.B, self.n_qs + self.n_dofs, dtype=self.dtype, device=self.device)
+        s.kernel_seed_state_grad(s.last_slot, self._c(gx))
         s.backward_ops()
-        out = []
-        gq0, gv0 = self._zeros_like_state()
-        s.kernel_get_state_grad(0, gq0, gv0)
-        out += [gq0 if needs[0] else None, gv0 if needs[1] else None]
-        if any(needs[2:5]):
-            gc = [torch.empty(self.B, self.n_dofs, dtype=self.dtype, device=self.device) for _ in CTRL]
-            s.kernel_get_ctrl_grad(*gc)
-            out += [g if n else None for g, n in zip(gc, needs[2:5])]
-        else:
-            out += [None] * 3
-        for k, n in zip(PARAMS, needs[5:]):
-            out.append(getattr(s, PARAMS[k][0]).grad.to_torch(device=self.device).to(self.dtype) if n else None)
+        nx = self.n_qs + self.n_dofs
+        g = torch.empty(self.B, nx + 3 * self.n_dofs, dtype=self.dtype, device=self.device)
+        s.kernel_get_grads(g)
+        out = [g[:, : self.n_qs] if needs[0] else None, g[:, self.n_qs: nx] if needs[1] else None,
+               g[:, nx:].reshape(self.B, 3, self.n_dofs) if needs[2] else None]
+        for k, n in zip(PARAMS, needs[3:]):
+            if n:
+                pg = torch.empty_like(self.params[k], dtype=self.dtype)
+                s.get_param_grad(getattr(s, PARAMS[k][0]), pg)
+                out.append(pg)
+            else:
+                out.append(None)
         _raise_if_nan_grad(out, self.step_count)
         return out
 
@@ -265,8 +280,9 @@ class RigidSim:
              for x, k in zip(grads, (3, 4, 3, 3))]
         s.kernel_seed_link_grad(*g)
         s.kernel_kinematics.grad(0)
-        gq, gv = self._zeros_like_state()
-        s.kernel_get_state_grad(0, gq, gv)
+        g = torch.empty(self.B, self.n_qs + 4 * self.n_dofs, dtype=self.dtype, device=self.device)
+        s.kernel_get_grads(g)
+        gq, gv = g[:, : self.n_qs], g[:, self.n_qs: self.n_qs + self.n_dofs]
         _raise_if_nan_grad([gq, gv], self.step_count)
         return gq, gv
 

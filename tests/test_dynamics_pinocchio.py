@@ -31,7 +31,7 @@ import yourdfpy
 
 DT = 0.01
 GRAVITY = np.array([0.0, 0.0, -9.81])
-N_SAMPLES = 3
+N_SAMPLES = 4
 RTOL_MASS = 1e-9
 RTOL_ACC = 1e-8
 ATOL_POS = 1e-10  # m
@@ -250,9 +250,14 @@ def _set_state(robot, ref: PinReference, angles, v, base_pos, quat):
 
 
 def _random_tau(ref: PinReference, q_pin, v_pin, rng) -> np.ndarray:
-    """Joint torques of a realistic size: those that would give a random N(0,1) joint acceleration."""
+    """Joint torques of a realistic size: those that would give a random N(0,1) joint acceleration,
+    clipped to the URDF's effort limits (the simulator, like Genesis, clips control forces to them;
+    effort 0 means no limit)."""
     a = rng.normal(0.0, 1.0, ref.model.nv)
     tau_pin = pin.rnea(ref.model, ref.data, q_pin, v_pin, a).copy()
+    limit = np.asarray(ref.model.effortLimit, dtype=float).copy()
+    limit[~(np.isfinite(limit) & (limit > 0))] = np.inf
+    tau_pin = np.clip(tau_pin, -limit, limit)
     tau_pin[: ref.nb] = 0.0
     tau = np.zeros(ref.model.nv)
     tau[ref.perm] = tau_pin

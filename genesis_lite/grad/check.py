@@ -39,7 +39,8 @@ class GradCheckReport:
 def check(fn: Callable[..., torch.Tensor], inputs: Union[Sequence[torch.Tensor], Dict[str, torch.Tensor]],
           eps: float = 1e-6, tol: float = 1e-6, atol: float = 1e-10) -> GradCheckReport:
     """Compare torch.autograd gradients of the scalar `fn(*inputs)` (a whole rollout: reset, set
-    inputs, step, loss) with central finite differences in float64, element by element.
+    inputs, step, loss) with central finite differences in float64, element by element, with steps
+    eps * max(1, |x|).
     `inputs` is a list or a name -> tensor dict; returns a GradCheckReport (printable, `.ok`)."""
     if isinstance(inputs, dict):
         names, xs = list(inputs.keys()), list(inputs.values())
@@ -62,12 +63,14 @@ def check(fn: Callable[..., torch.Tensor], inputs: Union[Sequence[torch.Tensor],
             fd = torch.zeros_like(x, dtype=torch.float64)
             flat = fd.view(-1)
             for k in range(x.numel()):
+                # step relative to the entry's magnitude: absolute steps drown in round-off on large entries
+                h = eps * max(1.0, abs(float(x.reshape(-1)[k])))
                 vals = []
                 for sgn in (1.0, -1.0):
                     args = [l.detach().clone() for l in leaves]
-                    args[i].view(-1)[k] += sgn * eps
+                    args[i].view(-1)[k] += sgn * h
                     vals.append(float(fn(*args)))
-                flat[k] = (vals[0] - vals[1]) / (2 * eps)
+                flat[k] = (vals[0] - vals[1]) / (2 * h)
             fds.append(fd)
     errs = [float((a - f).norm() / max(f.norm().item(), atol)) for a, f in zip(ad, fds)]
     return GradCheckReport(names, ad, fds, errs, eps, tol)

@@ -306,16 +306,6 @@ class RigidSolver:
                 stage(self, i_b, kind, e, base, src, dst, h)
 
     @ti.kernel
-    def kernel_copy_back(self, src: ti.i32):
-        if ti.static(self.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(self.n_envs):
-            for i_q in range(self.n_qs):
-                self.qpos[0, i_b, i_q] = self.qpos[src, i_b, i_q]
-            for i_d in range(self.n_dofs):
-                self.qvel[0, i_b, i_d] = self.qvel[src, i_b, i_d]
-
-    @ti.kernel
     def kernel_step_fused(self):
         """The whole schedule of one step, all envs, one launch (no gradient bookkeeping)."""
         if ti.static(self.serial):
@@ -373,9 +363,14 @@ class RigidSolver:
             self.energy[i_b, 0] = ke
             self.energy[i_b, 1] = pe
 
+    @ti.kernel
     def kernel_clear_grads(self):
-        for x in self.grad_fields:
-            x.grad.fill(0)
+        """Zero every adjoint field in one launch (before each step's backward replay)."""
+        for x in ti.static(self.grad_fields):
+            if ti.static(self.serial):
+                ti.loop_config(serialize=True)
+            for I in ti.grouped(ti.ndrange(*x.shape)):
+                x.grad[I] = ti.zero(x.grad[I])
 
     # ------------------------------------------------------------------ python entry points
     def step(self):
@@ -383,10 +378,10 @@ class RigidSolver:
         self.kernel_step_fused()
 
     def run_ops(self):
-        """The step's ops one launch each (the form that backward replays), then copy back."""
+        """The step's ops one launch each (the form that backward replays); the caller ends the step
+        with kernel_get_state(last_slot, ...), which also copies the result back to slot 0."""
         for op in self.ops:
             self._run_op(op)
-        self.kernel_copy_back(self.last_slot)
 
     def _run_op(self, op):
         kind_op, kind, e, base, src, dst, h = op
@@ -417,60 +412,112 @@ class RigidSolver:
                 self.kernel_dynamics.grad(e, src, h)
 
     # ------------------------------------------------------------------ state and gradient I/O
+    # Every torch tensor passed to a kernel costs ~30 us here, so each crossing packs its data in one:
+    # state x = [qpos | qvel] (B, n_qs + n_dofs), controls c = [force; pos; vel] (B, 3, n_dofs).
     @ti.kernel
-    def kernel_set_state(self, slot: ti.i32, qpos: ti.types.ndarray(), qvel: ti.types.ndarray()):
+    def kernel_set_state(self, slot: ti.i32, x: ti.types.ndarray()):
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
             for i_q in range(self.n_qs):
-                self.qpos[slot, i_b, i_q] = qpos[i_b, i_q]
+                self.qpos[slot, i_b, i_q] = x[i_b, i_q]
             for i_d in range(self.n_dofs):
-                self.qvel[slot, i_b, i_d] = qvel[i_b, i_d]
+                self.qvel[slot, i_b, i_d] = x[i_b, self.n_qs + i_d]
 
     @ti.kernel
-    def kernel_get_state(self, slot: ti.i32, qpos: ti.types.ndarray(), qvel: ti.types.ndarray()):
+    def kernel_get_state(self, slot: ti.i32, x: ti.types.ndarray()):
+        """Read the state in `slot` and make it the current state (slot 0)."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
             for i_q in range(self.n_qs):
-                qpos[i_b, i_q] = self.qpos[slot, i_b, i_q]
+                x[i_b, i_q] = self.qpos[slot, i_b, i_q]
+                self.qpos[0, i_b, i_q] = self.qpos[slot, i_b, i_q]
             for i_d in range(self.n_dofs):
-                qvel[i_b, i_d] = self.qvel[slot, i_b, i_d]
+                x[i_b, self.n_qs + i_d] = self.qvel[slot, i_b, i_d]
+                self.qvel[0, i_b, i_d] = self.qvel[slot, i_b, i_d]
 
     @ti.kernel
-    def kernel_seed_state_grad(self, slot: ti.i32, gq: ti.types.ndarray(), gv: ti.types.ndarray()):
+    def kernel_seed_state_grad(self, slot: ti.i32, g: ti.types.ndarray()):
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
             for i_q in range(self.n_qs):
-                self.qpos.grad[slot, i_b, i_q] += gq[i_b, i_q]
+                self.qpos.grad[slot, i_b, i_q] += g[i_b, i_q]
             for i_d in range(self.n_dofs):
-                self.qvel.grad[slot, i_b, i_d] += gv[i_b, i_d]
+                self.qvel.grad[slot, i_b, i_d] += g[i_b, self.n_qs + i_d]
 
     @ti.kernel
-    def kernel_get_state_grad(self, slot: ti.i32, gq: ti.types.ndarray(), gv: ti.types.ndarray()):
+    def kernel_get_grads(self, g: ti.types.ndarray()):
+        """g[:, :n_qs + n_dofs] <- adjoint of the state in slot 0, g[:, n_qs + n_dofs:] <- adjoint of
+        the controls (force, pos, vel blocks of n_dofs)."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
+            nx = self.n_qs + self.n_dofs
             for i_q in range(self.n_qs):
-                gq[i_b, i_q] = self.qpos.grad[slot, i_b, i_q]
+                g[i_b, i_q] = self.qpos.grad[0, i_b, i_q]
             for i_d in range(self.n_dofs):
-                gv[i_b, i_d] = self.qvel.grad[slot, i_b, i_d]
+                g[i_b, self.n_qs + i_d] = self.qvel.grad[0, i_b, i_d]
+                g[i_b, nx + i_d] = self.ctrl_force.grad[i_b, i_d]
+                g[i_b, nx + self.n_dofs + i_d] = self.ctrl_pos.grad[i_b, i_d]
+                g[i_b, nx + 2 * self.n_dofs + i_d] = self.ctrl_vel.grad[i_b, i_d]
 
     @ti.kernel
-    def kernel_set_ctrl(self, force: ti.types.ndarray(), pos: ti.types.ndarray(), vel: ti.types.ndarray(),
-                        mode: ti.types.ndarray()):
+    def kernel_set_ctrl(self, c: ti.types.ndarray()):
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
             for i_d in range(self.n_dofs):
-                self.ctrl_force[i_b, i_d] = force[i_b, i_d]
-                self.ctrl_pos[i_b, i_d] = pos[i_b, i_d]
-                self.ctrl_vel[i_b, i_d] = vel[i_b, i_d]
-                self.ctrl_mode[i_b, i_d] = mode[i_b, i_d]
+                self.ctrl_force[i_b, i_d] = c[i_b, 0, i_d]
+                self.ctrl_pos[i_b, i_d] = c[i_b, 1, i_d]
+                self.ctrl_vel[i_b, i_d] = c[i_b, 2, i_d]
 
     @ti.kernel
-    def kernel_get_ctrl_grad(self, gf: ti.types.ndarray(), gp: ti.types.ndarray(), gv: ti.types.ndarray()):
-        for i_b in range(self.n_envs):
-            for i_d in range(self.n_dofs):
-                gf[i_b, i_d] = self.ctrl_force.grad[i_b, i_d]
-                gp[i_b, i_d] = self.ctrl_pos.grad[i_b, i_d]
-                gv[i_b, i_d] = self.ctrl_vel.grad[i_b, i_d]
+    def kernel_set_ctrl_mode(self, m: ti.types.ndarray()):
+        for i_b, i_d in ti.ndrange(self.n_envs, self.n_dofs):
+            self.ctrl_mode[i_b, i_d] = m[i_b, i_d]
+
+    def get_param_grad(self, x, g):
+        """Adjoint of parameter field x into the tensor g (x's shape + element shape)."""
+        if len(x.shape) == 1:
+            self._kernel_grad_vec1(x, g)
+        elif not hasattr(x, "n"):
+            self._kernel_grad_scalar2(x, g)
+        elif x.m == 1:
+            self._kernel_grad_vec2(x, g)
+        else:
+            self._kernel_grad_mat2(x, g)
+
+    @ti.kernel
+    def _kernel_grad_scalar2(self, x: ti.template(), g: ti.types.ndarray()):
+        for i, j in x:
+            g[i, j] = x.grad[i, j]
+
+    @ti.kernel
+    def _kernel_grad_vec1(self, x: ti.template(), g: ti.types.ndarray()):
+        for i in x:
+            for k in ti.static(range(x.n)):
+                g[i, k] = x.grad[i][k]
+
+    @ti.kernel
+    def _kernel_grad_vec2(self, x: ti.template(), g: ti.types.ndarray()):
+        for i, j in x:
+            for k in ti.static(range(x.n)):
+                g[i, j, k] = x.grad[i, j][k]
+
+    @ti.kernel
+    def _kernel_grad_mat2(self, x: ti.template(), g: ti.types.ndarray()):
+        for i, j in x:
+            for k, l in ti.static(ti.ndrange(x.n, x.m)):
+                g[i, j, k, l] = x.grad[i, j][k, l]
 
     @ti.kernel
     def kernel_link_outputs(self, pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
                             ang: ti.types.ndarray()):
         """Link origin poses and velocities (world frame) from the last kinematics evaluation."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b, i_l in ti.ndrange(self.n_envs, self.n_links):
             p = self.link_pos[i_b, i_l]
             w = self.cvel_w[i_b, i_l]
@@ -486,6 +533,8 @@ class RigidSolver:
     def kernel_seed_link_grad(self, pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
                               ang: ti.types.ndarray()):
         """Adjoint of kernel_link_outputs: output gradients into link_pos, link_quat, cvel."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
         for i_b, i_l in ti.ndrange(self.n_envs, self.n_links):
             p = self.link_pos[i_b, i_l]
             w = self.cvel_w[i_b, i_l]
