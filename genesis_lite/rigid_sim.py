@@ -27,6 +27,7 @@ PARAMS = {
     "kp": ("dof_kp", (), "dof"),
     "kv": ("dof_kv", (), "dof"),
     "gravity": ("gravity", (3,), "env"),
+    "friction": ("contact.geom_friction", (), "geom"),  # only when the scene has contacts
 }
 CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dofs)
 
@@ -43,15 +44,17 @@ class RigidSim:
         self.solver = RigidSolver(models, self.B, sim_options.dt, sim_options.substeps, int(rigid_options.integrator),
                                   sim_options.gravity, gs.ti_float, self.requires_grad,
                                   rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
-                                  rigid_options.joint_limit_damping)
+                                  rigid_options.joint_limit_damping,
+                                  contact_options=rigid_options if rigid_options.enable_collision else None)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.rollout_token = 0
         self.step_count = 0
         self._backward_done = False
         # parameters: base values from the model, then the user's setter calls replayed on top
-        self.param_base = {k: self._field_to_torch(getattr(s, f)) for k, (f, _, _) in PARAMS.items()}
-        self.param_ops = {k: [] for k in PARAMS}
+        self.param_names = [k for k in PARAMS if not PARAMS[k][0].startswith("contact.") or s.contact is not None]
+        self.param_base = {k: self._field_to_torch(self.param_field(k)) for k in self.param_names}
+        self.param_ops = {k: [] for k in self.param_names}
         self.params = dict(self.param_base)
         self._loaded_params = dict(self.params)  # the tensors whose values are in the fields now
         self.force_lo = self._field_to_torch(s.dof_force_lo)
@@ -64,6 +67,13 @@ class RigidSim:
         self._outputs = None
 
     # ---------------------------------------------------------------- helpers
+    def param_field(self, name):
+        """The solver field behind a parameter (a dotted path, e.g. 'contact.geom_friction')."""
+        obj = self.solver
+        for part in PARAMS[name][0].split("."):
+            obj = getattr(obj, part)
+        return obj
+
     def _field_to_torch(self, field):
         return field.to_torch(device=self.device).to(self.dtype)
 
@@ -114,7 +124,7 @@ class RigidSim:
             self._ctrl_dirty = False
         for k in self._params_dirty:
             if self._loaded_params.get(k) is not self.params[k]:
-                getattr(s, PARAMS[k][0]).from_torch(self._c(self.params[k]))
+                self.param_field(k).from_torch(self._c(self.params[k]))
                 self._loaded_params[k] = self.params[k]
         self._params_dirty = set()
 
@@ -175,7 +185,7 @@ class RigidSim:
                                    "consumed. Call scene.reset() to start a new rollout.")
         self._upload()
         if self.grad_tracking():
-            inputs = [self.qpos, self.qvel, self.ctrl] + [self.params[k] for k in PARAMS]
+            inputs = [self.qpos, self.qvel, self.ctrl] + [self.params[k] for k in self.param_names]
             self.qpos, self.qvel = self._split(StepFunction.apply(self, *inputs))
             self._state_on_device = True
         else:
@@ -217,9 +227,9 @@ class RigidSim:
             self._load_ctrl(ctrl, mode)
             self._ctrl_dirty = True
         if params is not None:
-            for k, p in zip(PARAMS, params):
+            for k, p in zip(self.param_names, params):
                 if self._loaded_params.get(k) is not p:
-                    getattr(s, PARAMS[k][0]).from_torch(self._c(p))
+                    self.param_field(k).from_torch(self._c(p))
                     self._loaded_params[k] = p
                     self._params_dirty.add(k)
         self._state_on_device = False
@@ -241,10 +251,10 @@ class RigidSim:
         s.kernel_get_grads(g)
         out = [g[:, : self.n_qs] if needs[0] else None, g[:, self.n_qs: nx] if needs[1] else None,
                g[:, nx:].reshape(self.B, 3, self.n_dofs) if needs[2] else None]
-        for k, n in zip(PARAMS, needs[3:]):
+        for k, n in zip(self.param_names, needs[3:]):
             if n:
                 pg = torch.empty_like(self.params[k], dtype=self.dtype)
-                s.get_param_grad(getattr(s, PARAMS[k][0]), pg)
+                s.get_param_grad(self.param_field(k), pg)
                 out.append(pg)
             else:
                 out.append(None)

@@ -16,6 +16,7 @@ from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 
 from ..errors import GenesisException
 from ..grad.tensor import wrap
+from .contact_api import ContactMixin
 
 
 @dataclass
@@ -87,7 +88,7 @@ def _rotvec_to_quat(r):
     return torch.cat([cos, r * sinc], -1)
 
 
-class RigidEntity:
+class RigidEntity(ContactMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
     def __init__(self, scene, idx: int, model: EntityModel, morph, material):

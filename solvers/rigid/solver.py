@@ -40,7 +40,8 @@ class RigidSolver:
     """
 
     def __init__(self, models: List[EntityModel], n_envs: int, dt: float, substeps: int, integrator: int,
-                 gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float):
+                 gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float,
+                 contact_options=None):
         self.models = models
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
@@ -57,6 +58,16 @@ class RigidSolver:
         self._layout(models)
         self._schedule()
         self._allocate()
+        # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
+        # `force` with +=); None when the scene has no collision pairs, so nothing is compiled for them.
+        self.contact = None
+        if contact_options is not None:
+            from .contact import ContactSolver
+
+            self.contact = ContactSolver.create(self, models, contact_options)
+        self.dynamics_stages = DYNAMICS + (self.contact.stages if self.contact is not None else ())
+        if self.contact is not None and requires_grad:
+            self.grad_fields = self.grad_fields + list(self.contact.grad_fields)
         self._fill_info(gravity)
 
     # ------------------------------------------------------------------ build
@@ -277,7 +288,7 @@ class RigidSolver:
     # Every stage runs as its own top-level loop over envs (see kinematics.KINEMATICS).
     @ti.kernel
     def kernel_dynamics(self, e: ti.i32, src: ti.i32, h: float):
-        for stage in ti.static(DYNAMICS):
+        for stage in ti.static(self.dynamics_stages):
             if ti.static(self.serial):
                 ti.loop_config(serialize=True)
             for i_b in range(self.n_envs):
@@ -316,7 +327,7 @@ class RigidSolver:
                 kind, e, base, src, dst = self.sched[k, 1], self.sched[k, 2], self.sched[k, 3], self.sched[k, 4], self.sched[k, 5]
                 h = self.sched_h[k]
                 if op == OP_DYN:
-                    for stage in ti.static(DYNAMICS):
+                    for stage in ti.static(self.dynamics_stages):
                         stage(self, i_b, e, src, h)
                 elif op == OP_SOLVE:
                     func_factor_solve(self, i_b, e)
