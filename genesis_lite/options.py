@@ -66,18 +66,29 @@ class SimOptions(_Options):
 class RigidOptions(_Options):
     """integrator: gs.integrator.Euler | implicitfast | RK4. enable_collision / enable_joint_limit
     switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
-    collide. contact_stiffness (N/m per contact) and contact_damping (N s/m) set the penalty model;
-    joint_limit_stiffness / joint_limit_damping the limit springs."""
+    collide. contact_stiffness (N/m per contact point) and contact_damping (N s/m) set the penalty model;
+    joint_limit_stiffness / joint_limit_damping the limit springs.
+
+    Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
+    force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which
+    Coulomb friction becomes viscous (smaller: less creep on slopes, stiffer gradients).
+    max_mesh_contact_points caps the hull points a collision mesh contacts with (more: smoother, slower).
+    ignore_unsupported_pairs lets pairs the contact model cannot handle (mesh against mesh) pass
+    through each other instead of raising at build."""
 
     integrator: integrator = integrator.implicitfast
     enable_collision: bool = True
     enable_joint_limit: bool = True
     enable_self_collision: bool = False
-    contact_stiffness: float = 3e4
-    contact_damping: float = 1e2
+    contact_stiffness: float = 1e6
+    contact_damping: float = 4e4
     joint_limit_stiffness: float = 1e4
     joint_limit_damping: float = 1e2
     check_nan: bool = True
+    contact_smoothing: float = 2e-5
+    friction_smoothing: float = 1e-3
+    max_mesh_contact_points: int = 32
+    ignore_unsupported_pairs: bool = False
 
     def _validate(self):
         try:
@@ -88,6 +99,13 @@ class RigidOptions(_Options):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
                 self._err(name, v, "must be a finite number >= 0")
+        for name in ("contact_smoothing", "friction_smoothing"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                self._err(name, v, "must be a finite number > 0")
+        m = self.max_mesh_contact_points
+        if not (isinstance(m, (int, np.integer)) and not isinstance(m, bool) and m >= 4):
+            self._err("max_mesh_contact_points", m, "must be an integer >= 4")
 
 
 @dataclass

@@ -11,6 +11,7 @@ import numpy as np
 import taichi as ti
 import torch
 
+from solvers.buffer import StepBuffer
 from solvers.rigid.solver import RigidSolver
 
 from .errors import GenesisException, SimulationNaNError
@@ -41,6 +42,12 @@ class RigidSim:
         self.dtype = gs.tc_float
         self.device = gs.device
         self.requires_grad = sim_options.requires_grad
+        # a collision geom without its own friction (GeomDesc.friction None) takes its entity's material's
+        for ent in scene.entities:
+            for link in ent.model.links:
+                for g in link.geoms:
+                    if g.friction is None:
+                        g.friction = float(ent.material.friction)
         self.solver = RigidSolver(models, self.B, sim_options.dt, sim_options.substeps, int(rigid_options.integrator),
                                   sim_options.gravity, gs.ti_float, self.requires_grad,
                                   rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
@@ -50,6 +57,8 @@ class RigidSim:
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.rollout_token = 0
         self.step_count = 0
+        self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
+        self._step_inputs = {}
         self._backward_done = False
         # parameters: base values from the model, then the user's setter calls replayed on top
         self.param_names = [k for k in PARAMS if not PARAMS[k][0].startswith("contact.") or s.contact is not None]
@@ -213,15 +222,38 @@ class RigidSim:
         self._backward_done = True
 
     def step_context(self):
-        return self.ctrl_mode
+        """What a step or getter node remembers besides its tensors: the step index and control modes."""
+        return (self.step_count, self.ctrl_mode)
+
+    def to_save(self, inputs):
+        """The tensors a node keeps: everything, or everything but the state when checkpointing
+        (the state at a checkpoint goes to the buffer, others are recomputed in backward)."""
+        t = self.step_count
+        keep = self.buffer.record(t, (inputs[0].detach(), inputs[1].detach()))
+        if len(inputs) > 2 and self.buffer.every is not None:
+            self._step_inputs[t] = (inputs[2].detach(), self.ctrl_mode, [p.detach() for p in inputs[3:]])
+        return inputs if keep else (None, None) + tuple(inputs[2:])
+
+    def restore(self, saved, context):
+        if saved[0] is not None:
+            return saved
+        q, v = self.buffer.get(context[0])
+        return (q, v) + tuple(saved[2:])
+
+    def _replay_step(self, state, t):
+        """Re-run step t forward from `state` with the inputs it had (for checkpoint windows)."""
+        ctrl, mode, params = self._step_inputs[t]
+        self._replay_inputs(state[0], state[1], ctrl, mode, params, clear=False)
+        return self._split(self.forward_step())
 
     def forward_step(self):
         self.solver.run_ops()
         return self._read_state(self.solver.last_slot)
 
-    def _replay_inputs(self, qpos, qvel, ctrl=None, mode=None, params=None):
+    def _replay_inputs(self, qpos, qvel, ctrl=None, mode=None, params=None, clear=True):
         s = self.solver
-        s.kernel_clear_grads()
+        if clear:
+            s.kernel_clear_grads()
         self._write_state(qpos, qvel)
         if ctrl is not None:
             self._load_ctrl(ctrl, mode)
@@ -235,11 +267,12 @@ class RigidSim:
         self._state_on_device = False
         self._outputs = None
 
-    def backward_step(self, saved, mode, grads, needs):
+    def backward_step(self, saved, context, grads, needs):
         """Gradients of one step's inputs (qpos, qvel, ctrl, *params) given the gradient of its
         packed output state."""
         s = self.solver
         qpos, qvel, ctrl, params = saved[0], saved[1], saved[2], saved[3:]
+        step, mode = context
         self._replay_inputs(qpos, qvel, ctrl, mode, params)
         (gx,) = grads
         if gx is None:
@@ -258,7 +291,7 @@ class RigidSim:
                 out.append(pg)
             else:
                 out.append(None)
-        _raise_if_nan_grad(out, self.step_count)
+        _raise_if_nan_grad(out, step)
         return out
 
     def outputs(self):
@@ -301,6 +334,9 @@ class RigidSim:
         self.rollout_token += 1
         self._backward_done = False
         self.step_count = 0
+        if self.buffer is not None:
+            self.buffer.clear()
+        self._step_inputs = {}
         self.reset_controls()
         self.rebuild_params()
         self.set_state(qpos, qvel)

@@ -4,28 +4,35 @@ import torch
 from .tensor import wrap
 
 
-def _kw(dtype, requires_grad):
+def _kw(dtype):
     import genesis_lite as gs
 
     gs._assert_initialized()
-    return dict(dtype=dtype or gs.tc_float, device=gs.device, requires_grad=requires_grad)
+    return dict(dtype=dtype or gs.tc_float, device=gs.device)
+
+
+def _leaf(t, requires_grad):
+    # as_subclass of a tensor that requires grad is a non-leaf alias whose .grad is never filled:
+    # wrap first, then ask for gradients, so the user's tensor is a leaf an optimizer can update
+    out = wrap(t)
+    return out.requires_grad_(True) if requires_grad else out
 
 
 def tensor(data, dtype=None, requires_grad=False):
     """A gs.grad.Tensor with a copy of `data` on gs.device."""
-    return wrap(torch.tensor(data, **_kw(dtype, requires_grad)))
+    return _leaf(torch.tensor(data, **_kw(dtype)), requires_grad)
 
 
 def zeros(*shape, dtype=None, requires_grad=False):
-    return wrap(torch.zeros(*shape, **_kw(dtype, requires_grad)))
+    return _leaf(torch.zeros(*shape, **_kw(dtype)), requires_grad)
 
 
 def ones(*shape, dtype=None, requires_grad=False):
-    return wrap(torch.ones(*shape, **_kw(dtype, requires_grad)))
+    return _leaf(torch.ones(*shape, **_kw(dtype)), requires_grad)
 
 
 def rand(*shape, dtype=None, requires_grad=False):
-    return wrap(torch.rand(*shape, **_kw(dtype, requires_grad)))
+    return _leaf(torch.rand(*shape, **_kw(dtype)), requires_grad)
 
 
 def from_torch(t, dtype=None, requires_grad=None):
@@ -35,5 +42,5 @@ def from_torch(t, dtype=None, requires_grad=None):
     gs._assert_initialized()
     out = t.to(device=gs.device, dtype=dtype or gs.tc_float)
     if requires_grad is not None and out.requires_grad != requires_grad:
-        out = out.detach().requires_grad_(requires_grad)
+        return _leaf(out.detach(), requires_grad)
     return wrap(out)

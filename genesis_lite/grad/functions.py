@@ -1,7 +1,9 @@
 """The autograd functions through which torch sees a simulation.
 
-One mechanism for every solver: a solver bridge implements `forward_step()`, `backward_step(saved,
-grads)`, `outputs(...)` and `backward_outputs(saved, grads)`; `StepFunction` makes one scene step a
+One mechanism for every solver: a solver bridge implements `step_context()`, `to_save(inputs)` /
+`restore(saved, context)` (which may drop the state and recompute it from a checkpoint: see
+solvers/buffer.py), `forward_step()`, `backward_step(saved, ...)`, `outputs()` and
+`backward_outputs(saved, grads)`; `StepFunction` makes one scene step a
 node of torch's graph, `OutputFunction` makes a getter one. torch then orders the backward calls
 (reverse time), sums gradients over steps and delivers them to leaf tensors.
 """
@@ -19,14 +21,15 @@ class StepFunction(torch.autograd.Function):
         ctx.bridge = bridge
         ctx.token = bridge.rollout_token
         ctx.extra = bridge.step_context()
-        ctx.save_for_backward(*inputs)
+        ctx.save_for_backward(*bridge.to_save(inputs))
         return bridge.forward_step()
 
     @staticmethod
     def backward(ctx, *grads):
         bridge = ctx.bridge
         bridge.check_token(ctx.token, "step")
-        in_grads = bridge.backward_step(ctx.saved_tensors, ctx.extra, grads, ctx.needs_input_grad[1:])
+        saved = bridge.restore(ctx.saved_tensors, ctx.extra)
+        in_grads = bridge.backward_step(saved, ctx.extra, grads, ctx.needs_input_grad[1:])
         return (None,) + tuple(in_grads)
 
 
@@ -37,14 +40,16 @@ class OutputFunction(torch.autograd.Function):
     def forward(ctx, bridge, *state):
         ctx.bridge = bridge
         ctx.token = bridge.rollout_token
-        ctx.save_for_backward(*state)
+        ctx.extra = bridge.step_context()
+        ctx.save_for_backward(*bridge.to_save(state))
         return bridge.outputs()
 
     @staticmethod
     def backward(ctx, *grads):
         bridge = ctx.bridge
         bridge.check_token(ctx.token, "getter")
-        return (None,) + tuple(bridge.backward_outputs(ctx.saved_tensors, grads))
+        saved = bridge.restore(ctx.saved_tensors, ctx.extra)
+        return (None,) + tuple(bridge.backward_outputs(saved, grads))
 
 
 def require_token(current, token, what):

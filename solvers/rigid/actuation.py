@@ -13,57 +13,40 @@ FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh frict
 @ti.func
 def func_generalized_force(s: ti.template(), i_b, e, src, h):
     """force = actuation + passive + joint limits - bias; adds the implicit terms to M's diagonal.
-    h is the (sub)step length, used by implicitfast only."""
+    h is the (sub)step length. Single-assignment form (see kinematics.py)."""
     for i_d in range(s.n_dofs):
         v = s.qvel[src, i_b, i_d]
         i_q = s.dof_q[i_d]
-        q = 0.0
-        if i_q >= 0:
-            q = s.qpos[src, i_b, i_q]
+        has_q = ti.cast(i_q >= 0, s.dtype)
+        q = s.qpos[src, i_b, ti.max(i_q, 0)] * has_q
         mode = s.ctrl_mode[i_b, i_d]
-        kp = 0.0
-        kv = 0.0
-        tau = s.ctrl_force[i_b, i_d]
-        if mode == CTRL_POSITION:
-            kp = s.dof_kp[i_b, i_d]
-            kv = s.dof_kv[i_b, i_d]
-            tau = kp * (s.ctrl_pos[i_b, i_d] - q) + kv * (s.ctrl_vel[i_b, i_d] - v)
-        elif mode == CTRL_VELOCITY:
-            kv = s.dof_kv[i_b, i_d]
-            tau = kv * (s.ctrl_vel[i_b, i_d] - v)
+        pos_mode = ti.cast(mode == CTRL_POSITION, s.dtype)
+        vel_mode = ti.cast(mode == CTRL_VELOCITY, s.dtype)
+        force_mode = 1.0 - pos_mode - vel_mode
+        kp = s.dof_kp[i_b, i_d] * pos_mode
+        kv = s.dof_kv[i_b, i_d] * (pos_mode + vel_mode)
+        raw = force_mode * s.ctrl_force[i_b, i_d] + kp * (s.ctrl_pos[i_b, i_d] - q) + kv * (s.ctrl_vel[i_b, i_d] - v)
         lo = s.dof_force_lo[i_b, i_d]
         hi = s.dof_force_hi[i_b, i_d]
-        if tau < lo or tau > hi:
-            # saturated: the actuator no longer responds to q or v
-            tau = ti.min(ti.max(tau, lo), hi)
-            kp = 0.0
-            kv = 0.0
+        # saturated: the actuator no longer responds to q or v
+        free_act = ti.cast(raw >= lo and raw <= hi, s.dtype)
+        tau = ti.min(ti.max(raw, lo), hi)
         s.dof_tau[i_b, i_d] = tau
         fl = s.dof_frictionloss[i_b, i_d]
         th = ti.tanh(v / FRICTIONLOSS_VEL)
         damp = s.dof_damping[i_b, i_d]
-        f = tau - damp * v - fl * th - s.bias[i_b, i_d]
+        # joint-limit springs, one-sided; their damping acts only while moving further out
+        lim_lo = s.dof_limit_lo[i_d]
+        lim_hi = s.dof_limit_hi[i_d]
+        below = s.limits_on and i_q >= 0 and q < lim_lo
+        above = s.limits_on and i_q >= 0 and q > lim_hi
+        lim_f = ti.select(below, s.limit_k * (lim_lo - q) - s.limit_d * ti.min(v, 0.0),
+                          ti.select(above, s.limit_k * (lim_hi - q) - s.limit_d * ti.max(v, 0.0), 0.0))
+        lim_K = ti.select(below or above, s.limit_k, 0.0)
+        lim_D = ti.select((below and v < 0) or (above and v > 0), s.limit_d, 0.0)
         # stiffness/damping treated implicitly: PD and passive terms with implicitfast only,
         # joint-limit springs always (they are constraints, stiff by design)
-        K = 0.0
-        D = 0.0
-        if ti.static(s.implicit):
-            K = kp
-            D = kv + damp + fl * (1.0 - th * th) / FRICTIONLOSS_VEL
-        if ti.static(s.enable_joint_limit):
-            if i_q >= 0:
-                lim_lo = s.dof_limit_lo[i_d]
-                lim_hi = s.dof_limit_hi[i_d]
-                if q < lim_lo:
-                    f += s.limit_k * (lim_lo - q) - s.limit_d * ti.min(v, 0.0)
-                    K += s.limit_k
-                    if v < 0:
-                        D += s.limit_d
-                elif q > lim_hi:
-                    f += s.limit_k * (lim_hi - q) - s.limit_d * ti.max(v, 0.0)
-                    K += s.limit_k
-                    if v > 0:
-                        D += s.limit_d
-        f -= h * K * v
-        s.force[i_b, i_d] = f
+        K = lim_K + s.implicit_on * kp * free_act
+        D = lim_D + s.implicit_on * (kv * free_act + damp + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
+        s.force[i_b, i_d] = tau - damp * v - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
         s.mass_mat[i_b, i_d, i_d] += s.dof_armature[i_b, i_d] + h * D + h * h * K

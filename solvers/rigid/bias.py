@@ -1,25 +1,27 @@
 """Stage 3, bias forces: Coriolis, centrifugal and gravity by recursive Newton-Euler (qacc = 0)."""
 import taichi as ti
 
+from .kinematics import func_vec3
 from .math3d import func_cross_force, func_inertia_mul
 
 
 @ti.func
 def func_link_forces(s: ti.template(), i_b, e, src, h):
-    """Link accelerations with qacc = 0 (gravity as an upward world acceleration) and the forces they need."""
+    """Link accelerations with qacc = 0 (gravity as an upward world acceleration) and the forces they
+    need. A free joint contributes sum_k cdofd_k qd_k = (0, vb x wb)."""
     for i_l in range(s.n_links):
         p = s.link_parent[i_l]
-        aw = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
-        av = -s.gravity[i_b]
-        if p >= 0:
-            aw = s.cacc_w[i_b, p]
-            av = s.cacc_v[i_b, p]
-        d0 = s.link_dof_start[i_l]
-        for k in ti.static(range(6)):
-            if k < s.link_ndof[i_l]:
-                qd = s.qvel[src, i_b, d0 + k]
-                aw = aw + s.cdofd_w[i_b, d0 + k] * qd
-                av = av + s.cdofd_v[i_b, d0 + k] * qd
+        has_p = p >= 0
+        pp = ti.max(p, 0)
+        d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
+        one = ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+        free = ti.cast(s.link_ndof[i_l] == 6, s.dtype)
+        df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
+        vb = func_vec3(s.qvel, src, i_b, df)
+        wb = func_vec3(s.qvel, src, i_b, df + 3)
+        qd = s.qvel[src, i_b, d0] * one
+        aw = ti.select(has_p, s.cacc_w[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)) + s.cdofd_w[i_b, d0] * qd
+        av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd + free * vb.cross(wb)
         s.cacc_w[i_b, i_l] = aw
         s.cacc_v[i_b, i_l] = av
         m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]

@@ -1,7 +1,266 @@
-"""Contacts (issue #4): placeholder until the contact model lands; no collision pairs -> None."""
+"""Stage 7, contact: smooth penalty forces with Coulomb friction, treated implicitly.
+
+The model, per contact slot (see collision.py for where slots come from), with depth d > 0 meaning
+penetration, n the normal from the SDF side towards the point side and u the velocity of the point
+side relative to the other at the contact point:
+
+    normal     f_n = k * delta * softplus(d / delta) - c * sigmoid(d / delta) * (u . n),  clipped at 0
+    friction   f_t = -mu * f_n * u_t / sqrt(|u_t|^2 + eps^2)        mu = max(mu_a, mu_b)
+
+k = contact_stiffness (N/m per contact point), c = contact_damping (N s/m), delta = contact_smoothing
+(m), eps = friction_smoothing (m/s), as in RigidOptions. Every term is differentiable in the state and
+in mu, k's and c's inputs; only the clip at f_n = 0 (fast separation) and the slot's on/off at the
+contact margin (where the force is below 1e-8 k delta) are kinks.
+
+Stiff contacts at dt = 0.01 are stable because they are integrated like the joint-limit springs:
+linearly implicit (backward Euler on the linearised force). For each contact the 3x3 matrix
+W = h D + h^2 K with K = k sigmoid n n^T (normal stiffness), D = c sigmoid n n^T + eta (I - n n^T)
+(normal damping, and friction as a viscosity eta = mu f_n / sqrt(|u_t|^2 + eps^2): the secant of the
+friction law, so an implicit step can stop a sliding contact but never reverse it) enters the
+generalised mass matrix as J^T W J, and the force gets the explicit correction -h K u. J^T W J is
+accumulated like composite inertia (a 6x6 block per link, summed up the tree), so it fits the tree
+sparsity of M and its factorisation. For a contact between two moving bodies (J = J_a - J_b) the
+coupling J_a^T W J_b does not fit that sparsity: it is dropped and the diagonal blocks are doubled,
+2 (J_a^T W J_a + J_b^T W J_b) - J^T W J = (J_a + J_b)^T W (J_a + J_b) >= 0, so the step stays at least
+as implicit as the exact one (with the blocks taken once, each body would close the whole gap and two
+stacked boxes oscillate with period 2).
+
+Stages (each one loop over elements, see solver.py): geom poses, broad phase, clear the per-link
+accumulators, slots (geometry + force, accumulated onto the two links), sum up the tree, project onto
+the dofs (force += J^T f, M += J^T W J).
+"""
+
+import numpy as np
+import taichi as ti
+
+from .collision import (ContactBuildError, GEOM_BOX, GEOM_CYLINDER, GEOM_MESH, build_geoms, build_slots,
+                        candidate_pairs, func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations)
+
+# slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
+MARGIN_WIDTHS = 20.0
 
 
+@ti.func
+def func_skew(p):
+    return ti.Matrix([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+
+
+@ti.func
+def func_contact_clear(s: ti.template(), i_b, e, src, h):
+    c = s.contact
+    for i_l in range(s.n_links):
+        c.link_fn[i_b, i_l] = ti.Vector([0.0, 0.0, 0.0])
+        c.link_ff[i_b, i_l] = ti.Vector([0.0, 0.0, 0.0])
+        c.link_Sww[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+        c.link_Swv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+        c.link_Svv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+
+
+@ti.func
+def func_contact_slots(s: ti.template(), i_b, e, src, h):
+    """Geometry and force of every slot; the force (at the contact point, on the point side, its opposite
+    on the other side) and the implicit block J^T W J are added onto the two links."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        F = ti.Vector([0.0, 0.0, 0.0])
+        fn_out = 0.0
+        pos = ti.Vector([0.0, 0.0, 0.0])
+        n = ti.Vector([0.0, 0.0, 1.0])
+        depth = -1.0
+        if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
+            pos, n, depth = func_slot_geometry(s, i_b, i_s)
+            if depth > -c.margin:
+                ga = c.slot_ga[i_s]
+                gb = c.slot_gb[i_s]
+                la = c.geom_link[ga]
+                lb = c.geom_link[gb]
+                u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
+                un = u.dot(n)
+                z = depth / c.delta
+                sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(z)))
+                sg = 1.0 / (1.0 + ti.exp(-z))
+                fn = c.k * c.delta * sp - c.d * sg * un
+                if fn > 0:
+                    fn_out = fn
+                    ut = u - un * n
+                    mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
+                    eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
+                    F = (fn - h * c.k * sg * un) * n - eta * ut
+                    wn = h * c.d * sg + h * h * c.k * sg
+                    W = (wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3)
+                    if c.link_dyn[la] == 1 and c.link_dyn[lb] == 1:
+                        # both sides move: their coupling is dropped, and 2 (A + B) >= J^T W J keeps the
+                        # step from overshooting (each side alone would close the whole gap)
+                        W = 2.0 * W
+                    P = func_skew(pos)
+                    PW = P @ W
+                    Sww = -(PW @ P)
+                    tq = pos.cross(F)
+                    if c.link_dyn[la] == 1:
+                        c.link_ff[i_b, la] += F
+                        c.link_fn[i_b, la] += tq
+                        c.link_Sww[i_b, la] += Sww
+                        c.link_Swv[i_b, la] += PW
+                        c.link_Svv[i_b, la] += W
+                    if c.link_dyn[lb] == 1:
+                        c.link_ff[i_b, lb] += -F
+                        c.link_fn[i_b, lb] += -tq
+                        c.link_Sww[i_b, lb] += Sww
+                        c.link_Swv[i_b, lb] += PW
+                        c.link_Svv[i_b, lb] += W
+        # readers look at position/normal/force/depth only where fn > 0: skip the writes elsewhere
+        c.c_fn[i_b, i_s] = fn_out
+        if fn_out > 0:
+            c.c_pos[i_b, i_s] = pos
+            c.c_normal[i_b, i_s] = n
+            c.c_force[i_b, i_s] = F
+            c.c_depth[i_b, i_s] = depth
+
+
+@ti.func
+def func_contact_tree(s: ti.template(), i_b, e, src, h):
+    """Per-link sums over the link's subtree (children after parents in link order)."""
+    c = s.contact
+    for k in range(s.n_links):
+        i_l = s.n_links - 1 - k
+        p = s.link_parent[i_l]
+        if p >= 0:
+            c.link_ff[i_b, p] += c.link_ff[i_b, i_l]
+            c.link_fn[i_b, p] += c.link_fn[i_b, i_l]
+            c.link_Sww[i_b, p] += c.link_Sww[i_b, i_l]
+            c.link_Swv[i_b, p] += c.link_Swv[i_b, i_l]
+            c.link_Svv[i_b, p] += c.link_Svv[i_b, i_l]
+
+
+@ti.func
+def func_contact_project(s: ti.template(), i_b, e, src, h):
+    """force_i += cdof_i . wrench(subtree of link(i)); M[i, j] += cdof_j^T S(link(i)) cdof_i for j an
+    ancestor-or-self of i (the composite-inertia pattern of func_mass_matrix)."""
+    c = s.contact
+    for ij in range(s.n_dofs * s.n_dofs):
+        i = ij // s.n_dofs
+        j = ij % s.n_dofs
+        i_l = s.dof_link[i]
+        # a subtree without contacts has S = 0 and no wrench (trace of the PSD block S_vv)
+        if s.dof_anc[i, j] == 1 and c.link_Svv[i_b, i_l].trace() > 0:
+            wi = s.cdof_w[i_b, i]
+            vi = s.cdof_v[i_b, i]
+            wj = s.cdof_w[i_b, j]
+            vj = s.cdof_v[i_b, j]
+            Swv = c.link_Swv[i_b, i_l]
+            m = wj.dot(c.link_Sww[i_b, i_l] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + c.link_Svv[i_b, i_l] @ vi)
+            s.mass_mat[i_b, i, j] += m
+            if i == j:
+                s.force[i_b, i] += wi.dot(c.link_fn[i_b, i_l]) + vi.dot(c.link_ff[i_b, i_l])
+
+
+CONTACT_STAGES = (func_geom_pose, func_broad_phase, func_contact_clear, func_contact_slots, func_contact_tree,
+                  func_contact_project)
+
+
+@ti.data_oriented
 class ContactSolver:
+    """Fields and stages of the contact model of one RigidSolver (see the module docstring)."""
+
     @staticmethod
     def create(solver, models, options):
-        return None
+        """The contact solver of a scene, or None when no two geoms can touch (nothing is compiled or
+        launched for contacts then). Raises ContactBuildError for geometry it cannot simulate."""
+        geoms = build_geoms(models, int(options.max_mesh_contact_points))
+        if geoms.n == 0:
+            return None
+        pairs = candidate_pairs(geoms, solver, bool(options.enable_self_collision),
+                                bool(getattr(options, "ignore_unsupported_pairs", False)))
+        if not pairs:
+            return None
+        return ContactSolver(solver, geoms, pairs, options)
+
+    def __init__(self, solver, geoms, pairs, options):
+        from .collision import link_is_dynamic
+
+        self.geoms = geoms
+        self.pairs = pairs
+        slots = build_slots(geoms, pairs)
+        self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
+        self.k = float(options.contact_stiffness)
+        self.d = float(options.contact_damping)
+        self.delta = float(options.contact_smoothing)
+        self.eps = float(options.friction_smoothing)
+        self.margin = MARGIN_WIDTHS * self.delta
+        self.dtype = solver.dtype
+        self.has_box = bool(np.any(geoms.type == GEOM_BOX))
+        self.has_cylinder = bool(np.any(geoms.type == GEOM_CYLINDER))
+        self.has_mesh = bool(np.any(geoms.type == GEOM_MESH))
+        self.entity_geom_start = list(geoms.entity_start)
+        self.entity_geom_count = list(geoms.entity_count)
+        # static slot tables, kept in numpy for the readers
+        self.np_slot_ga = np.array([x[2] for x in slots], dtype=np.int32)
+        self.np_slot_gb = np.array([x[3] for x in slots], dtype=np.int32)
+        self.np_slot_link_a = geoms.link[self.np_slot_ga]
+        self.np_slot_link_b = geoms.link[self.np_slot_gb]
+
+        B, G, Pn, S, L = solver.n_envs, geoms.n, len(pairs), len(slots), max(solver.n_links, 1)
+        f, g = solver.dtype, solver.requires_grad
+        I = lambda shape: ti.field(ti.i32, shape=shape)  # noqa: E731, E741
+        V3 = lambda shape, grad=g: ti.Vector.field(3, f, shape=shape, needs_grad=grad)  # noqa: E731
+        M3 = lambda shape, grad=g: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=grad)  # noqa: E731
+        # geoms
+        self.geom_type, self.geom_link = I(G), I(G)
+        self.geom_pos, self.geom_center, self.geom_size = V3(G, False), V3(G, False), V3(G, False)
+        self.geom_R = M3(G, False)
+        self.geom_rbound = ti.field(f, shape=G)
+        self.geom_beta = ti.field(f, shape=G)
+        self.geom_kdop = ti.field(f, shape=(G, geoms.kdop.shape[1]))
+        self.geom_friction = ti.field(f, shape=(B, G), needs_grad=g)
+        self.link_dyn = I(L)
+        # pairs and slots
+        self.pair_ga, self.pair_gb = I(Pn), I(Pn)
+        self.pair_active = I((B, Pn))
+        self.slot_pair, self.slot_kind, self.slot_ga, self.slot_gb = I(S), I(S), I(S), I(S)
+        self.slot_p = V3(S, False)
+        self.slot_r, self.slot_aux = ti.field(f, shape=S), ti.field(f, shape=S)
+        # per evaluation
+        self.geom_xpos, self.geom_xR = V3((B, G)), M3((B, G))
+        self.link_fn, self.link_ff = V3((B, L)), V3((B, L))
+        self.link_Sww, self.link_Swv, self.link_Svv = M3((B, L)), M3((B, L)), M3((B, L))
+        # outputs of the last evaluation (read by the entity API; no gradient)
+        self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
+        self.c_depth, self.c_fn = ti.field(f, shape=(B, S)), ti.field(f, shape=(B, S))
+
+        npf = solver.np_dtype
+        self.geom_type.from_numpy(geoms.type)
+        self.geom_link.from_numpy(geoms.link)
+        self.geom_pos.from_numpy(geoms.pos.astype(npf))
+        self.geom_center.from_numpy(geoms.center.astype(npf))
+        self.geom_size.from_numpy(geoms.size.astype(npf))
+        self.geom_R.from_numpy(geom_rotations(geoms.quat / np.linalg.norm(geoms.quat, axis=1, keepdims=True)).astype(npf))
+        self.geom_rbound.from_numpy(np.minimum(geoms.rbound, np.finfo(npf).max).astype(npf))
+        self.geom_beta.from_numpy(geoms.beta.astype(npf))
+        self.geom_kdop.from_numpy(geoms.kdop.astype(npf))
+        self.geom_friction.from_numpy(np.ascontiguousarray(np.broadcast_to(geoms.friction, (B, G))).astype(npf))
+        dyn = np.zeros(L, dtype=np.int32)
+        dyn[: solver.n_links] = link_is_dynamic(solver)
+        self.link_dyn.from_numpy(dyn)
+        self.pair_ga.from_numpy(np.array([p[0] for p in pairs], dtype=np.int32))
+        self.pair_gb.from_numpy(np.array([p[1] for p in pairs], dtype=np.int32))
+        self.slot_pair.from_numpy(np.array([x[0] for x in slots], dtype=np.int32))
+        self.slot_kind.from_numpy(np.array([x[1] for x in slots], dtype=np.int32))
+        self.slot_ga.from_numpy(self.np_slot_ga)
+        self.slot_gb.from_numpy(self.np_slot_gb)
+        self.slot_p.from_numpy(np.array([x[4] for x in slots], dtype=npf).reshape(S, 3))
+        self.slot_r.from_numpy(np.array([x[5] for x in slots], dtype=npf))
+        self.slot_aux.from_numpy(np.array([x[6] for x in slots], dtype=npf))
+
+        self.stages = CONTACT_STAGES
+        self.grad_fields = [self.geom_friction, self.geom_xpos, self.geom_xR, self.link_fn, self.link_ff,
+                            self.link_Sww, self.link_Swv, self.link_Svv] if g else []
+
+    # ------------------------------------------------------------------ readers
+    def read(self):
+        """numpy views of the last evaluation: dict of position, normal, force (on the point side),
+        depth, fn (normal force magnitude, 0 when not touching), each (B, n_slots[, 3])."""
+        return {"position": self.c_pos.to_numpy(), "normal": self.c_normal.to_numpy(),
+                "force": self.c_force.to_numpy(), "depth": self.c_depth.to_numpy(), "fn": self.c_fn.to_numpy()}
+
+
+__all__ = ["ContactSolver", "ContactBuildError", "CONTACT_STAGES"]

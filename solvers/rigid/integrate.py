@@ -27,9 +27,9 @@ def func_integrate_qpos(s: ti.template(), i_b, kind, e, base, src, dst, h):
             w = ti.Vector([s.veff[e, i_b, d0 + 3], s.veff[e, i_b, d0 + 4], s.veff[e, i_b, d0 + 5]])
             q0 = ti.Vector([s.qpos[base, i_b, qs + 3], s.qpos[base, i_b, qs + 4], s.qpos[base, i_b, qs + 5], s.qpos[base, i_b, qs + 6]])
             q1 = func_quat_mul(func_rotvec_quat(w, h), q0)
-            q1 = q1 / ti.sqrt(q1.dot(q1))
+            qn = q1 / ti.sqrt(q1.dot(q1))
             for k in ti.static(range(4)):
-                s.qpos[dst, i_b, qs + 3 + k] = q1[k]
+                s.qpos[dst, i_b, qs + 3 + k] = qn[k]
 
 
 @ti.func

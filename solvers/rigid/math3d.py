@@ -35,17 +35,13 @@ def func_axis_angle_quat(axis, angle):
 
 @ti.func
 def func_rotvec_quat(w, dt):
-    """Quaternion of the rotation by angular velocity w over dt (exp map), smooth at w = 0.
-
-    The half angle h enters only through h^2 below the threshold, so the gradient stays finite there.
-    """
+    """Quaternion of the rotation by angular velocity w over dt (exp map), smooth at w = 0: below a
+    tiny half angle the Taylor series in h^2 is used, so no square root of 0 enters the gradient."""
     h2 = 0.25 * dt * dt * w.dot(w)
-    c = 1.0 - h2 / 2.0 + h2 * h2 / 24.0
-    sinc = 1.0 - h2 / 6.0 + h2 * h2 / 120.0
-    if h2 > 1e-6:
-        h = ti.sqrt(ti.max(h2, 1e-12))
-        c = ti.cos(h)
-        sinc = ti.sin(h) / h
+    hs = ti.sqrt(ti.max(h2, 1e-12))
+    small = h2 < 1e-6
+    c = ti.select(small, 1.0 - h2 / 2.0 + h2 * h2 / 24.0, ti.cos(hs))
+    sinc = ti.select(small, 1.0 - h2 / 6.0 + h2 * h2 / 120.0, ti.sin(hs) / hs)
     k = 0.5 * dt * sinc
     return ti.Vector([c, k * w[0], k * w[1], k * w[2]])
 

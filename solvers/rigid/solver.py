@@ -20,7 +20,8 @@ from .actuation import func_generalized_force
 from .bias import BIAS
 from .inertia import INERTIA, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
-from .kinematics import JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS
+from .kinematics import (JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS, LINK_STATE,
+                         func_dof_subspace, func_forward_kinematics, func_world_inertia)
 from .model import JOINT_NQ, JOINT_NV, EntityModel
 
 OP_DYN, OP_SOLVE, OP_INT, OP_COPY = 0, 1, 2, 3
@@ -50,8 +51,10 @@ class RigidSolver:
         self.substeps = substeps
         self.integrator = integrator
         self.implicit = integrator == INTEGRATOR_IMPLICITFAST
+        self.implicit_on = 1.0 if self.implicit else 0.0
         self.requires_grad = requires_grad
         self.enable_joint_limit = enable_joint_limit
+        self.limits_on = bool(enable_joint_limit)
         self.limit_k = limit_k
         self.limit_d = limit_d
         self.serial = n_envs <= SERIAL_MAX_ENVS
@@ -114,6 +117,7 @@ class RigidSolver:
                 nd += JOINT_NV[l.joint_type]
             nl += m.n_links
         self.n_links, self.n_qs, self.n_dofs = nl, nq, nd
+        self.qpos_len, self.qvel_len = max(nq, 1), max(nd, 1)  # field lengths (never 0)
         self.np_link_parent = np.array(parent, dtype=np.int32)
         self.np_link_jtype = np.array(jtype, dtype=np.int32)
         self.np_link_q_start = np.array(qstart, dtype=np.int32)
@@ -252,7 +256,8 @@ class RigidSolver:
         self.dof_parent.from_numpy(pad(self.np_dof_parent, D))
         self.dof_anc.from_numpy(self.np_dof_anc)
         big = np.finfo(self.np_dtype).max
-        lim = np.clip(pad(self.np_dof_limit, D), -big, big).astype(self.np_dtype)
+        # "no limit" as a large finite number: infinities turn masked-out terms into NaN
+        lim = np.clip(pad(self.np_dof_limit, D), -1e30, 1e30).astype(self.np_dtype)
         self.dof_limit_lo.from_numpy(lim[:, 0].copy())
         self.dof_limit_hi.from_numpy(lim[:, 1].copy())
         B = self.n_envs
@@ -341,7 +346,8 @@ class RigidSolver:
 
     @ti.kernel
     def kernel_kinematics(self, src: ti.i32):
-        for stage in ti.static(KINEMATICS):
+        """Link poses and velocities at qpos/qvel[src] (what the getters read)."""
+        for stage in ti.static(LINK_STATE):
             if ti.static(self.serial):
                 ti.loop_config(serialize=True)
             for i_b in range(self.n_envs):
@@ -350,7 +356,7 @@ class RigidSolver:
     @ti.kernel
     def kernel_mass_matrix(self, src: ti.i32):
         """M (without armature or implicit terms) at qpos[src]."""
-        for stage in ti.static(KINEMATICS + INERTIA):
+        for stage in ti.static((func_forward_kinematics, func_dof_subspace, func_world_inertia) + INERTIA):
             if ti.static(self.serial):
                 ti.loop_config(serialize=True)
             for i_b in range(self.n_envs):

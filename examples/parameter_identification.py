@@ -1,0 +1,61 @@
+"""Parameter identification: recover the link masses and joint damping of the 4-dof arm from a
+recorded trajectory by gradient descent through the simulator.
+
+    python examples/parameter_identification.py [--iters 40] [--out out/param_id]
+"""
+import argparse
+import os
+import time
+
+import torch
+
+import genesis_lite as gs
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--iters", type=int, default=40)
+ap.add_argument("--out", default="out/param_id")
+args = ap.parse_args()
+os.makedirs(args.out, exist_ok=True)
+
+gs.init(backend=gs.cpu, precision="64")
+scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True),
+                 rigid_options=gs.options.RigidOptions(enable_collision=False))
+arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True))
+scene.build()
+T = 80
+u = 3.0 * torch.sin(torch.linspace(0, 6, T, dtype=torch.float64)[:, None] * torch.arange(1, 5, dtype=torch.float64))
+true_mass = arm.get_links_mass().detach().clone()
+true_damp = torch.tensor([0.4, 0.8, 0.3, 0.2], dtype=torch.float64)
+
+
+def rollout(mass, damping):
+    scene.reset()
+    arm.set_links_mass(mass)
+    arm.set_dofs_damping(damping)
+    qs = []
+    for t in range(T):
+        arm.control_dofs_force(u[t])
+        scene.step()
+        qs.append(arm.get_dofs_position())
+    return torch.stack(qs)
+
+
+with torch.no_grad():
+    observed = rollout(true_mass, true_damp)
+
+log_mass = torch.log(true_mass * 1.5).requires_grad_()      # start 50 % heavy
+log_damp = torch.log(torch.full((4,), 0.1, dtype=torch.float64)).requires_grad_()
+opt = torch.optim.Adam([log_mass, log_damp], lr=0.05)
+t0 = time.time()
+for it in range(args.iters):
+    loss = ((rollout(log_mass.exp(), log_damp.exp()) - observed) ** 2).mean()
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    if it % 10 == 0 or it == args.iters - 1:
+        print(f"iter {it:3d}: loss {loss.item():.3e}  mass err {((log_mass.exp() - true_mass).abs() / true_mass).max().item():.3f}"
+              f"  damping err {(log_damp.exp() - true_damp).abs().max().item():.3f}  ({time.time() - t0:.1f} s)")
+with open(os.path.join(args.out, "estimate.txt"), "w") as f:
+    f.write(f"true mass {true_mass.tolist()}\nestimated {log_mass.exp().tolist()}\n"
+            f"true damping {true_damp.tolist()}\nestimated {log_damp.exp().tolist()}\n")
+print(f"wrote {args.out}/estimate.txt")

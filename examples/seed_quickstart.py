@@ -1,0 +1,42 @@
+"""The quick start of Genesis's differentiable-simulation page, with only the import changed and a
+real URDF named: gradients of the final base position with respect to the initial dof positions.
+
+    python examples/seed_quickstart.py
+"""
+import torch
+
+import genesis_lite as gs
+from genesis_lite.morphs import URDF  # noqa: F401  (gs.morphs.URDF below, as in the original)
+
+gs.init()
+
+# enable gradient tracking
+scene = gs.Scene(
+    sim_options=gs.options.SimOptions(
+        dt=0.01,
+        requires_grad=True,  # differentiable
+    ),
+)
+
+# the original names "robot.urdf"; a free-floating 4-dof arm here, so get_pos() moves
+robot = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf"))
+scene.build()
+
+# forward simulation
+initial_pos = torch.tensor([0.0, 0.0, 0.0], requires_grad=True, device=gs.device)
+forces = torch.tensor([0.5, -0.2, 0.1], device=gs.device)
+robot.set_dofs_position(initial_pos, dofs_idx_local=[6, 7, 8])
+for i in range(100):
+    robot.control_dofs_force(forces, dofs_idx_local=[6, 7, 8])
+    scene.step()
+
+# loss
+final_pos = robot.get_pos()
+target = torch.tensor([1.0, 0.0, 0.5], device=gs.device)
+loss = torch.nn.functional.mse_loss(final_pos, target)
+
+# backward
+loss.backward()
+
+# gradients
+print(initial_pos.grad)

@@ -1,0 +1,537 @@
+"""Stage 6, collision: which geoms can touch (built once, numpy), and the narrow phase (Taichi).
+
+Every candidate pair of geoms gets a fixed set of contact *slots* at build time, so a step has a
+fixed amount of work and a fixed computation graph (what Taichi's reverse mode needs): a slot is a
+sample point of one geom (the "point side", with a radius) tested against the signed distance
+function (SDF) of the other (the "SDF side"):
+
+  pair                        point side                                   SDF side
+  plane  x any                sphere centre / capsule ends / box corners /  plane
+                              cylinder rims / mesh hull vertices
+  sphere x any non-plane      the sphere centre (radius r): exact           the other geom
+  capsule x capsule           closest points of the two segments, and each  the other capsule
+                              capsule's end points
+  other primitive pairs,      corners + edge midpoints (box), rim and cap   the other geom
+  mesh x primitive            samples (cylinder), axis samples (capsule),
+                              hull vertices (mesh), in both directions
+  mesh x mesh                 unsupported (an error at build, see below)
+
+SDFs are exact for plane, sphere, capsule, box and cylinder; a mesh is its convex hull, whose SDF is
+approximated by a 26-plane discrete-orientation polytope (k-DOP) around it. Inside a box, cylinder or
+k-DOP the nearest face is ambiguous where faces meet (two stacked identical boxes touch corner on
+corner), so the face is chosen by penetration plus a bias towards the face that looks at the other
+geom's centre.
+
+Which pairs are candidates: geoms of different entities; geoms of one entity only with
+`enable_self_collision`, and never on the same or adjacent (parent/child) links; never two geoms that
+cannot move. A cheap bounding-sphere test per pair (the broad phase) skips the slots of far pairs.
+"""
+
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+import taichi as ti
+
+
+GEOM_PLANE, GEOM_SPHERE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH = 0, 1, 2, 3, 4, 5
+GEOM_CODE = {"plane": GEOM_PLANE, "sphere": GEOM_SPHERE, "box": GEOM_BOX, "capsule": GEOM_CAPSULE,
+             "cylinder": GEOM_CYLINDER, "mesh": GEOM_MESH}
+# slot kinds: a fixed sample point of the point-side geom; the deepest rim point of a cylinder cap
+# towards a plane (aux = cap side +-1); the closest points of two capsule segments
+SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG = 0, 1, 2
+
+# k-DOP directions: 3 axes, 6 edge diagonals, 4 corner diagonals, each with both signs
+_D = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1), (0, 1, 1), (0, 1, -1),
+      (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1)]
+KDOP_DIRS = np.array([d for d in _D] + [tuple(-x for x in d) for d in _D], dtype=float)
+KDOP_DIRS /= np.linalg.norm(KDOP_DIRS, axis=1, keepdims=True)
+N_KDOP = len(KDOP_DIRS)
+
+CYL_RIM_PLANE = 3  # rim samples per cap against a plane (plus the deepest rim point of each cap)
+CYL_RIM_OTHER = 8  # rim samples per cap against other geoms
+
+
+class ContactBuildError(ValueError):
+    """A scene whose collision geometry cannot be simulated (the message says which geoms and why)."""
+
+
+@dataclass
+class GeomTable:
+    """All collision geoms of a scene, entity after entity, link after link (global geom index)."""
+
+    type: np.ndarray            # (G,) int
+    link: np.ndarray            # (G,) global link index
+    entity: np.ndarray          # (G,) entity index
+    pos: np.ndarray             # (G, 3) in the link frame
+    quat: np.ndarray            # (G, 4)
+    size: np.ndarray            # (G, 3)
+    friction: np.ndarray        # (G,)
+    center: np.ndarray          # (G, 3) centre in the geom frame (mesh: hull centroid)
+    rbound: np.ndarray          # (G,) bounding radius about `center` (plane: inf)
+    beta: np.ndarray            # (G,) face-choice bias length of its SDF
+    kdop: np.ndarray            # (G, 26) k-DOP plane offsets (meshes)
+    points: List[np.ndarray]    # per geom: hull sample points in the geom frame (meshes)
+    names: List[str]            # "entity 'x', link 'y', <type> geom #k" for messages
+    entity_start: List[int] = field(default_factory=list)
+    entity_count: List[int] = field(default_factory=list)
+
+    @property
+    def n(self):
+        return len(self.type)
+
+
+def _farthest_points(V: np.ndarray, k: int) -> np.ndarray:
+    """k of the points V, spread out (greedy farthest-point order from the most extreme point):
+    contacts of a hull against a plane happen at its extreme points, which this keeps."""
+    if len(V) <= k:
+        return V
+    c = V.mean(0)
+    first = int(np.argmax(((V - c) ** 2).sum(1)))
+    chosen = [first]
+    d = ((V - V[first]) ** 2).sum(1)
+    for _ in range(k - 1):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, ((V - V[i]) ** 2).sum(1))
+    return V[np.sort(chosen)]
+
+
+def _mesh_hull_points(g, what: str, max_points: int):
+    import trimesh
+
+    V = np.asarray(g.vertices, dtype=float).reshape(-1, 3) if g.vertices is not None else np.zeros((0, 3))
+    if len(V) < 4 or not np.all(np.isfinite(V)):
+        raise ContactBuildError(f"{what}: a collision mesh needs at least 4 finite vertices that enclose a volume "
+                                f"(it has {len(V)}); fix the mesh or use a primitive collision shape")
+    try:
+        hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
+        ok = hull.is_volume and hull.volume > 1e-12 * max(np.ptp(V, 0).max(), 1e-9) ** 3
+    except Exception:  # qhull rejects flat or degenerate point sets
+        ok = False
+    if not ok:
+        raise ContactBuildError(f"{what}: the collision mesh has no volume (its points are flat or degenerate), so "
+                                "it has no inside to push out of; use a closed mesh that encloses a volume, a "
+                                "primitive shape, or remove the <collision> element")
+    P = _farthest_points(np.asarray(hull.vertices, dtype=float), max_points)
+    return P, np.asarray(hull.vertices, dtype=float), np.asarray(hull.centroid, dtype=float)
+
+
+def link_is_dynamic(solver) -> np.ndarray:
+    """(L,) bool: the link moves with some dof (it or an ancestor has a joint with dofs)."""
+    L = solver.n_links
+    dyn = np.zeros(L, dtype=bool)
+    for i in range(L):
+        p = solver.np_link_parent[i]
+        dyn[i] = solver.np_link_ndof[i] > 0 or (p >= 0 and dyn[p])
+    return dyn
+
+
+def build_geoms(models, max_mesh_points: int) -> GeomTable:
+    types, link, ent, pos, quat, size, fric, center, rb, beta, kdop, pts, names = ([] for _ in range(13))
+    starts, counts = [], []
+    nl = 0
+    for i_e, m in enumerate(models):
+        starts.append(len(types))
+        for i_l, l in enumerate(m.links):
+            for k, g in enumerate(l.geoms):
+                what = f"entity '{m.name}', link '{l.name}', {g.type} geom #{k}"
+                if g.type not in GEOM_CODE:
+                    raise ContactBuildError(f"{what}: unknown collision geometry type '{g.type}'; supported are "
+                                            f"{sorted(GEOM_CODE)}")
+                sz = np.zeros(3)
+                s = np.asarray(g.size, dtype=float).reshape(-1)
+                sz[: len(s)] = s
+                if g.type != "plane" and g.type != "mesh":
+                    need = {"sphere": 1, "box": 3, "capsule": 2, "cylinder": 2}[g.type]
+                    if len(s) < need or not np.all(np.isfinite(s[:need])) or np.any(s[:need] <= 0):
+                        raise ContactBuildError(f"{what}: size {tuple(s)} must be {need} positive numbers")
+                mu = 1.0 if g.friction is None else float(g.friction)
+                if not (np.isfinite(mu) and mu >= 0):
+                    raise ContactBuildError(f"{what}: friction {mu} must be a finite number >= 0")
+                c = np.zeros(3)
+                kd = np.zeros(N_KDOP)
+                P = np.zeros((0, 3))
+                if g.type == "plane":
+                    r, b = np.inf, 1.0
+                elif g.type == "sphere":
+                    r, b = sz[0], sz[0]
+                elif g.type == "box":
+                    r, b = float(np.linalg.norm(sz)), 0.5 * float(sz.min())
+                elif g.type == "capsule":
+                    r, b = sz[0] + sz[1], sz[0]
+                elif g.type == "cylinder":
+                    r, b = float(np.hypot(sz[0], sz[1])), 0.5 * float(min(sz[0], sz[1]))
+                else:
+                    P, H, c = _mesh_hull_points(g, what, max_mesh_points)
+                    # the k-DOP is built from the full hull; contacts use the reduced point set
+                    kd = (H @ KDOP_DIRS.T).max(0)
+                    r = float(np.sqrt(((H - c) ** 2).sum(1).max()))
+                    ext = kd[:3] + kd[N_KDOP // 2: N_KDOP // 2 + 3]
+                    b = 0.25 * float(ext.min())
+                types.append(GEOM_CODE[g.type]); link.append(nl + i_l); ent.append(i_e)
+                pos.append(np.asarray(g.pos, dtype=float)); quat.append(np.asarray(g.quat, dtype=float))
+                size.append(sz); fric.append(mu); center.append(c); rb.append(r); beta.append(b)
+                kdop.append(kd); pts.append(P); names.append(what)
+        counts.append(len(types) - starts[-1])
+        nl += m.n_links
+    G = len(types)
+    arr = lambda x, shape: np.array(x, dtype=float).reshape(shape)  # noqa: E731
+    return GeomTable(np.array(types, dtype=np.int32).reshape(G), np.array(link, dtype=np.int32).reshape(G),
+                     np.array(ent, dtype=np.int32).reshape(G), arr(pos, (G, 3)), arr(quat, (G, 4)),
+                     arr(size, (G, 3)), arr(fric, (G,)), arr(center, (G, 3)), arr(rb, (G,)), arr(beta, (G,)),
+                     arr(kdop, (G, N_KDOP)), pts, names, starts, counts)
+
+
+def candidate_pairs(geoms: GeomTable, solver, self_collision: bool, ignore_unsupported: bool):
+    """[(ga, gb)] of geoms that may touch (see the module docstring for the rules)."""
+    dyn = link_is_dynamic(solver)
+    parent = solver.np_link_parent
+    pairs, bad = [], []
+    for a in range(geoms.n):
+        for b in range(a + 1, geoms.n):
+            la, lb = geoms.link[a], geoms.link[b]
+            if la == lb or not (dyn[la] or dyn[lb]):
+                continue
+            if geoms.entity[a] == geoms.entity[b]:
+                if not self_collision or parent[la] == lb or parent[lb] == la:
+                    continue
+            ta, tb = geoms.type[a], geoms.type[b]
+            if ta == GEOM_PLANE and tb == GEOM_PLANE:
+                continue
+            moving_plane = (ta == GEOM_PLANE and dyn[la]) or (tb == GEOM_PLANE and dyn[lb])
+            if (ta == GEOM_MESH and tb == GEOM_MESH) or moving_plane:
+                bad.append((a, b, "a plane on a moving link" if moving_plane else "mesh against mesh"))
+                continue
+            pairs.append((a, b))
+    if bad and not ignore_unsupported:
+        a, b, why = bad[0]
+        more = f" (and {len(bad) - 1} more such pairs)" if len(bad) > 1 else ""
+        raise ContactBuildError(
+            f"unsupported collision pair ({why}): {geoms.names[a]} and {geoms.names[b]}{more}. Supported are plane "
+            "(static) against every shape, sphere/box/capsule/cylinder among themselves, and meshes against planes "
+            "and primitives. Give one of them primitive collision shapes, turn self-collision off "
+            "(RigidOptions(enable_self_collision=False)) if they belong to one entity, or pass "
+            "RigidOptions(ignore_unsupported_pairs=True) to let such pairs pass through each other.")
+    return pairs
+
+
+def _box_points(b, edges: bool):
+    s = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    pts = list(s * b)
+    if edges:
+        for ax in range(3):
+            o = [i for i in range(3) if i != ax]
+            for s1 in (-1, 1):
+                for s2 in (-1, 1):
+                    p = np.zeros(3)
+                    p[o[0]], p[o[1]] = s1 * b[o[0]], s2 * b[o[1]]
+                    pts.append(p)
+    return pts
+
+
+def _cyl_rim(r, hl, n, side):
+    return [np.array([r * np.cos(2 * np.pi * k / n), r * np.sin(2 * np.pi * k / n), side * hl]) for k in range(n)]
+
+
+def sample_points(geoms: GeomTable, g: int, against_plane: bool):
+    """[(kind, point in the geom frame, radius, aux)] of geom g as the point side of a pair."""
+    t, sz = geoms.type[g], geoms.size[g]
+    P = lambda pts, r=0.0: [(SLOT_POINT, np.asarray(p, float), r, 0.0) for p in pts]  # noqa: E731
+    if t == GEOM_SPHERE:
+        return P([np.zeros(3)], sz[0])
+    if t == GEOM_CAPSULE:
+        ts = (-1.0, 1.0) if against_plane else (-1.0, -0.5, 0.0, 0.5, 1.0)
+        return P([np.array([0.0, 0.0, u * sz[1]]) for u in ts], sz[0])
+    if t == GEOM_BOX:
+        return P(_box_points(sz, edges=not against_plane))
+    if t == GEOM_CYLINDER:
+        r, hl = sz[0], sz[1]
+        if against_plane:
+            out = [(SLOT_CYL_RIM, np.zeros(3), 0.0, side) for side in (-1.0, 1.0)]
+            # rim samples keep a cylinder standing on a cap from rocking on the two deepest points
+            return out + P(_cyl_rim(r, hl, CYL_RIM_PLANE, -1) + _cyl_rim(r, hl, CYL_RIM_PLANE, 1))
+        return P(_cyl_rim(r, hl, CYL_RIM_OTHER, -1) + _cyl_rim(r, hl, CYL_RIM_OTHER, 1)
+                 + [np.array([0.0, 0.0, -hl]), np.array([0.0, 0.0, hl])])
+    if t == GEOM_MESH:
+        return P(geoms.points[g])
+    raise ValueError(f"no sample points for geom type {t}")
+
+
+def build_slots(geoms: GeomTable, pairs):
+    """Contact slots of the candidate pairs: list of (pair, kind, ga, gb, point, radius, aux) with ga the
+    point side and gb the SDF side."""
+    slots = []
+    for i_p, (a, b) in enumerate(pairs):
+        ta, tb = geoms.type[a], geoms.type[b]
+        if ta == GEOM_PLANE or tb == GEOM_PLANE:
+            pa, pb = (b, a) if ta == GEOM_PLANE else (a, b)
+            jobs = [(pa, pb, True)]
+        elif ta == GEOM_SPHERE or tb == GEOM_SPHERE:
+            pa, pb = (a, b) if ta == GEOM_SPHERE else (b, a)
+            jobs = [(pa, pb, False)]
+        elif ta == GEOM_CAPSULE and tb == GEOM_CAPSULE:
+            slots.append((i_p, SLOT_SEGSEG, a, b, np.zeros(3), geoms.size[a][0], 0.0))
+            for pa, pb in ((a, b), (b, a)):
+                for u in (-1.0, 1.0):
+                    slots.append((i_p, SLOT_POINT, pa, pb, np.array([0.0, 0.0, u * geoms.size[pa][1]]),
+                                  geoms.size[pa][0], 0.0))
+            continue
+        else:
+            jobs = [(a, b, False), (b, a, False)]
+        for pa, pb, plane in jobs:
+            for kind, p, r, aux in sample_points(geoms, pa, plane):
+                slots.append((i_p, kind, pa, pb, p, r, aux))
+    return slots
+
+
+# ------------------------------------------------------------------------------------------------
+# Narrow phase (Taichi): signed distances in the SDF-side geom's frame
+# ------------------------------------------------------------------------------------------------
+@ti.func
+def func_sgn(x):
+    return 1.0 if x >= 0 else -1.0
+
+
+@ti.func
+def func_sdf_sphere(q, r, chat):
+    L = ti.sqrt(q.dot(q))
+    n = chat
+    if L > 1e-12:
+        n = q / L
+    return L - r, n
+
+
+@ti.func
+def func_sdf_capsule(q, r, hl, chat):
+    t = ti.min(ti.max(q[2], -hl), hl)
+    v = ti.Vector([q[0], q[1], q[2] - t])
+    L = ti.sqrt(v.dot(v))
+    n = chat
+    if L > 1e-12:
+        n = v / L
+    return L - r, n
+
+
+@ti.func
+def func_sdf_box(q, b, chat, beta):
+    """Exact outside; inside, the face of least penetration with a bias `beta` towards the face that
+    looks at chat (unit direction to the other geom)."""
+    d = ti.abs(q) - b
+    sx, sy, sz = func_sgn(q[0]), func_sgn(q[1]), func_sgn(q[2])
+    phi = 0.0
+    n = ti.Vector([0.0, 0.0, 1.0])
+    if d[0] > 0 or d[1] > 0 or d[2] > 0:
+        od = ti.max(d, 0.0)
+        L = ti.sqrt(od.dot(od))
+        phi = L
+        n = ti.Vector([sx * od[0], sy * od[1], sz * od[2]]) / L
+    else:
+        s0 = d[0] + beta * sx * chat[0]
+        s1 = d[1] + beta * sy * chat[1]
+        s2 = d[2] + beta * sz * chat[2]
+        if s0 >= s1 and s0 >= s2:
+            phi = d[0]
+            n = ti.Vector([sx, 0.0, 0.0])
+        elif s1 >= s2:
+            phi = d[1]
+            n = ti.Vector([0.0, sy, 0.0])
+        else:
+            phi = d[2]
+            n = ti.Vector([0.0, 0.0, sz])
+    return phi, n
+
+
+@ti.func
+def func_sdf_cylinder(q, r, hl, chat, beta):
+    rho = ti.sqrt(q[0] * q[0] + q[1] * q[1])
+    u = ti.Vector([chat[0], chat[1], 0.0])
+    if rho > 1e-12:
+        u = ti.Vector([q[0] / rho, q[1] / rho, 0.0])
+    else:
+        lu = ti.sqrt(u.dot(u))
+        u = ti.Vector([1.0, 0.0, 0.0])
+        if lu > 1e-12:
+            u = ti.Vector([chat[0] / lu, chat[1] / lu, 0.0])
+    sz = func_sgn(q[2])
+    dr = rho - r
+    dz = ti.abs(q[2]) - hl
+    phi = 0.0
+    n = ti.Vector([0.0, 0.0, 1.0])
+    if dr > 0 or dz > 0:
+        a = ti.max(dr, 0.0)
+        c = ti.max(dz, 0.0)
+        L = ti.sqrt(a * a + c * c)
+        phi = L
+        n = (a * u + ti.Vector([0.0, 0.0, c * sz])) / L
+    else:
+        if dr + beta * u.dot(chat) >= dz + beta * sz * chat[2]:
+            phi = dr
+            n = u
+        else:
+            phi = dz
+            n = ti.Vector([0.0, 0.0, sz])
+    return phi, n
+
+
+@ti.func
+def func_sdf_kdop(c: ti.template(), g, q, chat, beta):
+    """Signed distance to the geom's k-DOP: the largest plane distance (exact inside up to the
+    face-choice bias, a lower bound outside)."""
+    best = -1e30
+    score = -1e30
+    n = ti.Vector([0.0, 0.0, 1.0])
+    out = -1e30
+    n_out = n
+    for k in ti.static(range(N_KDOP)):
+        dk = ti.Vector([KDOP_DIRS[k, 0], KDOP_DIRS[k, 1], KDOP_DIRS[k, 2]])
+        v = dk.dot(q) - c.geom_kdop[g, k]
+        sc = v + beta * dk.dot(chat)
+        if sc > score:
+            score = sc
+            best = v
+            n = dk
+        # outside (some plane distance > 0): the plane of largest distance, without the bias
+        if v > out:
+            out = v
+            n_out = dk
+    phi = best
+    nn = n
+    if out > 0:
+        phi = out
+        nn = n_out
+    return phi, nn
+
+
+@ti.func
+def func_segment_closest(p1, q1, p2, q2):
+    """Closest points of segments p1q1 and p2q2 (Ericson, Real-Time Collision Detection 5.1.9)."""
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    a = d1.dot(d1)
+    e = d2.dot(d2)
+    f = d2.dot(r)
+    c = d1.dot(r)
+    b = d1.dot(d2)
+    den = a * e - b * b
+    s = 0.0
+    if den > 1e-12 * (a * e + 1e-30):
+        s = ti.min(ti.max((b * f - c * e) / den, 0.0), 1.0)
+    t = (b * s + f) / e
+    if t < 0.0:
+        t = 0.0
+        s = ti.min(ti.max(-c / a, 0.0), 1.0)
+    elif t > 1.0:
+        t = 1.0
+        s = ti.min(ti.max((b - c) / a, 0.0), 1.0)
+    return p1 + d1 * s, p2 + d2 * t
+
+
+@ti.func
+def func_geom_pose(s: ti.template(), i_b, e, src, h):
+    """World pose of every collision geom (from its link's pose)."""
+    c = s.contact
+    for g in range(c.n_geoms):
+        l = c.geom_link[g]
+        R = s.link_R[i_b, l]
+        c.geom_xpos[i_b, g] = s.link_pos[i_b, l] + R @ c.geom_pos[g]
+        c.geom_xR[i_b, g] = R @ c.geom_R[g]
+
+
+@ti.func
+def func_broad_phase(s: ti.template(), i_b, e, src, h):
+    """pair_active: bounding spheres within the contact margin (a plane: the sphere reaches it)."""
+    c = s.contact
+    for i_p in range(c.n_pairs):
+        ga = c.pair_ga[i_p]
+        gb = c.pair_gb[i_p]
+        ca = c.geom_xpos[i_b, ga] + c.geom_xR[i_b, ga] @ c.geom_center[ga]
+        cb = c.geom_xpos[i_b, gb] + c.geom_xR[i_b, gb] @ c.geom_center[gb]
+        gap = 0.0
+        if c.geom_type[gb] == GEOM_PLANE:
+            nb = ti.Vector([c.geom_xR[i_b, gb][0, 2], c.geom_xR[i_b, gb][1, 2], c.geom_xR[i_b, gb][2, 2]])
+            gap = (ca - cb).dot(nb) - c.geom_rbound[ga]
+        else:
+            gap = (ca - cb).norm() - c.geom_rbound[ga] - c.geom_rbound[gb]
+        c.pair_active[i_b, i_p] = 1 if gap < c.margin else 0
+
+
+@ti.func
+def func_slot_geometry(s: ti.template(), i_b, i_s):
+    """(contact point, normal from the SDF side to the point side, depth) of slot i_s; depth > 0 is
+    penetration."""
+    c = s.contact
+    kind = c.slot_kind[i_s]
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    xa = c.geom_xpos[i_b, ga]
+    Ra = c.geom_xR[i_b, ga]
+    xb = c.geom_xpos[i_b, gb]
+    Rb = c.geom_xR[i_b, gb]
+    ra = c.slot_r[i_s]
+    tb = c.geom_type[gb]
+    p = xa + Ra @ c.slot_p[i_s]
+    phi = 0.0
+    n = ti.Vector([0.0, 0.0, 1.0])
+    if kind == SLOT_SEGSEG:
+        hla = c.geom_size[ga][1]
+        hlb = c.geom_size[gb][1]
+        za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
+        zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+        pa, pb = func_segment_closest(xa - hla * za, xa + hla * za, xb - hlb * zb, xb + hlb * zb)
+        dv = pa - pb
+        L = ti.sqrt(dv.dot(dv))
+        n = ti.Vector([0.0, 0.0, 1.0])
+        if L > 1e-12:
+            n = dv / L
+        p = pa
+        phi = L - c.geom_size[gb][0]
+    else:
+        if kind == SLOT_CYL_RIM:
+            # the deepest point of a cylinder cap's rim towards the plane's inside
+            nl = Ra.transpose() @ ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+            rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + 1e-12)
+            r = c.geom_size[ga][0]
+            p = xa + Ra @ ti.Vector([-r * nl[0] / rho, -r * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]])
+        q = Rb.transpose() @ (p - xb)
+        if tb == GEOM_PLANE:
+            phi = q[2]
+            n = ti.Vector([0.0, 0.0, 1.0])
+        else:
+            # unit direction from the SDF geom's centre to the point geom's centre, in the SDF frame
+            ca = xa + Ra @ c.geom_center[ga]
+            cl = Rb.transpose() @ (ca - xb) - c.geom_center[gb]
+            chat = cl / ti.sqrt(cl.dot(cl) + 1e-24)
+            sz = c.geom_size[gb]
+            beta = c.geom_beta[gb]
+            if tb == GEOM_SPHERE:
+                phi, n = func_sdf_sphere(q, sz[0], chat)
+            elif tb == GEOM_CAPSULE:
+                phi, n = func_sdf_capsule(q, sz[0], sz[1], chat)
+            elif tb == GEOM_BOX:
+                if ti.static(s.contact.has_box):
+                    phi, n = func_sdf_box(q, sz, chat, beta)
+            elif tb == GEOM_CYLINDER:
+                if ti.static(s.contact.has_cylinder):
+                    phi, n = func_sdf_cylinder(q, sz[0], sz[1], chat, beta)
+            else:
+                if ti.static(s.contact.has_mesh):
+                    phi, n = func_sdf_kdop(c, gb, q, chat, beta)
+        n = Rb @ n
+    depth = ra - phi
+    # midway between the two surfaces
+    pos = p - n * (0.5 * (ra + phi))
+    return pos, n, depth
+
+
+def geom_rotations(quat: np.ndarray) -> np.ndarray:
+    w, x, y, z = quat.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+__all__ = ["build_geoms", "candidate_pairs", "build_slots", "func_geom_pose", "func_broad_phase",
+           "func_slot_geometry", "ContactBuildError"]

@@ -1,0 +1,417 @@
+"""Issue #3: end-to-end gradients through the rigid solver with ordinary torch autograd.
+
+Every differentiable input and output kind is checked against central finite differences in
+float64 (gs.grad.check) on smooth scenes (no contact): a fixed-base arm, a floating-base body and
+batched environments. Tolerance: relative error <= 1e-6, as the issue asks.
+"""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import genesis_lite as gs
+from genesis_lite.errors import GenesisException
+
+from conftest import ASSETS_DIR
+
+ARM = str(ASSETS_DIR / "urdf" / "arm.urdf")
+TOL = 1e-6
+F64 = dict(dtype=torch.float64)
+
+
+def make_scene(n_envs=0, integrator=gs.integrator.implicitfast, substeps=1, checkpoint_every=None, dt=0.01):
+    return gs.Scene(
+        sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, requires_grad=True, checkpoint_every=checkpoint_every),
+        rigid_options=gs.options.RigidOptions(integrator=integrator, enable_collision=False, enable_joint_limit=False),
+    )
+
+
+def arm_scene(n_envs=0, **kw):
+    scene = make_scene(**kw)
+    arm = scene.add_entity(gs.morphs.URDF(file=ARM, fixed=True))
+    scene.build(n_envs=n_envs)
+    big = torch.full((arm.n_dofs,), 1e6, **F64)
+    arm.set_dofs_force_range(-big, big)  # no saturation kinks in the rollouts below
+    return scene, arm
+
+
+def free_scene():
+    scene = make_scene()
+    box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.2, 0.1), pos=(0.0, 0.0, 1.0)))
+    scene.build()
+    return scene, box
+
+
+def assert_ok(report):
+    print(report)
+    assert report.ok, str(report)
+
+
+@pytest.fixture(scope="module")
+def arm_env():
+    return arm_scene()
+
+
+# ----------------------------------------------------------------------------- initial state
+@pytest.mark.parametrize("integrator", [gs.integrator.Euler, gs.integrator.implicitfast, gs.integrator.RK4])
+def test_initial_state_and_force_controls(integrator):
+    scene, arm = arm_scene(integrator=integrator)
+    n, T = arm.n_dofs, 12
+    rng = np.random.default_rng(0)
+
+    def rollout(q0, v0, forces):
+        scene.reset()
+        arm.set_dofs_position(q0)
+        arm.set_dofs_velocity(v0)
+        for t in range(T):
+            arm.control_dofs_force(forces[t])
+            scene.step()
+        return (arm.get_links_pos()[-1] ** 2).sum() + 0.1 * (arm.get_dofs_velocity() ** 2).sum()
+
+    assert_ok(gs.grad.check(rollout, {"q0": torch.tensor(rng.uniform(-1, 1, n)), "v0": torch.tensor(rng.uniform(-1, 1, n)),
+                                       "forces": torch.tensor(rng.uniform(-3, 3, (T, n)))}, tol=TOL))
+
+
+def test_position_and_velocity_controls_and_gains(arm_env):
+    scene, arm = arm_env
+    n, T = arm.n_dofs, 10
+    rng = np.random.default_rng(1)
+
+    def rollout(q_targets, v_targets, kp, kv):
+        scene.reset()
+        arm.set_dofs_kp(kp)
+        arm.set_dofs_kv(kv)
+        for t in range(T):
+            if t < T // 2:
+                arm.control_dofs_position(q_targets[t])
+            else:
+                arm.control_dofs_velocity(v_targets[t])
+            scene.step()
+        return (arm.get_links_pos() ** 2).sum() + (arm.get_dofs_position() ** 2).sum()
+
+    assert_ok(gs.grad.check(rollout, {
+        "q_targets": torch.tensor(rng.uniform(-1, 1, (T, n))), "v_targets": torch.tensor(rng.uniform(-1, 1, (T, n))),
+        "kp": torch.tensor(rng.uniform(20, 60, n)), "kv": torch.tensor(rng.uniform(1, 5, n))}, tol=TOL))
+
+
+def test_physical_parameters(arm_env):
+    scene, arm = arm_env
+    n, L, T = arm.n_dofs, arm.n_links, 10
+    rng = np.random.default_rng(2)
+    q0 = torch.tensor(rng.uniform(-1, 1, n))
+    mass0 = arm.get_links_mass().detach().clone()
+    inertia0 = arm.get_links_inertia().detach().clone()
+    com0 = arm.get_links_COM().detach().clone()
+
+    def rollout(mass, inertia, com, damping, armature, gravity):
+        scene.reset()
+        arm.set_links_mass(mass)
+        arm.set_links_inertia(inertia)
+        arm.set_links_COM(com)
+        arm.set_dofs_damping(damping)
+        arm.set_dofs_armature(armature)
+        scene.set_gravity(gravity)
+        arm.set_dofs_position(q0)
+        for _ in range(T):
+            scene.step()
+        return (arm.get_links_pos() ** 2).sum() + (arm.get_links_vel() ** 2).sum()
+
+    assert_ok(gs.grad.check(rollout, {
+        "mass": mass0 * 1.1, "inertia": inertia0 * 1.2, "com": com0 + 0.01,
+        "damping": torch.tensor(rng.uniform(0.1, 1.0, n)), "armature": torch.tensor(rng.uniform(0.01, 0.1, n)),
+        "gravity": torch.tensor([0.5, -0.3, -9.81], **F64)}, tol=TOL))
+    # leave the module scene as it was
+    scene.reset()
+    arm.set_links_mass(mass0)
+    arm.set_links_inertia(inertia0)
+    arm.set_links_COM(com0)
+    scene.set_gravity(torch.tensor([0.0, 0.0, -9.81]))
+
+
+def test_every_output_kind_at_several_steps(arm_env):
+    scene, arm = arm_env
+    n = arm.n_dofs
+    rng = np.random.default_rng(3)
+    w = {k: torch.tensor(rng.normal(size=s)) for k, s in [("lp", (arm.n_links, 3)), ("lq", (arm.n_links, 4)),
+                                                          ("lv", (arm.n_links, 3)), ("la", (arm.n_links, 3))]}
+
+    def rollout(q0, v0):
+        scene.reset()
+        arm.set_dofs_position(q0)
+        arm.set_dofs_velocity(v0)
+        loss = 0.0
+        for t in range(9):
+            scene.step()
+            if t % 3 == 0:
+                loss = loss + (w["lp"] * arm.get_links_pos()).sum() + (w["lq"] * arm.get_links_quat()).sum()
+                loss = loss + (w["lv"] * arm.get_links_vel()).sum() + (w["la"] * arm.get_links_ang()).sum()
+                loss = loss + arm.get_pos().sum() + arm.get_quat()[1:].sum() + arm.get_vel().sum() + arm.get_ang().sum()
+                loss = loss + (arm.get_dofs_position() * arm.get_dofs_velocity()).sum() + arm.get_qpos().pow(2).sum()
+        return loss
+
+    assert_ok(gs.grad.check(rollout, {"q0": torch.tensor(rng.uniform(-1, 1, n)),
+                                       "v0": torch.tensor(rng.uniform(-1, 1, n))}, tol=TOL))
+
+
+# ----------------------------------------------------------------------------- floating base
+def test_floating_base_pose_setters_and_getters():
+    scene, box = free_scene()
+    rng = np.random.default_rng(4)
+
+    def rollout(pos, quat, v0):
+        scene.reset()
+        box.set_pos(pos)
+        box.set_quat(quat)
+        box.set_dofs_velocity(v0)
+        loss = 0.0
+        for t in range(8):
+            scene.step()
+        loss = loss + (box.get_pos() ** 2).sum() + (box.get_quat() * torch.tensor([0.3, -1.0, 0.5, 2.0], **F64)).sum()
+        loss = loss + (box.get_vel() ** 2).sum() + (box.get_ang() * torch.tensor([1.0, 2.0, 3.0], **F64)).sum()
+        return loss
+
+    q = torch.tensor(rng.normal(size=4))
+    assert_ok(gs.grad.check(rollout, {"pos": torch.tensor([0.1, -0.2, 1.0], **F64), "quat": q / q.norm(),
+                                       "v0": torch.tensor(rng.uniform(-2, 2, 6))}, tol=TOL))
+
+
+def test_floating_base_set_qpos_and_force():
+    scene, box = free_scene()
+    rng = np.random.default_rng(5)
+
+    def rollout(qpos, forces):
+        scene.reset()
+        box.set_qpos(qpos)
+        for t in range(6):
+            box.control_dofs_force(forces[t])
+            scene.step()
+        return (box.get_qpos() ** 2).sum() + (box.get_dofs_velocity() ** 2).sum()
+
+    qpos = torch.tensor([0.0, 0.1, 1.0, 0.9, 0.1, -0.2, 0.3], **F64)
+    assert_ok(gs.grad.check(rollout, {"qpos": qpos, "forces": torch.tensor(rng.uniform(-5, 5, (6, 6)))}, tol=TOL))
+
+
+def test_floating_base_quadruped_free_fall():
+    """A real floating-base robot (go2) in free fall, joints under force control."""
+    from conftest import robot_urdf
+
+    scene = make_scene()
+    go2 = scene.add_entity(gs.morphs.URDF(file=str(robot_urdf("go2")), pos=(0, 0, 1.0)))
+    scene.build()
+    rng = np.random.default_rng(6)
+    n = go2.n_dofs
+    joints = list(range(6, n))
+
+    def rollout(q_joints, tau):
+        scene.reset()
+        go2.set_dofs_position(q_joints, dofs_idx_local=joints)
+        for t in range(5):
+            go2.control_dofs_force(tau[t], dofs_idx_local=joints)
+            scene.step()
+        return (go2.get_links_pos() ** 2).sum() + (go2.get_quat() ** 3).sum()
+
+    assert_ok(gs.grad.check(rollout, {"q_joints": torch.tensor(rng.uniform(-0.5, 0.5, n - 6)),
+                                       "tau": torch.tensor(rng.uniform(-2, 2, (5, n - 6)))}, tol=TOL))
+
+
+# ----------------------------------------------------------------------------- batched
+def test_batched_environments_each_get_their_own_gradient():
+    scene, arm = arm_scene(n_envs=3)
+    n = arm.n_dofs
+    rng = np.random.default_rng(7)
+    weights = torch.tensor([1.0, 2.0, 0.0], **F64)  # env 2 does not enter the loss
+
+    def rollout(q0, forces):
+        scene.reset()
+        arm.set_dofs_position(q0)
+        for t in range(6):
+            arm.control_dofs_force(forces[t])
+            scene.step()
+        return ((arm.get_links_pos()[:, -1] ** 2).sum(-1) * weights).sum()
+
+    q0 = torch.tensor(rng.uniform(-1, 1, (3, n)))
+    forces = torch.tensor(rng.uniform(-2, 2, (6, 3, n)))
+    r = gs.grad.check(rollout, {"q0": q0, "forces": forces}, tol=TOL)
+    assert_ok(r)
+    g_q0 = r.autograd[0]
+    assert torch.all(g_q0[2] == 0) and g_q0[0].abs().sum() > 0 and g_q0[1].abs().sum() > 0
+    # env 1 alone (weight 2 vs weight 1) is not a copy of env 0: independent inputs give independent gradients
+    assert not torch.allclose(g_q0[0], g_q0[1] / 2)
+
+
+# ----------------------------------------------------------------------------- autograd semantics
+def test_loss_backward_and_autograd_grad_agree(arm_env):
+    scene, arm = arm_env
+    n, T = arm.n_dofs, 8
+    q0 = torch.linspace(-0.5, 0.5, n, **F64).requires_grad_()
+    u = torch.zeros(T, n, **F64, requires_grad=True)
+
+    def run():
+        scene.reset()
+        arm.set_dofs_position(q0)
+        loss = 0.0
+        for t in range(T):
+            arm.control_dofs_force(u[t])
+            scene.step()
+            loss = loss + (arm.get_links_pos()[-1] ** 2).sum()  # a loss summed over many steps
+        return loss
+
+    loss = run()
+    assert isinstance(arm.get_pos(), gs.grad.Tensor)
+    loss.backward()
+    g1 = (q0.grad.clone(), u.grad.clone())
+    q0.grad = None
+    u.grad = None
+    g2 = torch.autograd.grad(run(), [q0, u])
+    assert torch.equal(g1[0], g2[0]) and torch.equal(g1[1], g2[1])
+    assert g1[0].abs().sum() > 0 and g1[1].abs().sum() > 0
+
+
+def test_torch_policy_in_the_loop(arm_env):
+    scene, arm = arm_env
+    n = arm.n_dofs
+    torch.manual_seed(0)
+    policy = torch.nn.Sequential(torch.nn.Linear(2 * n, 8), torch.nn.Tanh(), torch.nn.Linear(8, n)).double()
+    flat0 = torch.nn.utils.parameters_to_vector(policy.parameters()).detach()
+    q0 = torch.linspace(-0.6, 0.6, n, **F64)
+
+    def rollout(flat):
+        torch.nn.utils.vector_to_parameters(flat, policy.parameters())
+        # rebuild the parameters as functions of `flat` so autograd sees them
+        params, i = [], 0
+        for p in policy.parameters():
+            params.append(flat[i:i + p.numel()].view_as(p))
+            i += p.numel()
+        scene.reset()
+        arm.set_dofs_position(q0)
+        for _ in range(8):
+            obs = torch.cat([arm.get_dofs_position(), arm.get_dofs_velocity()])
+            h = torch.tanh(obs @ params[0].T + params[1])
+            arm.control_dofs_force(5.0 * (h @ params[2].T + params[3]))
+            scene.step()
+        return (arm.get_links_pos()[-1] ** 2).sum()
+
+    assert_ok(gs.grad.check(rollout, {"policy": flat0}, tol=TOL))
+
+
+def test_checkpointing_gives_identical_gradients_with_bounded_storage():
+    results = {}
+    for every in (None, 4):
+        scene, arm = arm_scene(checkpoint_every=every)
+        n, T = arm.n_dofs, 23
+        q0 = torch.linspace(-0.5, 0.5, n, **F64).requires_grad_()
+        u = torch.linspace(-1, 1, T * n, **F64).reshape(T, n).requires_grad_()
+        scene.reset()
+        arm.set_dofs_position(q0)
+        loss = 0.0
+        for t in range(T):
+            arm.control_dofs_force(u[t])
+            scene.step()
+            if t % 5 == 0:
+                loss = loss + arm.get_links_pos().pow(2).sum()
+        loss.backward()
+        results[every] = (q0.grad, u.grad)
+        if every:
+            buf = scene._rigid.buffer
+            assert len(buf.checkpoints) == math.ceil((T + 1) / every)
+            assert buf.n_replayed > 0
+    assert torch.equal(results[None][0], results[4][0]) and torch.equal(results[None][1], results[4][1])
+
+
+def test_substeps_and_long_horizon_gradient():
+    scene, arm = arm_scene(substeps=3, integrator=gs.integrator.Euler)
+    n = arm.n_dofs
+    rng = np.random.default_rng(8)
+
+    def rollout(q0):
+        scene.reset()
+        arm.set_dofs_position(q0)
+        for _ in range(40):
+            scene.step()
+        return arm.get_links_pos()[-1].sum()
+
+    assert_ok(gs.grad.check(rollout, {"q0": torch.tensor(rng.uniform(-1, 1, n))}, tol=TOL))
+
+
+def test_no_grad_reads_are_not_tracked(arm_env):
+    scene, arm = arm_env
+    q0 = torch.zeros(arm.n_dofs, **F64, requires_grad=True)
+    scene.reset()
+    arm.set_dofs_position(q0)
+    scene.step()
+    with torch.no_grad():
+        p = arm.get_links_pos()
+    assert not p.requires_grad
+    assert arm.get_links_pos().requires_grad
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_requires_grad_input_to_a_non_grad_scene_raises():
+    scene = gs.Scene(sim_options=gs.options.SimOptions(requires_grad=False))
+    arm = scene.add_entity(gs.morphs.URDF(file=ARM, fixed=True))
+    scene.build()
+    with pytest.raises(GenesisException, match="requires_grad=True"):
+        arm.set_dofs_position(torch.zeros(arm.n_dofs, **F64, requires_grad=True))
+    with pytest.raises(GenesisException, match="requires_grad=True"):
+        arm.control_dofs_force(torch.zeros(arm.n_dofs, **F64, requires_grad=True))
+
+
+def test_control_of_wrong_shape_raises(arm_env):
+    scene, arm = arm_env
+    scene.reset()
+    with pytest.raises(GenesisException, match="shape"):
+        arm.control_dofs_force(torch.zeros(arm.n_dofs + 1, **F64, requires_grad=True))
+    with pytest.raises(GenesisException, match="shape"):
+        arm.control_dofs_force(torch.zeros(2, arm.n_dofs, **F64))
+
+
+def test_backward_after_reset_raises(arm_env):
+    scene, arm = arm_env
+    q0 = torch.zeros(arm.n_dofs, **F64, requires_grad=True)
+    scene.reset()
+    arm.set_dofs_position(q0)
+    scene.step()
+    loss = arm.get_links_pos().sum()
+    scene.reset()
+    with pytest.raises(GenesisException, match="reset"):
+        loss.backward()
+
+
+def test_second_backward_and_step_after_backward_raise(arm_env):
+    scene, arm = arm_env
+    q0 = torch.zeros(arm.n_dofs, **F64, requires_grad=True)
+    scene.reset()
+    arm.set_dofs_position(q0)
+    scene.step()
+    loss = arm.get_links_pos().sum()
+    loss.backward()
+    with pytest.raises(RuntimeError, match="second time"):
+        loss.backward()
+    with pytest.raises(GenesisException, match="scene.reset"):
+        scene.step()
+    scene.reset()
+    scene.step()  # a new rollout is fine
+
+
+def test_parameter_on_wrong_device_or_dtype_raises(arm_env):
+    scene, arm = arm_env
+    scene.reset()
+    with pytest.raises(GenesisException, match="device"):
+        arm.set_dofs_kp(torch.ones(arm.n_dofs, device="meta"))
+    with pytest.raises(GenesisException, match="dtype"):
+        arm.set_dofs_kp(torch.ones(arm.n_dofs, dtype=torch.bool))
+    with pytest.raises(GenesisException, match="dtype"):
+        arm.set_links_mass(torch.ones(arm.n_links, dtype=torch.complex128))
+
+
+def test_nan_gradient_raises(arm_env):
+    scene, arm = arm_env
+    q0 = torch.zeros(arm.n_dofs, **F64, requires_grad=True)
+    scene.reset()
+    arm.set_dofs_position(q0)
+    scene.step()
+    # d sqrt(x)/dx at x = 0 is infinite: the NaN/inf enters the simulation's backward pass
+    loss = torch.sqrt(arm.get_dofs_velocity()[0] * 0.0)
+    with pytest.raises(GenesisException, match="NaN or infinite"):
+        loss.backward()

@@ -1,0 +1,167 @@
+"""Convergence order of the rigid integrators on a double pendulum (issue #2).
+
+The pendulum is assets/urdf/double_pendulum.urdf with a fixed base, joint limits and collisions off
+and no damping, armature or friction. The reference is a tight solution no one here wrote: scipy's
+DOP853 (rtol = atol = 1e-12) on q'' = M(q)^-1 (tau - b(q, q')), with M from `pin.crba` and b from
+`pin.rnea(q, q', 0)` on Pinocchio's model of the same URDF. The error of q at t = 1 s is measured for
+dt in a geometric sequence and the order is the least-squares slope of log(error) against log(dt):
+semi-implicit Euler and implicitfast are first order, RK4 fourth order (its dts are chosen so its
+error stays far above round-off).
+
+The helpers (`reference`, `simulate`, `convergence`) are shared with benchmarks/bench_integrators.py.
+"""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+PENDULUM = Path(__file__).resolve().parents[1] / "assets" / "urdf" / "double_pendulum.urdf"
+G = 9.81
+Q0 = np.array([0.9, -0.6])  # rad: a large, non-linear swing
+V0 = np.array([0.0, 0.8])  # rad/s
+T_END = 1.0  # s
+
+# dt = T_END / n for n in these step counts (a factor 2 apart)
+STEPS = {
+    "Euler": [100, 200, 400, 800],
+    "implicitfast": [100, 200, 400, 800],
+    "RK4": [20, 40, 80, 160],
+}
+ORDER_RANGE = {"Euler": (0.8, 1.3), "implicitfast": (0.8, 1.3), "RK4": (3.5, 4.6)}
+
+
+# ----------------------------------------------------------------------------------------------
+# reference: Pinocchio dynamics, scipy integration
+# ----------------------------------------------------------------------------------------------
+class PendulumReference:
+    """Pinocchio's model of the URDF; joints are matched to ours by name."""
+
+    def __init__(self, path=PENDULUM, damping=(0.0, 0.0)):
+        import pinocchio as pin
+
+        self.pin = pin
+        self.model = pin.buildModelFromUrdf(str(path))
+        self.model.gravity = pin.Motion(np.array([0.0, 0.0, -G]), np.zeros(3))
+        self.data = self.model.createData()
+        self.names = [self.model.names[j] for j in range(1, self.model.njoints)]
+        assert self.model.nq == self.model.nv == 2, "expected two 1-dof joints"
+        self.damping = np.asarray(damping, dtype=float)
+
+    def rhs(self, t, y):
+        pin = self.pin
+        q, v = y[:2], y[2:]
+        M = pin.crba(self.model, self.data, q)
+        M = np.triu(M) + np.triu(M, 1).T
+        b = pin.rnea(self.model, self.data, q, v, np.zeros(2))
+        return np.concatenate([v, np.linalg.solve(M, -b - self.damping * v)])
+
+    def energy(self, q, v):
+        pin = self.pin
+        return (pin.computeKineticEnergy(self.model, self.data, q, v)
+                + pin.computePotentialEnergy(self.model, self.data, q))
+
+    def solve(self, q0, v0, t_end):
+        from scipy.integrate import solve_ivp
+
+        sol = solve_ivp(self.rhs, (0.0, t_end), np.concatenate([q0, v0]), method="DOP853",
+                        rtol=1e-12, atol=1e-12)
+        assert sol.success, sol.message
+        return sol.y[:2, -1], sol.y[2:, -1]
+
+
+@functools.lru_cache(maxsize=None)
+def reference(damping=(0.0, 0.0), q0=tuple(Q0), v0=tuple(V0), t_end=T_END):
+    """(q, v) at t_end from the tight reference, in Pinocchio's joint order (= ours, checked)."""
+    ref = PendulumReference(damping=damping)
+    return ref.solve(np.array(q0), np.array(v0), t_end)
+
+
+# ----------------------------------------------------------------------------------------------
+# genesis_lite
+# ----------------------------------------------------------------------------------------------
+def build(integrator: str, dt: float, damping=(0.0, 0.0)):
+    """A scene with the frictionless double pendulum; returns (scene, pendulum)."""
+    import genesis_lite as gs
+
+    scene = gs.Scene(
+        sim_options=gs.options.SimOptions(dt=dt, substeps=1, gravity=(0.0, 0.0, -G)),
+        rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator),
+                                              enable_collision=False, enable_joint_limit=False),
+    )
+    pend = scene.add_entity(gs.morphs.URDF(file=str(PENDULUM), fixed=True), name="double_pendulum")
+    scene.build()
+    pend.set_dofs_damping(list(damping))
+    pend.set_dofs_armature([0.0, 0.0])
+    pend.set_dofs_frictionloss([0.0, 0.0])
+    return scene, pend
+
+
+def simulate(integrator: str, n_steps: int, t_end=T_END, damping=(0.0, 0.0), q0=Q0, v0=V0):
+    """(q, v) after n_steps of dt = t_end / n_steps from (q0, v0)."""
+    scene, pend = build(integrator, t_end / n_steps, damping)
+    assert [j.name for j in pend.joints if j.n_dofs] == PendulumReference().names
+    pend.set_dofs_position(np.asarray(q0, dtype=float))
+    pend.set_dofs_velocity(np.asarray(v0, dtype=float))
+    for _ in range(n_steps):
+        scene.step()
+    return pend.get_dofs_position().numpy().copy(), pend.get_dofs_velocity().numpy().copy()
+
+
+def fit_order(dts, errors) -> float:
+    """Least-squares slope of log(error) against log(dt)."""
+    return float(np.polyfit(np.log(dts), np.log(errors), 1)[0])
+
+
+def convergence(integrator: str, steps=None, damping=(0.0, 0.0)):
+    """[(dt, max |q - q_ref| at T_END)], order."""
+    q_ref, _ = reference(damping=tuple(damping))
+    rows = []
+    for n in steps or STEPS[integrator]:
+        q, _ = simulate(integrator, n, damping=damping)
+        rows.append((T_END / n, float(np.abs(q - q_ref).max())))
+    return rows, fit_order([r[0] for r in rows], [r[1] for r in rows])
+
+
+# ----------------------------------------------------------------------------------------------
+# tests
+# ----------------------------------------------------------------------------------------------
+def test_reference_is_tight_and_matches_the_urdf():
+    """The reference itself: energy kept to ~1e-11 over 1 s, and the same answer at a looser tolerance
+    (so its error is far below the errors measured below)."""
+    ref = PendulumReference()
+    assert ref.names == ["joint1", "joint2"]
+    q, v = ref.solve(Q0, V0, T_END)
+    e0, e1 = ref.energy(Q0, V0), ref.energy(q, v)
+    assert abs(e1 - e0) < 1e-10 * max(1.0, abs(e0))
+    from scipy.integrate import solve_ivp
+
+    loose = solve_ivp(ref.rhs, (0.0, T_END), np.concatenate([Q0, V0]), method="DOP853", rtol=1e-10, atol=1e-10)
+    assert np.abs(loose.y[:2, -1] - q).max() < 1e-8
+    # a sanity check of the model: two 1 kg point masses on 1 m rods hanging along -z
+    M = ref.pin.crba(ref.model, ref.data, np.zeros(2))
+    M = np.triu(M) + np.triu(M, 1).T
+    assert np.allclose(M, [[5.0, 2.0], [2.0, 1.0]], atol=1e-6)
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast", "RK4"])
+def test_convergence_order(integrator):
+    rows, order = convergence(integrator)
+    table = "\n".join(f"  dt={dt:.6f}  err={e:.3e}" for dt, e in rows)
+    lo, hi = ORDER_RANGE[integrator]
+    assert lo <= order <= hi, f"{integrator}: measured order {order:.2f}, expected {lo}..{hi}\n{table}"
+    errors = [e for _, e in rows]
+    assert all(b < a for a, b in zip(errors, errors[1:])), f"{integrator}: error does not decrease\n{table}"
+    assert errors[-1] > 1e-11, f"{integrator}: the finest error is at round-off level, pick larger dts\n{table}"
+    if integrator != "RK4":
+        # first order with a small constant: 1e-2 s steps already give a useful answer
+        assert errors[0] < 0.1, table
+
+
+def test_implicitfast_first_order_with_damping():
+    """Where implicitfast differs from Euler (damping is treated implicitly) it still converges at
+    first order to the damped reference."""
+    rows, order = convergence("implicitfast", steps=[100, 200, 400], damping=(0.3, 0.2))
+    assert 0.8 <= order <= 1.3, (order, rows)
