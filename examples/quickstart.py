@@ -42,8 +42,8 @@ def main():
     print(f"built {arm} in {time.time() - t0:.1f} s")
 
     n = arm.n_dofs
-    arm.set_dofs_kp(torch.tensor([300.0] * 7 + [100.0] * 2, dtype=torch.float64))
-    arm.set_dofs_kv(torch.tensor([30.0] * 7 + [5.0] * 2, dtype=torch.float64))
+    arm.set_dofs_kp(torch.tensor([1000.0] * 7 + [100.0] * 2, dtype=torch.float64))
+    arm.set_dofs_kv(torch.tensor([60.0] * 7 + [5.0] * 2, dtype=torch.float64))
     q0 = torch.tensor([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8, 0.02, 0.02], dtype=torch.float64, requires_grad=True)
     target = torch.tensor([0.5, 0.4, 0.3, -1.8, 0.2, 1.6, 0.6, 0.03, 0.03], dtype=torch.float64, requires_grad=True)
 
