@@ -52,7 +52,9 @@ class RigidSim:
                                   sim_options.gravity, gs.ti_float, self.requires_grad,
                                   rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
                                   rigid_options.joint_limit_damping,
-                                  contact_options=rigid_options if rigid_options.enable_collision else None)
+                                  contact_options=rigid_options if rigid_options.enable_collision else None,
+                                  mimic=(rigid_options.mimic_stiffness, rigid_options.mimic_damping)
+                                  if rigid_options.enable_mimic else None)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.rollout_token = 0

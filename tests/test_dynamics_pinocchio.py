@@ -227,7 +227,8 @@ def _build(path: Path, fixed: bool):
     scene = gs.Scene(
         sim_options=gs.options.SimOptions(dt=DT, substeps=1, gravity=tuple(GRAVITY), requires_grad=False),
         rigid_options=gs.options.RigidOptions(
-            integrator=gs.integrator.Euler, enable_collision=False, enable_joint_limit=False),
+            # Pinocchio treats <mimic> joints as independent: so do we here
+            integrator=gs.integrator.Euler, enable_collision=False, enable_joint_limit=False, enable_mimic=False),
     )
     robot = scene.add_entity(gs.morphs.URDF(file=str(path), fixed=fixed))
     scene.build()

@@ -1,7 +1,7 @@
 """Stage 3, bias forces: Coriolis, centrifugal and gravity by recursive Newton-Euler (qacc = 0)."""
 import taichi as ti
 
-from .kinematics import func_vec3
+from .kinematics import func_link_joint_velocity
 from .math3d import func_cross_force, func_inertia_mul
 
 
@@ -13,13 +13,7 @@ def func_link_forces(s: ti.template(), i_b, e, src, h):
         p = s.link_parent[i_l]
         has_p = p >= 0
         pp = ti.max(p, 0)
-        d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
-        one = ti.cast(s.link_ndof[i_l] == 1, s.dtype)
-        free = ti.cast(s.link_ndof[i_l] == 6, s.dtype)
-        df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
-        vb = func_vec3(s.qvel, src, i_b, df)
-        wb = func_vec3(s.qvel, src, i_b, df + 3)
-        qd = s.qvel[src, i_b, d0] * one
+        d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
         aw = ti.select(has_p, s.cacc_w[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)) + s.cdofd_w[i_b, d0] * qd
         av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd + free * vb.cross(wb)
         s.cacc_w[i_b, i_l] = aw

@@ -19,6 +19,18 @@ def func_vec3(x: ti.template(), a, b, i):
 
 
 @ti.func
+def func_link_joint_velocity(s: ti.template(), i_b, src, i_l):
+    """The velocity a link's own joint contributes, for the two joint shapes that have dofs:
+    (d0, qd) the dof and velocity of a 1-dof joint (qd = 0 otherwise), and (free, vb, wb) a 0/1 mask
+    and the base-origin world velocity and world angular velocity of a free joint."""
+    d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
+    qd = s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+    free = ti.cast(s.link_ndof[i_l] == 6, s.dtype)
+    df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
+    return d0, qd, free, func_vec3(s.qvel, src, i_b, df), func_vec3(s.qvel, src, i_b, df + 3)
+
+
+@ti.func
 def func_forward_kinematics(s: ti.template(), i_b, e, src, h):
     """Link origin positions and orientations (quat and R) from qpos[src]."""
     for i_l in range(s.n_links):
@@ -90,13 +102,7 @@ def func_velocity(s: ti.template(), i_b, e, src, h):
         has_p = p >= 0
         pp = ti.max(p, 0)
         zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
-        d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
-        one = ti.cast(s.link_ndof[i_l] == 1, s.dtype)
-        free = ti.cast(s.link_ndof[i_l] == 6, s.dtype)
-        df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
-        vb = func_vec3(s.qvel, src, i_b, df)
-        wb = func_vec3(s.qvel, src, i_b, df + 3)
-        qd = s.qvel[src, i_b, d0] * one
+        d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
         w = ti.select(has_p, s.cvel_w[i_b, pp], zero)
         v = ti.select(has_p, s.cvel_v[i_b, pp], zero)
         s.cvel_w[i_b, i_l] = w + s.cdof_w[i_b, d0] * qd + free * wb

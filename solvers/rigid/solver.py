@@ -16,7 +16,7 @@ from typing import List
 import numpy as np
 import taichi as ti
 
-from .actuation import func_generalized_force
+from .actuation import func_generalized_force, func_mimic
 from .bias import BIAS
 from .inertia import INERTIA, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
@@ -42,7 +42,7 @@ class RigidSolver:
 
     def __init__(self, models: List[EntityModel], n_envs: int, dt: float, substeps: int, integrator: int,
                  gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float,
-                 contact_options=None):
+                 contact_options=None, mimic=None):
         self.models = models
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
@@ -58,7 +58,9 @@ class RigidSolver:
         self.limit_k = limit_k
         self.limit_d = limit_d
         self.serial = n_envs <= SERIAL_MAX_ENVS
-        self._layout(models)
+        # mimic: None (ignore <mimic>) or (stiffness, damping)
+        self.mimic_k, self.mimic_d = mimic if mimic is not None else (0.0, 0.0)
+        self._layout(models, mimic is not None)
         self._schedule()
         self._allocate()
         # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
@@ -68,13 +70,14 @@ class RigidSolver:
             from .contact import ContactSolver
 
             self.contact = ContactSolver.create(self, models, contact_options)
-        self.dynamics_stages = DYNAMICS + (self.contact.stages if self.contact is not None else ())
+        self.dynamics_stages = DYNAMICS + ((func_mimic,) if self.has_mimic else ()) + (
+            self.contact.stages if self.contact is not None else ())
         if self.contact is not None and requires_grad:
             self.grad_fields = self.grad_fields + list(self.contact.grad_fields)
         self._fill_info(gravity)
 
     # ------------------------------------------------------------------ build
-    def _layout(self, models):
+    def _layout(self, models, use_mimic):
         parent, jtype, qstart, dstart, ndof, jpos, jquat, jaxis, ent = [], [], [], [], [], [], [], [], []
         self.entity_link_start, self.entity_q_start, self.entity_dof_start = [], [], []
         q0, lo, hi, eff, damp, fl, arm = [], [], [], [], [], [], []
@@ -151,6 +154,21 @@ class RigidSolver:
                     p = parent[p]
                 dof_parent[i_d] = dstart[p] + ndof[p] - 1 if p >= 0 else -1
         self.np_dof_parent = dof_parent
+        # URDF <mimic>: follower dof -> leader dof of the same entity
+        self.np_mimic = np.zeros((max(nd, 1), 3))
+        self.np_mimic[:, 0] = -1
+        if use_mimic:
+            for i_e, m in enumerate(models):
+                dof_of = {}
+                d = self.entity_dof_start[i_e]
+                for l in m.links:
+                    if l.joint_type in ("revolute", "prismatic"):
+                        dof_of[l.joint_name] = d
+                    d += JOINT_NV[l.joint_type]
+                for l in m.links:
+                    if l.mimic is not None and l.joint_name in dof_of and l.mimic.joint in dof_of:
+                        self.np_mimic[dof_of[l.joint_name]] = (dof_of[l.mimic.joint], l.mimic.multiplier, l.mimic.offset)
+        self.has_mimic = bool((self.np_mimic[:, 0] >= 0).any())
         anc = np.zeros((max(nd, 1), max(nd, 1)), dtype=np.int32)
         for i in range(nd):
             j = i
@@ -202,6 +220,7 @@ class RigidSolver:
         self.dof_link, self.dof_q, self.dof_parent = I(D), I(D), I(D)
         self.dof_anc = I((D, D))
         self.dof_limit_lo, self.dof_limit_hi = F(D, False), F(D, False)
+        self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(D), F(D, False), F(D, False)
         # parameters
         self.link_mass, self.link_com, self.link_inertia = F((B, L)), V3((B, L)), M3((B, L))
         self.dof_damping, self.dof_armature, self.dof_frictionloss = F((B, D)), F((B, D)), F((B, D))
@@ -255,6 +274,9 @@ class RigidSolver:
         self.dof_q.from_numpy(pad(self.np_dof_q, D))
         self.dof_parent.from_numpy(pad(self.np_dof_parent, D))
         self.dof_anc.from_numpy(self.np_dof_anc)
+        self.dof_mimic_leader.from_numpy(self.np_mimic[:, 0].astype(np.int32))
+        self.dof_mimic_mult.from_numpy(self.np_mimic[:, 1].astype(self.np_dtype))
+        self.dof_mimic_off.from_numpy(self.np_mimic[:, 2].astype(self.np_dtype))
         big = np.finfo(self.np_dtype).max
         # "no limit" as a large finite number: infinities turn masked-out terms into NaN
         lim = np.clip(pad(self.np_dof_limit, D), -1e30, 1e30).astype(self.np_dtype)
