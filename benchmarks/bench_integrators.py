@@ -103,7 +103,7 @@ def main():
     assert max(r["e0_err"] for r in rows) < 1e-9, "our E0 disagrees with Pinocchio's"
     header = (f"# Rigid integrators on the frictionless double pendulum\n\n"
               f"genesis_lite {gs.__version__} ({args.label or _git_label()}), float64, Taichi CPU backend. "
-              f"q0 = {list(ti_.Q0)} rad, v0 = {list(ti_.V0)} rad/s, E0 = {rows[0]['e0']:.6f} J "
+              f"q0 = {ti_.Q0.tolist()} rad, v0 = {ti_.V0.tolist()} rad/s, E0 = {rows[0]['e0']:.6f} J "
               f"(equal to Pinocchio's to {max(r['e0_err'] for r in rows):.1e} J).")
     text = [header]
     text.append(print_table(rows, [

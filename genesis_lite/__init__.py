@@ -40,11 +40,15 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     global device, tc_float, np_float, ti_float, _initialized, _init_args
     import taichi as ti
 
-    args = (backend, str(precision))
+    args = (backend, str(precision), bool(debug), tuple(sorted(taichi_kwargs.items())))
     if _initialized:
         if args != _init_args:
-            raise GenesisException(f"gs.init was already called with backend={_init_args[0]!r}, precision={_init_args[1]!r}; "
-                                   "genesis_lite is initialised once per process: restart Python to change it")
+            raise GenesisException(f"gs.init was already called with backend={_init_args[0]!r}, precision={_init_args[1]!r}, "
+                                   f"debug={_init_args[2]}, taichi options {dict(_init_args[3])}; now with different "
+                                   "arguments. genesis_lite is initialised once per process: restart Python to change them")
+        if seed is not None:
+            torch.manual_seed(seed)
+            np.random.seed(seed)
         return
     if str(precision) not in ("32", "64"):
         raise ValueError(f"gs.init(precision={precision!r}): use \"32\" or \"64\"")

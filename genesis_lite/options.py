@@ -85,8 +85,6 @@ class RigidOptions(_Options):
     joint_limit_stiffness: float = 1e4
     joint_limit_damping: float = 1e2
     enable_mimic: bool = True
-    mimic_stiffness: float = 1e4
-    mimic_damping: float = 1e2
     check_nan: bool = True
     contact_smoothing: float = 2e-5
     friction_smoothing: float = 1e-3
@@ -98,8 +96,7 @@ class RigidOptions(_Options):
             self.integrator = integrator(self.integrator)
         except ValueError:
             self._err("integrator", self.integrator, "use gs.integrator.Euler, implicitfast or RK4")
-        for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping",
-                     "mimic_stiffness", "mimic_damping"):
+        for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
                 self._err(name, v, "must be a finite number >= 0")

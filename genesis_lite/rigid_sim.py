@@ -53,8 +53,7 @@ class RigidSim:
                                   rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
                                   rigid_options.joint_limit_damping,
                                   contact_options=rigid_options if rigid_options.enable_collision else None,
-                                  mimic=(rigid_options.mimic_stiffness, rigid_options.mimic_damping)
-                                  if rigid_options.enable_mimic else None)
+                                  mimic=rigid_options.enable_mimic)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.rollout_token = 0
@@ -200,13 +199,19 @@ class RigidSim:
             self.qpos, self.qvel = self._split(StepFunction.apply(self, *inputs))
             self._state_on_device = True
         else:
-            self.solver.step()
+            self.solver.step(self.step_count + 1)
             self.qpos = self.qvel = None
         self.step_count += 1
         self._outputs = None
 
-    def check_finite(self, entities):
+    def first_nan_step(self):
+        """The first step after which the (fused-path) state was not finite, or None."""
+        k = self.solver.nan_step[None]
+        return None if k == self.solver.NO_NAN else k
+
+    def check_finite(self, entities, step=None):
         """Raise SimulationNaNError naming the entity, the quantity and the step if the state is not finite."""
+        step = self.step_count if step is None else step
         q, v = self.get_state()
         for name, x in (("qpos", q), ("qvel", v)):
             bad = ~torch.isfinite(x.detach())
@@ -214,7 +219,7 @@ class RigidSim:
                 i_b, i = [int(a) for a in torch.nonzero(bad)[0]]
                 ent, local = _entity_of(entities, i, name)
                 raise SimulationNaNError(
-                    f"entity '{ent.name}': {name}[{local}] became {x[i_b, i].item()} at step {self.step_count}"
+                    f"entity '{ent.name}': {name}[{local}] became {x[i_b, i].item()} at step {step}"
                     f"{f' in env {i_b}' if self.scene.n_envs else ''}. The simulation diverged: reduce dt or raise "
                     "substeps, lower gains/stiffness, or check the inputs set before this step.")
 
@@ -336,6 +341,7 @@ class RigidSim:
         self.rollout_token += 1
         self._backward_done = False
         self.step_count = 0
+        self.solver.nan_step[None] = self.solver.NO_NAN
         if self.buffer is not None:
             self.buffer.clear()
         self._step_inputs = {}

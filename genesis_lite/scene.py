@@ -112,8 +112,14 @@ class Scene:
         """Advance every solver by sim_options.dt."""
         sim = self._sim("step")
         sim.step()
-        if self.rigid_options.check_nan and (sim.requires_grad or sim.step_count % 16 == 0):
+        if not self.rigid_options.check_nan:
+            return
+        if sim.qpos is not None:  # the state is in torch already (gradient path): check it every step
             sim.check_finite(self.entities)
+        elif sim.step_count % 16 == 0:  # fused path: the kernel recorded the first bad step
+            bad = sim.first_nan_step()
+            if bad is not None:
+                sim.check_finite(self.entities, step=bad)
 
     def get_state(self) -> SimState:
         q, v = self._sim("get_state").get_state()

@@ -562,7 +562,8 @@ def test_position_control_reaches_target_with_gravity(panda, fresh):
         scene.step()
         q, v = _np(robot.get_dofs_position()), _np(robot.get_dofs_velocity())
         assert np.abs(q - target).max() < 0.01, f"|q - target| = {np.abs(q - target)} (started at {err0:.2f})"
-        assert np.abs(v).max() < 1e-3, v
+        moving = {robot.joints[1 + i].name: float(v[i]) for i in np.flatnonzero(np.abs(v) >= 1e-3)}
+        assert not moving, f"still moving after 3 s of PD control (rad/s, m/s): {moving}"
         # at rest the PD force holds gravity: kp (target - q) equals the gravity torque
         lo, hi = (_np(x) for x in robot.get_dofs_force_range())
         f = _np(robot.get_dofs_force())
@@ -578,6 +579,41 @@ def test_position_control_reaches_target_with_gravity(panda, fresh):
     finally:
         robot.set_dofs_kp(np.zeros(9))
         robot.set_dofs_kv(np.zeros(9))
+
+
+SLIDER_LINK = ('<link name="{n}"><inertial><mass value="{m}"/><inertia ixx="1e-3" iyy="1e-3" izz="1e-3" ixy="0" '
+               'ixz="0" iyz="0"/></inertial></link>')
+SLIDER_JOINT = ('<joint name="{n}" type="prismatic"><parent link="base"/><child link="{c}"/><axis xyz="1 0 0"/>'
+                '<limit lower="-10" upper="10" effort="1000" velocity="100"/>{extra}</joint>')
+
+
+def test_position_control_of_mimic_coupled_joints(tmp_path):
+    """The Panda's fingers are coupled by a URDF <mimic>. A coupling must not resist a motion that
+    satisfies it: three identical sliders on a fixed base under the same PD target, s2 mimicking s1,
+    s3 free, no gravity. All three must follow the exact discrete implicitfast PD recursion
+    (m + h kv + h^2 kp) a = kp (target - q) - kv v - h kp v, as s3 alone does."""
+    body = "\n".join([SLIDER_LINK.format(n="base", m=1.0)] + [SLIDER_LINK.format(n=f"l{i}", m=0.5) for i in (1, 2, 3)] + [
+        SLIDER_JOINT.format(n="s1", c="l1", extra=""),
+        SLIDER_JOINT.format(n="s2", c="l2", extra='<mimic joint="s1" multiplier="1" offset="0"/>'),
+        SLIDER_JOINT.format(n="s3", c="l3", extra="")])
+    path = _urdf(tmp_path, body, "sliders.urdf")
+    scene, r = make_scene(gs.morphs.URDF(file=str(path), fixed=True), gravity=(0.0, 0.0, 0.0), names=["sliders"])
+    assert [j.name for j in r.joints if j.n_dofs] == ["s1", "s2", "s3"]
+    kp, kv, m, target = 100.0, 5.0, 0.5, 0.2
+    r.set_dofs_kp([kp] * 3)
+    r.set_dofs_kv([kv] * 3)
+    r.control_dofs_position([target] * 3)
+    q = v = 0.0
+    for _ in range(100):
+        a = (kp * (target - q) - kv * v - DT * kp * v) / (m + DT * kv + DT * DT * kp)
+        v += DT * a
+        q += DT * v
+        scene.step()
+    qs, vs = _np(r.get_dofs_position()), _np(r.get_dofs_velocity())
+    assert qs[2] == pytest.approx(q, rel=1e-12) and vs[2] == pytest.approx(v, rel=1e-9, abs=1e-12), "uncoupled slider"
+    assert qs[0] == qs[1], "the mimic pair must move together"
+    assert np.allclose(qs[:2], q, rtol=1e-9), f"mimic pair at {qs[:2]}, an uncoupled PD slider at {q}: the coupling resists a motion that satisfies it"
+    assert np.allclose(vs[:2], v, rtol=1e-9, atol=1e-12), f"mimic pair moves at {vs[:2]}, expected {v}"
 
 
 def test_velocity_control_tracks_target(arm, fresh):

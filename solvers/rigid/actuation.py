@@ -51,19 +51,3 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         s.force[i_b, i_d] = tau - damp * v - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
         s.mass_mat[i_b, i_d, i_d] += s.dof_armature[i_b, i_d] + h * D + h * h * K
 
-
-@ti.func
-def func_mimic(s: ti.template(), i_b, e, src, h):
-    """URDF <mimic>: a follower dof f tracks m q_leader + offset through a stiff spring-damper whose
-    reaction acts on the leader (-m times the follower's force). The diagonal terms are implicit."""
-    for i_d in range(s.n_dofs):
-        lead = s.dof_mimic_leader[i_d]
-        if lead >= 0:
-            m = s.dof_mimic_mult[i_d]
-            err = m * s.qpos[src, i_b, s.dof_q[lead]] + s.dof_mimic_off[i_d] - s.qpos[src, i_b, s.dof_q[i_d]]
-            derr = m * s.qvel[src, i_b, lead] - s.qvel[src, i_b, i_d]
-            f = s.mimic_k * err + s.mimic_d * derr
-            s.force[i_b, i_d] += f - h * s.mimic_k * s.qvel[src, i_b, i_d]
-            s.force[i_b, lead] += -m * f - h * m * m * s.mimic_k * s.qvel[src, i_b, lead]
-            s.mass_mat[i_b, i_d, i_d] += h * s.mimic_d + h * h * s.mimic_k
-            s.mass_mat[i_b, lead, lead] += m * m * (h * s.mimic_d + h * h * s.mimic_k)

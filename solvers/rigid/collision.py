@@ -286,31 +286,26 @@ def build_slots(geoms: GeomTable, pairs):
 
 
 # ------------------------------------------------------------------------------------------------
-# Narrow phase (Taichi): signed distances in the SDF-side geom's frame
+# Narrow phase (Taichi), in the single-assignment form of the other differentiated stages (every local
+# assigned once, cases blended with ti.select: see kinematics.py). Every blended case must stay finite
+# even where it is not selected (its adjoint is multiplied by 0, and 0 * inf is NaN): hence the tiny
+# constants under square roots and the clamped divisors.
 # ------------------------------------------------------------------------------------------------
-@ti.func
-def func_sgn(x):
-    return 1.0 if x >= 0 else -1.0
+TINY = 1e-30
 
 
 @ti.func
-def func_sdf_sphere(q, r, chat):
-    L = ti.sqrt(q.dot(q))
-    n = chat
-    if L > 1e-12:
-        n = q / L
-    return L - r, n
+def func_sgn3(q):
+    return ti.Vector([ti.select(q[0] >= 0, 1.0, -1.0), ti.select(q[1] >= 0, 1.0, -1.0),
+                      ti.select(q[2] >= 0, 1.0, -1.0)])
 
 
 @ti.func
-def func_sdf_capsule(q, r, hl, chat):
-    t = ti.min(ti.max(q[2], -hl), hl)
-    v = ti.Vector([q[0], q[1], q[2] - t])
-    L = ti.sqrt(v.dot(v))
-    n = chat
-    if L > 1e-12:
-        n = v / L
-    return L - r, n
+def func_sdf_round(v, r, chat):
+    """Distance of the vector v (from the nearest core point) minus r; the normal falls back to chat
+    when v vanishes."""
+    L = ti.sqrt(v.dot(v) + TINY)
+    return L - r, ti.select(L > 1e-12, v / ti.max(L, 1e-12), chat)
 
 
 @ti.func
@@ -318,89 +313,101 @@ def func_sdf_box(q, b, chat, beta):
     """Exact outside; inside, the face of least penetration with a bias `beta` towards the face that
     looks at chat (unit direction to the other geom)."""
     d = ti.abs(q) - b
-    sx, sy, sz = func_sgn(q[0]), func_sgn(q[1]), func_sgn(q[2])
-    phi = 0.0
-    n = ti.Vector([0.0, 0.0, 1.0])
-    if d[0] > 0 or d[1] > 0 or d[2] > 0:
-        od = ti.max(d, 0.0)
-        L = ti.sqrt(od.dot(od))
-        phi = L
-        n = ti.Vector([sx * od[0], sy * od[1], sz * od[2]]) / L
-    else:
-        s0 = d[0] + beta * sx * chat[0]
-        s1 = d[1] + beta * sy * chat[1]
-        s2 = d[2] + beta * sz * chat[2]
-        if s0 >= s1 and s0 >= s2:
-            phi = d[0]
-            n = ti.Vector([sx, 0.0, 0.0])
-        elif s1 >= s2:
-            phi = d[1]
-            n = ti.Vector([0.0, sy, 0.0])
-        else:
-            phi = d[2]
-            n = ti.Vector([0.0, 0.0, sz])
-    return phi, n
+    sg = func_sgn3(q)
+    od = ti.max(d, 0.0)
+    L = ti.sqrt(od.dot(od) + TINY)
+    outside = d.max() > 0
+    s0 = d[0] + beta * sg[0] * chat[0]
+    s1 = d[1] + beta * sg[1] * chat[1]
+    s2 = d[2] + beta * sg[2] * chat[2]
+    # bitwise & | (not the short-circuit `and`/`or`, which become control flow and adstacks)
+    k0 = (s0 >= s1) & (s0 >= s2)
+    k1 = (s1 > s0) & (s1 >= s2)
+    k2 = (s2 > s0) & (s2 > s1)
+    phi_in = ti.select(k0, d[0], ti.select(k1, d[1], d[2]))
+    n_in = ti.Vector([ti.select(k0, sg[0], 0.0), ti.select(k1, sg[1], 0.0), ti.select(k2, sg[2], 0.0)])
+    return ti.select(outside, L, phi_in), ti.select(outside, sg * od / L, n_in)
 
 
 @ti.func
 def func_sdf_cylinder(q, r, hl, chat, beta):
-    rho = ti.sqrt(q[0] * q[0] + q[1] * q[1])
-    u = ti.Vector([chat[0], chat[1], 0.0])
-    if rho > 1e-12:
-        u = ti.Vector([q[0] / rho, q[1] / rho, 0.0])
-    else:
-        lu = ti.sqrt(u.dot(u))
-        u = ti.Vector([1.0, 0.0, 0.0])
-        if lu > 1e-12:
-            u = ti.Vector([chat[0] / lu, chat[1] / lu, 0.0])
-    sz = func_sgn(q[2])
+    rho = ti.sqrt(q[0] * q[0] + q[1] * q[1] + TINY)
+    lc = ti.sqrt(chat[0] * chat[0] + chat[1] * chat[1] + TINY)
+    u_c = ti.select(lc > 1e-12, ti.Vector([chat[0], chat[1], 0.0]) / ti.max(lc, 1e-12), ti.Vector([1.0, 0.0, 0.0]))
+    u = ti.select(rho > 1e-12, ti.Vector([q[0], q[1], 0.0]) / ti.max(rho, 1e-12), u_c)
+    sz = ti.select(q[2] >= 0, 1.0, -1.0)
     dr = rho - r
     dz = ti.abs(q[2]) - hl
-    phi = 0.0
-    n = ti.Vector([0.0, 0.0, 1.0])
-    if dr > 0 or dz > 0:
-        a = ti.max(dr, 0.0)
-        c = ti.max(dz, 0.0)
-        L = ti.sqrt(a * a + c * c)
-        phi = L
-        n = (a * u + ti.Vector([0.0, 0.0, c * sz])) / L
+    a = ti.max(dr, 0.0)
+    b = ti.max(dz, 0.0)
+    L = ti.sqrt(a * a + b * b + TINY)
+    outside = (dr > 0) | (dz > 0)
+    side = dr + beta * u.dot(chat) >= dz + beta * sz * chat[2]
+    ez = ti.Vector([0.0, 0.0, sz])
+    n_in = ti.select(side, u, ez)
+    phi_in = ti.select(side, dr, dz)
+    return ti.select(outside, L, phi_in), ti.select(outside, (a * u + b * ez) / L, n_in)
+
+
+@ti.func
+def func_kdop_plane(c: ti.template(), g, q, chat, beta, k: ti.template()):
+    dk = ti.Vector([KDOP_DIRS[k, 0], KDOP_DIRS[k, 1], KDOP_DIRS[k, 2]])
+    v = dk.dot(q) - c.geom_kdop[g, k]
+    return v, v + beta * dk.dot(chat), dk
+
+
+@ti.func
+def func_kdop_best(c: ti.template(), g, q, chat, beta, k: ti.template()):
+    """Over planes k..N_KDOP-1: (value, biased score, normal) of the best-scoring plane and (value,
+    normal) of the largest plane distance, by static recursion (no local is assigned twice)."""
+    v, sc, dk = func_kdop_plane(c, g, q, chat, beta, k)
+    if ti.static(k == N_KDOP - 1):
+        return v, sc, dk, v, dk
     else:
-        if dr + beta * u.dot(chat) >= dz + beta * sz * chat[2]:
-            phi = dr
-            n = u
-        else:
-            phi = dz
-            n = ti.Vector([0.0, 0.0, sz])
-    return phi, n
+        bv, bs, bn, ov, on = func_kdop_best(c, g, q, chat, beta, k + 1)
+        take = sc > bs
+        big = v > ov
+        return ti.select(take, v, bv), ti.select(take, sc, bs), ti.select(take, dk, bn), ti.select(big, v, ov), \
+            ti.select(big, dk, on)
 
 
 @ti.func
 def func_sdf_kdop(c: ti.template(), g, q, chat, beta):
-    """Signed distance to the geom's k-DOP: the largest plane distance (exact inside up to the
-    face-choice bias, a lower bound outside)."""
-    best = -1e30
-    score = -1e30
-    n = ti.Vector([0.0, 0.0, 1.0])
-    out = -1e30
-    n_out = n
-    for k in ti.static(range(N_KDOP)):
-        dk = ti.Vector([KDOP_DIRS[k, 0], KDOP_DIRS[k, 1], KDOP_DIRS[k, 2]])
-        v = dk.dot(q) - c.geom_kdop[g, k]
-        sc = v + beta * dk.dot(chat)
-        if sc > score:
-            score = sc
-            best = v
-            n = dk
-        # outside (some plane distance > 0): the plane of largest distance, without the bias
-        if v > out:
-            out = v
-            n_out = dk
-    phi = best
-    nn = n
-    if out > 0:
-        phi = out
-        nn = n_out
-    return phi, nn
+    """Signed distance to the geom's k-DOP: inside, the plane of least penetration with the face-choice
+    bias; outside (a plane distance > 0), the largest plane distance (a lower bound of the distance)."""
+    bv, bs, bn, ov, on = func_kdop_best(c, g, q, chat, beta, 0)
+    return ti.select(ov > 0, ov, bv), ti.select(ov > 0, on, bn)
+
+
+@ti.func
+def func_sdf_of(c: ti.template(), T: ti.template(), g, q, chat, beta):
+    """Signed distance and outward unit normal (geom frame) of geom g of static type T at q."""
+    sz = c.geom_size[g]
+    if ti.static(T == GEOM_PLANE):
+        return q[2], ti.Vector([0.0, 0.0, 1.0])
+    elif ti.static(T == GEOM_SPHERE):
+        return func_sdf_round(q, sz[0], chat)
+    elif ti.static(T == GEOM_CAPSULE):
+        return func_sdf_round(ti.Vector([q[0], q[1], q[2] - ti.min(ti.max(q[2], -sz[1]), sz[1])]), sz[0], chat)
+    elif ti.static(T == GEOM_BOX):
+        return func_sdf_box(q, sz, chat, beta)
+    elif ti.static(T == GEOM_CYLINDER):
+        return func_sdf_cylinder(q, sz[0], sz[1], chat, beta)
+    else:
+        return func_sdf_kdop(c, g, q, chat, beta)
+
+
+@ti.func
+def func_sdf_any(c: ti.template(), k: ti.template(), tb, g, q, chat, beta):
+    """The SDF of geom g (runtime type tb) among the types c.sdf_types[k:] that this scene uses (static
+    recursion: code exists only for those types)."""
+    T = ti.static(c.sdf_types[k])
+    phi, n = func_sdf_of(c, T, g, q, chat, beta)
+    if ti.static(k == len(c.sdf_types) - 1):
+        return phi, n
+    else:
+        phi_r, n_r = func_sdf_any(c, k + 1, tb, g, q, chat, beta)
+        return ti.select(tb == T, phi, phi_r), ti.select(tb == T, n, n_r)
 
 
 @ti.func
@@ -409,22 +416,16 @@ def func_segment_closest(p1, q1, p2, q2):
     d1 = q1 - p1
     d2 = q2 - p2
     r = p1 - p2
-    a = d1.dot(d1)
-    e = d2.dot(d2)
+    a = ti.max(d1.dot(d1), 1e-18)
+    e = ti.max(d2.dot(d2), 1e-18)
     f = d2.dot(r)
     c = d1.dot(r)
     b = d1.dot(d2)
     den = a * e - b * b
-    s = 0.0
-    if den > 1e-12 * (a * e + 1e-30):
-        s = ti.min(ti.max((b * f - c * e) / den, 0.0), 1.0)
-    t = (b * s + f) / e
-    if t < 0.0:
-        t = 0.0
-        s = ti.min(ti.max(-c / a, 0.0), 1.0)
-    elif t > 1.0:
-        t = 1.0
-        s = ti.min(ti.max((b - c) / a, 0.0), 1.0)
+    s0 = ti.select(den > 1e-12 * a * e, ti.min(ti.max((b * f - c * e) / ti.max(den, 1e-30), 0.0), 1.0), 0.0)
+    t0 = (b * s0 + f) / e
+    s = ti.select(t0 < 0.0, ti.min(ti.max(-c / a, 0.0), 1.0), ti.select(t0 > 1.0, ti.min(ti.max((b - c) / a, 0.0), 1.0), s0))
+    t = ti.min(ti.max(t0, 0.0), 1.0)
     return p1 + d1 * s, p2 + d2 * t
 
 
@@ -446,21 +447,50 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]
         gb = c.pair_gb[i_p]
+        Rb = c.geom_xR[i_b, gb]
         ca = c.geom_xpos[i_b, ga] + c.geom_xR[i_b, ga] @ c.geom_center[ga]
-        cb = c.geom_xpos[i_b, gb] + c.geom_xR[i_b, gb] @ c.geom_center[gb]
-        gap = 0.0
-        if c.geom_type[gb] == GEOM_PLANE:
-            nb = ti.Vector([c.geom_xR[i_b, gb][0, 2], c.geom_xR[i_b, gb][1, 2], c.geom_xR[i_b, gb][2, 2]])
-            gap = (ca - cb).dot(nb) - c.geom_rbound[ga]
-        else:
-            gap = (ca - cb).norm() - c.geom_rbound[ga] - c.geom_rbound[gb]
-        c.pair_active[i_b, i_p] = 1 if gap < c.margin else 0
+        cb = c.geom_xpos[i_b, gb] + Rb @ c.geom_center[gb]
+        nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+        gap_plane = (ca - cb).dot(nb) - c.geom_rbound[ga]
+        gap_pair = (ca - cb).norm() - c.geom_rbound[ga] - c.geom_rbound[gb]
+        gap = ti.select(c.geom_type[gb] == GEOM_PLANE, gap_plane, gap_pair)
+        c.pair_active[i_b, i_p] = ti.select(gap < c.margin, 1, 0)
+
+
+@ti.func
+def func_slot_point(c: ti.template(), i_s, kind, ga, xa, Ra, zb):
+    """The point-side point of a slot: a fixed sample point, or the deepest rim point of a cylinder cap
+    towards a plane (normal zb)."""
+    p_fixed = xa + Ra @ c.slot_p[i_s]
+    if ti.static(c.has_rim):
+        nl = Ra.transpose() @ zb
+        rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + 1e-12)
+        r_cyl = c.geom_size[ga][0]
+        p_rim = xa + Ra @ ti.Vector([-r_cyl * nl[0] / rho, -r_cyl * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]])
+        return ti.select(kind == SLOT_CYL_RIM, p_rim, p_fixed)
+    else:
+        return p_fixed
+
+
+@ti.func
+def func_with_segseg(c: ti.template(), kind, ga, gb, xa, za, xb, zb, p, phi, n):
+    """(point, signed distance, normal) of the slot: those of the SDF test, or for capsule pairs the
+    closest points of the two segments."""
+    if ti.static(c.has_segseg):
+        hla = c.geom_size[ga][1]
+        hlb = c.geom_size[gb][1]
+        pa, pb = func_segment_closest(xa - hla * za, xa + hla * za, xb - hlb * zb, xb + hlb * zb)
+        phi_ss, n_ss = func_sdf_round(pa - pb, c.geom_size[gb][0], zb)
+        ss = kind == SLOT_SEGSEG
+        return ti.select(ss, pa, p), ti.select(ss, phi_ss, phi), ti.select(ss, n_ss, n)
+    else:
+        return p, phi, n
 
 
 @ti.func
 def func_slot_geometry(s: ti.template(), i_b, i_s):
     """(contact point, normal from the SDF side to the point side, depth) of slot i_s; depth > 0 is
-    penetration."""
+    penetration. The contact point lies midway between the two surfaces."""
     c = s.contact
     kind = c.slot_kind[i_s]
     ga = c.slot_ga[i_s]
@@ -470,59 +500,17 @@ def func_slot_geometry(s: ti.template(), i_b, i_s):
     xb = c.geom_xpos[i_b, gb]
     Rb = c.geom_xR[i_b, gb]
     ra = c.slot_r[i_s]
-    tb = c.geom_type[gb]
-    p = xa + Ra @ c.slot_p[i_s]
-    phi = 0.0
-    n = ti.Vector([0.0, 0.0, 1.0])
-    if kind == SLOT_SEGSEG:
-        hla = c.geom_size[ga][1]
-        hlb = c.geom_size[gb][1]
-        za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
-        zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
-        pa, pb = func_segment_closest(xa - hla * za, xa + hla * za, xb - hlb * zb, xb + hlb * zb)
-        dv = pa - pb
-        L = ti.sqrt(dv.dot(dv))
-        n = ti.Vector([0.0, 0.0, 1.0])
-        if L > 1e-12:
-            n = dv / L
-        p = pa
-        phi = L - c.geom_size[gb][0]
-    else:
-        if kind == SLOT_CYL_RIM:
-            # the deepest point of a cylinder cap's rim towards the plane's inside
-            nl = Ra.transpose() @ ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
-            rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + 1e-12)
-            r = c.geom_size[ga][0]
-            p = xa + Ra @ ti.Vector([-r * nl[0] / rho, -r * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]])
-        q = Rb.transpose() @ (p - xb)
-        if tb == GEOM_PLANE:
-            phi = q[2]
-            n = ti.Vector([0.0, 0.0, 1.0])
-        else:
-            # unit direction from the SDF geom's centre to the point geom's centre, in the SDF frame
-            ca = xa + Ra @ c.geom_center[ga]
-            cl = Rb.transpose() @ (ca - xb) - c.geom_center[gb]
-            chat = cl / ti.sqrt(cl.dot(cl) + 1e-24)
-            sz = c.geom_size[gb]
-            beta = c.geom_beta[gb]
-            if tb == GEOM_SPHERE:
-                phi, n = func_sdf_sphere(q, sz[0], chat)
-            elif tb == GEOM_CAPSULE:
-                phi, n = func_sdf_capsule(q, sz[0], sz[1], chat)
-            elif tb == GEOM_BOX:
-                if ti.static(s.contact.has_box):
-                    phi, n = func_sdf_box(q, sz, chat, beta)
-            elif tb == GEOM_CYLINDER:
-                if ti.static(s.contact.has_cylinder):
-                    phi, n = func_sdf_cylinder(q, sz[0], sz[1], chat, beta)
-            else:
-                if ti.static(s.contact.has_mesh):
-                    phi, n = func_sdf_kdop(c, gb, q, chat, beta)
-        n = Rb @ n
+    za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
+    zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+    p = func_slot_point(c, i_s, kind, ga, xa, Ra, zb)
+    q = Rb.transpose() @ (p - xb)
+    # unit direction from the SDF geom's centre to the point geom's centre, in the SDF frame
+    cl = Rb.transpose() @ (xa + Ra @ c.geom_center[ga] - xb) - c.geom_center[gb]
+    chat = cl / ti.sqrt(cl.dot(cl) + 1e-24)
+    phi_sdf, n_loc = func_sdf_any(c, 0, c.geom_type[gb], gb, q, chat, c.geom_beta[gb])
+    pt, phi, n = func_with_segseg(c, kind, ga, gb, xa, za, xb, zb, p, phi_sdf, Rb @ n_loc)
     depth = ra - phi
-    # midway between the two surfaces
-    pos = p - n * (0.5 * (ra + phi))
-    return pos, n, depth
+    return pt - n * (0.5 * (ra + phi)), n, depth
 
 
 def geom_rotations(quat: np.ndarray) -> np.ndarray:

@@ -33,8 +33,8 @@ the dofs (force += J^T f, M += J^T W J).
 import numpy as np
 import taichi as ti
 
-from .collision import (ContactBuildError, GEOM_BOX, GEOM_CYLINDER, GEOM_MESH, build_geoms, build_slots,
-                        candidate_pairs, func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations)
+from .collision import (SLOT_CYL_RIM, SLOT_SEGSEG, ContactBuildError, build_geoms, build_slots, candidate_pairs,
+                        func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations)
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
@@ -58,63 +58,59 @@ def func_contact_clear(s: ti.template(), i_b, e, src, h):
 
 @ti.func
 def func_contact_slots(s: ti.template(), i_b, e, src, h):
-    """Geometry and force of every slot; the force (at the contact point, on the point side, its opposite
-    on the other side) and the implicit block J^T W J are added onto the two links."""
+    """Geometry and force of every slot of an active pair; the force (at the contact point, on the
+    point side, its opposite on the other side) and the implicit block J^T W J are added onto the two
+    links. Single-assignment form (see kinematics.py): the contact's on/off is a 0/1 mask."""
     c = s.contact
     for i_s in range(c.n_slots):
-        F = ti.Vector([0.0, 0.0, 0.0])
-        fn_out = 0.0
-        pos = ti.Vector([0.0, 0.0, 0.0])
-        n = ti.Vector([0.0, 0.0, 1.0])
-        depth = -1.0
         if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
             pos, n, depth = func_slot_geometry(s, i_b, i_s)
-            if depth > -c.margin:
-                ga = c.slot_ga[i_s]
-                gb = c.slot_gb[i_s]
-                la = c.geom_link[ga]
-                lb = c.geom_link[gb]
-                u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
-                un = u.dot(n)
-                z = depth / c.delta
-                sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(z)))
-                sg = 1.0 / (1.0 + ti.exp(-z))
-                fn = c.k * c.delta * sp - c.d * sg * un
-                if fn > 0:
-                    fn_out = fn
-                    ut = u - un * n
-                    mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
-                    eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
-                    F = (fn - h * c.k * sg * un) * n - eta * ut
-                    wn = h * c.d * sg + h * h * c.k * sg
-                    W = (wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3)
-                    if c.link_dyn[la] == 1 and c.link_dyn[lb] == 1:
-                        # both sides move: their coupling is dropped, and 2 (A + B) >= J^T W J keeps the
-                        # step from overshooting (each side alone would close the whole gap)
-                        W = 2.0 * W
-                    P = func_skew(pos)
-                    PW = P @ W
-                    Sww = -(PW @ P)
-                    tq = pos.cross(F)
-                    if c.link_dyn[la] == 1:
-                        c.link_ff[i_b, la] += F
-                        c.link_fn[i_b, la] += tq
-                        c.link_Sww[i_b, la] += Sww
-                        c.link_Swv[i_b, la] += PW
-                        c.link_Svv[i_b, la] += W
-                    if c.link_dyn[lb] == 1:
-                        c.link_ff[i_b, lb] += -F
-                        c.link_fn[i_b, lb] += -tq
-                        c.link_Sww[i_b, lb] += Sww
-                        c.link_Swv[i_b, lb] += PW
-                        c.link_Svv[i_b, lb] += W
-        # readers look at position/normal/force/depth only where fn > 0: skip the writes elsewhere
-        c.c_fn[i_b, i_s] = fn_out
-        if fn_out > 0:
-            c.c_pos[i_b, i_s] = pos
-            c.c_normal[i_b, i_s] = n
-            c.c_force[i_b, i_s] = F
-            c.c_depth[i_b, i_s] = depth
+            ga = c.slot_ga[i_s]
+            gb = c.slot_gb[i_s]
+            la = c.geom_link[ga]
+            lb = c.geom_link[gb]
+            u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
+            un = u.dot(n)
+            z = depth / c.delta
+            # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
+            zc = ti.min(ti.max(z, -60.0), 60.0)
+            sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zc)))
+            sg = 1.0 / (1.0 + ti.exp(-zc))
+            fn_raw = c.k * c.delta * sp - c.d * sg * un
+            on = ti.cast((depth > -c.margin) & (fn_raw > 0), s.dtype)
+            fn = fn_raw * on
+            ut = u - un * n
+            mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
+            eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
+            F = (fn - on * h * c.k * sg * un) * n - eta * ut
+            # both sides move: their coupling is dropped and the two diagonal blocks doubled (see above)
+            both = ti.cast(c.link_dyn[la] + c.link_dyn[lb] == 2, s.dtype)
+            wn = on * (h * c.d * sg + h * h * c.k * sg)
+            W = (1.0 + both) * ((wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3))
+            P = func_skew(pos)
+            PW = P @ W
+            Sww = -(PW @ P)
+            tq = pos.cross(F)
+            c.c_fn[i_b, i_s] = fn
+            if fn > 0:
+                c.c_pos[i_b, i_s] = pos
+                c.c_normal[i_b, i_s] = n
+                c.c_force[i_b, i_s] = F
+                c.c_depth[i_b, i_s] = depth
+                if c.link_dyn[la] == 1:
+                    c.link_ff[i_b, la] += F
+                    c.link_fn[i_b, la] += tq
+                    c.link_Sww[i_b, la] += Sww
+                    c.link_Swv[i_b, la] += PW
+                    c.link_Svv[i_b, la] += W
+                if c.link_dyn[lb] == 1:
+                    c.link_ff[i_b, lb] += -F
+                    c.link_fn[i_b, lb] += -tq
+                    c.link_Sww[i_b, lb] += Sww
+                    c.link_Swv[i_b, lb] += PW
+                    c.link_Svv[i_b, lb] += W
+        else:
+            c.c_fn[i_b, i_s] = 0.0
 
 
 @ti.func
@@ -142,7 +138,7 @@ def func_contact_project(s: ti.template(), i_b, e, src, h):
         j = ij % s.n_dofs
         i_l = s.dof_link[i]
         # a subtree without contacts has S = 0 and no wrench (trace of the PSD block S_vv)
-        if s.dof_anc[i, j] == 1 and c.link_Svv[i_b, i_l].trace() > 0:
+        if (s.dof_anc[i, j] == 1) & (c.link_Svv[i_b, i_l].trace() > 0):
             wi = s.cdof_w[i_b, i]
             vi = s.cdof_v[i_b, i]
             wj = s.cdof_w[i_b, j]
@@ -188,9 +184,10 @@ class ContactSolver:
         self.eps = float(options.friction_smoothing)
         self.margin = MARGIN_WIDTHS * self.delta
         self.dtype = solver.dtype
-        self.has_box = bool(np.any(geoms.type == GEOM_BOX))
-        self.has_cylinder = bool(np.any(geoms.type == GEOM_CYLINDER))
-        self.has_mesh = bool(np.any(geoms.type == GEOM_MESH))
+        # static: code is generated only for the slot kinds and SDF types this scene uses
+        self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
+        self.has_segseg = any(x[1] == SLOT_SEGSEG for x in slots)
+        self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)
         self.entity_geom_count = list(geoms.entity_count)
         # static slot tables, kept in numpy for the readers

@@ -33,23 +33,36 @@ def func_integrate_qpos(s: ti.template(), i_b, kind, e, base, src, dst, h):
 
 
 @ti.func
+def func_dof_update(s: ti.template(), i_b, kind, e, base, src, h, j):
+    """(new velocity, velocity that moves qpos) of dof j. INT_EULER: v' = v + h a, q moves with v'.
+    INT_RK_STAGE: the RK4 trial state at h from the derivative at slot src. INT_RK_FINAL: combine the
+    4 stage derivatives e-3..e over h. Indices of the other kinds' slots are clamped (masked out)."""
+    last = s.n_slots - 1
+    a_rk = (s.qacc[ti.max(e - 3, 0), i_b, j] + 2.0 * s.qacc[ti.max(e - 2, 0), i_b, j]
+            + 2.0 * s.qacc[ti.max(e - 1, 0), i_b, j] + s.qacc[e, i_b, j]) / 6.0
+    final = kind == INT_RK_FINAL
+    v_new = s.qvel[base, i_b, j] + h * ti.select(final, a_rk, s.qacc[e, i_b, j])
+    v_rk = (s.qvel[base, i_b, j] + 2.0 * s.qvel[ti.min(base + 1, last), i_b, j]
+            + 2.0 * s.qvel[ti.min(base + 2, last), i_b, j] + s.qvel[ti.min(base + 3, last), i_b, j]) / 6.0
+    v_move = ti.select(final, v_rk, ti.select(kind == INT_RK_STAGE, s.qvel[src, i_b, j], v_new))
+    return v_new, v_move
+
+
+@ti.func
 def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
-    """kind INT_EULER: v' = v + h a, q' = q + h v'. INT_RK_STAGE: the RK4 trial state at h from the
-    derivative at slot src. INT_RK_FINAL: combine the 4 stage derivatives e-3..e over h."""
-    if kind == INT_EULER:
-        for i_d in range(s.n_dofs):
-            s.qvel[dst, i_b, i_d] = s.qvel[base, i_b, i_d] + h * s.qacc[e, i_b, i_d]
-            s.veff[e, i_b, i_d] = s.qvel[dst, i_b, i_d]
-    elif kind == INT_RK_STAGE:
-        for i_d in range(s.n_dofs):
-            s.qvel[dst, i_b, i_d] = s.qvel[base, i_b, i_d] + h * s.qacc[e, i_b, i_d]
-            s.veff[e, i_b, i_d] = s.qvel[src, i_b, i_d]
-    else:
-        for i_d in range(s.n_dofs):
-            s.qvel[dst, i_b, i_d] = s.qvel[base, i_b, i_d] + h / 6.0 * (
-                s.qacc[e - 3, i_b, i_d] + 2.0 * s.qacc[e - 2, i_b, i_d] + 2.0 * s.qacc[e - 1, i_b, i_d] + s.qacc[e, i_b, i_d])
-            s.veff[e, i_b, i_d] = (s.qvel[base, i_b, i_d] + 2.0 * s.qvel[base + 1, i_b, i_d]
-                                   + 2.0 * s.qvel[base + 2, i_b, i_d] + s.qvel[base + 3, i_b, i_d]) / 6.0
+    """New velocities, and the velocities veff[e] that func_integrate_qpos moves positions with.
+    A URDF <mimic> follower copies its leader: v_f = m v_l, and its position is carried onto
+    m q_l + offset within the step (a kinematic constraint; the follower exerts no force back)."""
+    for i_d in range(s.n_dofs):
+        lead = s.dof_mimic_leader[i_d]
+        follower = lead >= 0
+        j = ti.max(lead, 0)
+        m = s.dof_mimic_mult[i_d]
+        v_own, move_own = func_dof_update(s, i_b, kind, e, base, src, h, i_d)
+        v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
+        gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
+        s.qvel[dst, i_b, i_d] = ti.select(follower, m * v_lead, v_own)
+        s.veff[e, i_b, i_d] = ti.select(follower, m * move_lead + gap / h, move_own)
 
 
 INTEGRATE = (func_integrate_qvel, func_integrate_qpos)

@@ -16,7 +16,7 @@ from typing import List
 import numpy as np
 import taichi as ti
 
-from .actuation import func_generalized_force, func_mimic
+from .actuation import func_generalized_force
 from .bias import BIAS
 from .inertia import INERTIA, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
@@ -42,7 +42,7 @@ class RigidSolver:
 
     def __init__(self, models: List[EntityModel], n_envs: int, dt: float, substeps: int, integrator: int,
                  gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float,
-                 contact_options=None, mimic=None):
+                 contact_options=None, mimic=False):
         self.models = models
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
@@ -58,9 +58,7 @@ class RigidSolver:
         self.limit_k = limit_k
         self.limit_d = limit_d
         self.serial = n_envs <= SERIAL_MAX_ENVS
-        # mimic: None (ignore <mimic>) or (stiffness, damping)
-        self.mimic_k, self.mimic_d = mimic if mimic is not None else (0.0, 0.0)
-        self._layout(models, mimic is not None)
+        self._layout(models, bool(mimic))
         self._schedule()
         self._allocate()
         # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
@@ -70,8 +68,7 @@ class RigidSolver:
             from .contact import ContactSolver
 
             self.contact = ContactSolver.create(self, models, contact_options)
-        self.dynamics_stages = DYNAMICS + ((func_mimic,) if self.has_mimic else ()) + (
-            self.contact.stages if self.contact is not None else ())
+        self.dynamics_stages = DYNAMICS + (self.contact.stages if self.contact is not None else ())
         if self.contact is not None and requires_grad:
             self.grad_fields = self.grad_fields + list(self.contact.grad_fields)
         self._fill_info(gravity)
@@ -246,6 +243,7 @@ class RigidSolver:
         self.solve_tmp = F((1, B, D), False)
         self.energy = F((B, 2), False)
         self.bad_idx = ti.field(ti.i32, shape=())
+        self.nan_step = ti.field(ti.i32, shape=())  # first step whose state was not finite (fused path)
         # schedule
         n_ops = len(self.ops)
         self.sched = ti.field(ti.i32, shape=(n_ops, 6))
@@ -302,6 +300,7 @@ class RigidSolver:
     def reset_state(self):
         """Initial state (URDF zero pose, free bases at their morph placement, zero velocity),
         zero controls in force mode."""
+        self.nan_step[None] = self.NO_NAN
         qpos = np.zeros((self.n_slots, self.n_envs, max(self.n_qs, 1)), self.np_dtype)
         qpos[:, :, : self.n_qs] = self.np_qpos0
         self.qpos.from_numpy(qpos)
@@ -344,8 +343,10 @@ class RigidSolver:
                 stage(self, i_b, kind, e, base, src, dst, h)
 
     @ti.kernel
-    def kernel_step_fused(self):
-        """The whole schedule of one step, all envs, one launch (no gradient bookkeeping)."""
+    def kernel_step_fused(self, step: ti.i32):
+        """The whole schedule of one step, all envs, one launch (no gradient bookkeeping). Records
+        in nan_step the first `step` after which some state is not finite (checked for free here,
+        read by the scene every few steps)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
@@ -362,9 +363,15 @@ class RigidSolver:
                     for stage in ti.static(INTEGRATE):
                         stage(self, i_b, kind, e, base, src, dst, h)
             for i_q in range(self.n_qs):
-                self.qpos[0, i_b, i_q] = self.qpos[self.n_slots - 1, i_b, i_q]
+                x = self.qpos[self.n_slots - 1, i_b, i_q]
+                self.qpos[0, i_b, i_q] = x
+                if ti.math.isnan(x) or ti.math.isinf(x):
+                    ti.atomic_min(self.nan_step[None], step)
             for i_d in range(self.n_dofs):
-                self.qvel[0, i_b, i_d] = self.qvel[self.n_slots - 1, i_b, i_d]
+                x = self.qvel[self.n_slots - 1, i_b, i_d]
+                self.qvel[0, i_b, i_d] = x
+                if ti.math.isnan(x) or ti.math.isinf(x):
+                    ti.atomic_min(self.nan_step[None], step)
 
     @ti.kernel
     def kernel_kinematics(self, src: ti.i32):
@@ -412,9 +419,11 @@ class RigidSolver:
                 x.grad[I] = ti.zero(x.grad[I])
 
     # ------------------------------------------------------------------ python entry points
-    def step(self):
+    NO_NAN = 2**31 - 1
+
+    def step(self, step: int = 0):
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
-        self.kernel_step_fused()
+        self.kernel_step_fused(step)
 
     def run_ops(self):
         """The step's ops one launch each (the form that backward replays); the caller ends the step
