@@ -72,6 +72,24 @@ def _mem() -> dict:
     return out
 
 
+def _heap_in_use() -> float | None:
+    """Bytes malloc has handed out and not taken back (glibc mallinfo2: main arena + mmapped chunks), MiB.
+    Unlike RSS it does not hide growth that refills holes left by freed memory."""
+    try:
+        import ctypes
+
+        class MallInfo2(ctypes.Structure):
+            _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                      "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallinfo2.restype = MallInfo2
+        m = libc.mallinfo2()
+        return (m.uordblks + m.hblkhd) / 2**20
+    except (OSError, AttributeError):
+        return None
+
+
 def _reset_peak() -> bool:
     """Reset VmHWM to the current RSS (Linux >= 4.0), so the next peak is this rollout's alone."""
     try:
@@ -105,18 +123,20 @@ def _gl_build(gs, urdf, n_envs, requires_grad, checkpoint_every):
     return scene, robot
 
 
-def _gl_rollout(scene, robot, controls_np, q0_np, grad: bool, probe=None) -> dict:
+def _gl_rollout(scene, robot, controls_np, q0_np, grad: bool, probe=None, feed="index") -> dict:
     """One timed rollout (see the module docstring); grad=False: same calls, nothing requires grad.
-    probe(out, "fwd" | "bwd") runs after the forward and after the backward (outside the timings)."""
+    probe(out, "fwd" | "bwd") runs after the forward and after the backward (outside the timings).
+    feed="index": controls[t] each step; "unbind": the rows of controls.unbind(0) (see part 3)."""
     import torch
 
     q0 = torch.tensor(q0_np, dtype=torch.float64, requires_grad=grad)
     controls = torch.tensor(controls_np, dtype=torch.float64, requires_grad=grad)
     t0 = time.perf_counter()
+    rows = controls.unbind(0) if feed == "unbind" else controls
     scene.reset()
     robot.set_dofs_position(q0)
     for t in range(controls.shape[0]):
-        robot.control_dofs_force(controls[t])
+        robot.control_dofs_force(rows[t])
         scene.step()
     loss = (robot.get_links_pos()[..., -1, :] ** 2).sum()
     t1 = time.perf_counter()
@@ -186,7 +206,7 @@ def worker_first(urdf, steps, flush) -> dict:
     return out
 
 
-def worker_memory(urdf, horizon, ckpt, grad) -> dict:
+def worker_memory(urdf, horizon, ckpt, grad, feed) -> dict:
     """Memory of one rollout of `horizon` steps (after a compiled warm-up rollout)."""
     import gc
 
@@ -202,16 +222,19 @@ def worker_memory(urdf, horizon, ckpt, grad) -> dict:
     m0 = _mem()
     peak_reset = _reset_peak()
     m0b = _mem()
+    h0 = _heap_in_use()
     buf = scene._rigid.buffer
     replayed0 = buf.n_replayed if buf is not None else 0  # the counter spans rollouts
 
     def probe(out, when):
         m = _mem()
         out[f"rss_{when}"], out[f"hwm_{when}"] = m["VmRSS"] - m0b["VmRSS"], m["VmHWM"] - m0b["VmRSS"]
+        h = _heap_in_use()
+        out[f"heap_{when}"] = h - h0 if h is not None and h0 is not None else None
         if buf is not None:
             out[f"n_stored_{when}"], out["n_ckpts"], out["n_replayed"] = buf.n_stored, len(buf.checkpoints), buf.n_replayed - replayed0
 
-    out = _gl_rollout(scene, robot, ctrl, q0, grad, probe)
+    out = _gl_rollout(scene, robot, ctrl, q0, grad, probe, feed)
     out.update(horizon=horizon, ckpt=ckpt, grad=grad, rss0=m0["VmRSS"], hwm0=m0["VmHWM"], peak_reset=peak_reset,
                state_bytes=8 * scene._rigid.B * (scene._rigid.n_qs + scene._rigid.n_dofs))
     _flush_kernel_cache()
@@ -367,32 +390,41 @@ def part_first(urdf, quick, tables, data):
 
 def part_memory(urdf, quick, tables, data):
     horizons = [100, 1000] if quick else [100, 1000, 10000]
+    configs = [(True, ck, T, "unbind") for ck in (None, 100) for T in horizons]
+    configs += [(False, None, T, "unbind") for T in horizons]
+    configs += [(True, None, horizons[-1], "index")]  # the cost of indexing one controls leaf per step
     rows = []
-    for grad, ckpts in ((True, [None, 100]), (False, [None])):
-        for ck in ckpts:
-            for T in horizons:
-                print(f"[3] memory: requires_grad={grad}, checkpoint_every={ck}, {T} steps ...", flush=True)
-                res, err, wall = _child("memory", urdf=str(urdf), horizon=T, ckpt=ck, grad=grad)
-                row = {"grad": str(grad), "ckpt": _ckpt_name(ck) if grad else "-", "T": T, "note": err}
-                if res:
-                    row.update({k: res.get(k) for k in ("rss_fwd", "hwm_fwd", "rss_bwd", "hwm_bwd", "fwd", "bwd",
-                                                        "n_stored_fwd", "n_ckpts", "n_stored_bwd", "n_replayed")})
-                    row["kb_per_step"] = 1024 * res["rss_fwd"] / T
-                    row["state_kb"] = res["state_bytes"] / 1024
-                    row["note"] = f"{wall:.0f} s" + ("" if res["peak_reset"] else ", VmHWM not reset (peak mixed)")
-                rows.append(row)
+    for grad, ck, T, feed in configs:
+        print(f"[3] memory: requires_grad={grad}, checkpoint_every={ck}, {T} steps, controls {feed} ...", flush=True)
+        res, err, wall = _child("memory", urdf=str(urdf), horizon=T, ckpt=ck, grad=grad, feed=feed)
+        row = {"grad": str(grad), "ckpt": _ckpt_name(ck) if grad else "-", "T": T, "note": err,
+               "feed": "controls[t]" if feed == "index" else "unbind(0)[t]"}
+        if res:
+            row.update({k: res.get(k) for k in ("rss_fwd", "hwm_fwd", "heap_fwd", "rss_bwd", "hwm_bwd", "heap_bwd",
+                                                "fwd", "bwd", "n_stored_fwd", "n_ckpts", "n_stored_bwd",
+                                                "n_replayed")})
+            if res.get("heap_fwd") is not None:
+                row["kb_per_step"] = 1024 * res["heap_fwd"] / T
+            row["state_kb"] = res["state_bytes"] / 1024
+            row["note"] = f"{wall:.0f} s" + ("" if res["peak_reset"] else ", VmHWM not reset (peak mixed)")
+        rows.append(row)
     data["memory"] = rows
-    tables.append(print_table(rows, [
-        ("grad", "requires_grad", ""), ("ckpt", "checkpoint_every", ""), ("T", "steps", ",d"),
-        ("rss_fwd", "RSS growth after fwd MiB", ".1f"), ("kb_per_step", "KiB/step", ".2f"),
+    text = print_table(rows, [
+        ("grad", "requires_grad", ""), ("ckpt", "checkpoint_every", ""), ("T", "steps", ",d"), ("feed", "controls fed", ""),
+        ("rss_fwd", "RSS growth fwd MiB", ".1f"), ("hwm_fwd", "peak RSS growth fwd MiB", ".1f"),
+        ("heap_fwd", "heap growth fwd MiB", ".1f"), ("kb_per_step", "heap KiB/step", ".2f"),
         ("state_kb", "one state KiB", ".2f"),
-        ("hwm_fwd", "peak growth fwd MiB", ".1f"), ("rss_bwd", "RSS growth after bwd MiB", ".1f"),
-        ("hwm_bwd", "peak growth fwd+bwd MiB", ".1f"), ("n_ckpts", "checkpoints", "d"),
-        ("n_stored_fwd", "states held after fwd", "d"), ("n_stored_bwd", "states held after bwd", "d"),
-        ("n_replayed", "steps replayed", ",d"), ("fwd", "forward s", ".2f"), ("bwd", "backward s", ".2f"),
-        ("note", "process", "")],
-        title="3. Memory against horizon (Panda 1 env, one fresh process per row; growth over the RSS before the "
-              "rollout, after a compiled warm-up rollout)"))
+        ("hwm_bwd", "peak RSS growth fwd+bwd MiB", ".1f"), ("heap_bwd", "heap growth after bwd MiB", ".1f"),
+        ("n_ckpts", "checkpoints", "d"), ("n_stored_fwd", "states held after fwd", "d"),
+        ("n_stored_bwd", "states held after bwd", "d"), ("n_replayed", "steps replayed", ",d"),
+        ("fwd", "forward s", ".2f"), ("bwd", "backward s", ".2f"), ("note", "process", "")],
+        title="3. Memory against horizon (Panda 1 env, one fresh process per row, a single rollout each, after a "
+              "compiled warm-up rollout; growth over the values before the rollout)")
+    note = ("   RSS: VmRSS/VmHWM; heap: glibc mallinfo2 bytes in use (RSS misses growth that refills freed memory). "
+            "'controls fed unbind(0)[t]': rows of controls.unbind(0); 'controls[t]' indexes the (T, n_dofs) leaf "
+            "each step, whose backward adds a dense (T, n_dofs) gradient per step in torch (O(T^2)).")
+    print(note, flush=True)
+    tables.append(text + "\n\n" + note)
 
 
 def part_genesis(urdf, quick, tables, data):

@@ -166,6 +166,9 @@ class RigidSim:
         self._ctrl_dirty = True
 
     def set_param(self, name, values, envs, idx):
+        # a later call on the same entries supersedes an earlier one (keeps the replay list short)
+        self.param_ops[name] = [op for op in self.param_ops[name]
+                                if not (torch.equal(op[1], envs) and torch.equal(op[2], idx))]
         self.param_ops[name].append((values, envs, idx))
         self.params[name] = _index_put(self.params[name], envs, idx, values)
         self._params_dirty.add(name)
@@ -178,7 +181,9 @@ class RigidSim:
                 continue
             p = self.param_base[name]
             for values, envs, idx in ops:
-                p = _index_put(p, envs, idx, values)
+                # a leaf keeps receiving gradients; a value computed in an earlier rollout keeps its
+                # value only (its graph belongs to that rollout and may be freed)
+                p = _index_put(p, envs, idx, values if values.is_leaf else values.detach())
             self.params[name] = p
             self._params_dirty.add(name)
 
