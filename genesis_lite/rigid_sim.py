@@ -181,9 +181,11 @@ class RigidSim:
                 continue
             p = self.param_base[name]
             for values, envs, idx in ops:
-                # a leaf keeps receiving gradients; a value computed in an earlier rollout keeps its
-                # value only (its graph belongs to that rollout and may be freed)
-                p = _index_put(p, envs, idx, values if values.is_leaf else values.detach())
+                # a value made from a leaf is made again, so the leaf keeps receiving gradients; a
+                # value computed in an earlier rollout keeps its value only (its graph belongs to
+                # that rollout and has been freed by its backward)
+                remake = getattr(values, "_gs_remake", None)
+                p = _index_put(p, envs, idx, remake() if remake is not None else values.detach())
             self.params[name] = p
             self._params_dirty.add(name)
 

@@ -415,3 +415,31 @@ def test_nan_gradient_raises(arm_env):
     loss = torch.sqrt(arm.get_dofs_velocity()[0] * 0.0)
     with pytest.raises(GenesisException, match="NaN or infinite"):
         loss.backward()
+
+
+def test_parameters_across_rollouts(arm_env):
+    """A leaf parameter set once keeps receiving gradients rollout after rollout; a parameter
+    computed anew each rollout (e.g. exp of a log-parameter) works too."""
+    scene, arm = arm_env
+    mass0 = arm.get_links_mass().detach().clone()
+    leaf = (mass0 * 1.1).requires_grad_()
+    log_damping = torch.zeros(arm.n_dofs, **F64, requires_grad=True)
+    arm.set_links_mass(leaf)
+    grads = []
+    for _ in range(3):
+        scene.reset()
+        arm.set_dofs_damping(log_damping.exp())
+        arm.set_dofs_position(torch.full((arm.n_dofs,), 0.3, **F64))
+        for _ in range(5):
+            scene.step()
+        loss = arm.get_links_pos().pow(2).sum()
+        leaf.grad = None
+        log_damping.grad = None
+        loss.backward()
+        grads.append((leaf.grad.clone(), log_damping.grad.clone()))
+    for g_leaf, g_damp in grads[1:]:
+        assert torch.equal(g_leaf, grads[0][0]) and torch.equal(g_damp, grads[0][1])
+    assert grads[0][0][1:].abs().sum() > 0 and grads[0][1].abs().sum() > 0
+    scene.reset()
+    arm.set_links_mass(mass0)
+    arm.set_dofs_damping(torch.zeros(arm.n_dofs, **F64))

@@ -221,10 +221,11 @@ class RigidEntity(ContactMixin):
         elif shape != want or not batched:
             exp = f"{want[1:]}" + (f" or {want} (envs, ...)" if batched else "")
             raise GenesisException(f"entity '{self.name}': {what} has shape {shape}; expected {exp}")
-        if torch.is_grad_enabled() and t.requires_grad:
-            pass
-        elif not torch.isfinite(t).all():
+        if not t.requires_grad and not torch.isfinite(t).all():
             raise GenesisException(f"entity '{self.name}': {what} contains NaN or infinite values")
+        if isinstance(x, torch.Tensor) and x.requires_grad and x.is_leaf:
+            # lets a new rollout rebuild this value from the leaf, so the leaf keeps getting gradients
+            t._gs_remake = lambda: self._values(x, envs, n, what, trailing)
         return t
 
     def _out(self, t):
