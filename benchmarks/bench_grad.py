@@ -125,14 +125,18 @@ def _gl_build(gs, urdf, n_envs, requires_grad, checkpoint_every):
 
 def _gl_rollout(scene, robot, controls_np, q0_np, grad: bool, probe=None, feed="index") -> dict:
     """One timed rollout (see the module docstring); grad=False: same calls, nothing requires grad.
-    probe(out, "fwd" | "bwd") runs after the forward and after the backward (outside the timings).
+    probe(out, "start" | "fwd" | "bwd") runs once the inputs exist, after the forward and after the backward
+    (outside the timings).
     feed="index": controls[t] each step; "unbind": the rows of controls.unbind(0) (see part 3)."""
     import torch
 
     q0 = torch.tensor(q0_np, dtype=torch.float64, requires_grad=grad)
     controls = torch.tensor(controls_np, dtype=torch.float64, requires_grad=grad)
-    t0 = time.perf_counter()
     rows = controls.unbind(0) if feed == "unbind" else controls
+    out = {}
+    if probe:
+        probe(out, "start")
+    t0 = time.perf_counter()
     scene.reset()
     robot.set_dofs_position(q0)
     for t in range(controls.shape[0]):
@@ -140,7 +144,7 @@ def _gl_rollout(scene, robot, controls_np, q0_np, grad: bool, probe=None, feed="
         scene.step()
     loss = (robot.get_links_pos()[..., -1, :] ** 2).sum()
     t1 = time.perf_counter()
-    out = {"fwd": t1 - t0, "bwd": None, "loss": float(loss.detach())}
+    out.update(fwd=t1 - t0, bwd=None, loss=float(loss.detach()))
     if probe:
         probe(out, "fwd")
     if grad:
@@ -218,24 +222,29 @@ def worker_memory(urdf, horizon, ckpt, grad, feed) -> dict:
     q0 = _q0(0, n)
     _gl_rollout(scene, robot, _controls(min(horizon, 2 * (ckpt or 10)), 0, n), q0, grad)  # compile
     ctrl = _controls(horizon, 0, n)
-    gc.collect()
-    m0 = _mem()
-    peak_reset = _reset_peak()
-    m0b = _mem()
-    h0 = _heap_in_use()
     buf = scene._rigid.buffer
     replayed0 = buf.n_replayed if buf is not None else 0  # the counter spans rollouts
+    base = {}
 
     def probe(out, when):
+        if when == "start":  # the inputs (T control rows) exist: what follows is the simulator's
+            gc.collect()
+            base["m0"] = _mem()
+            base["peak_reset"] = _reset_peak()
+            base["m0b"], base["h0"] = _mem(), _heap_in_use()
+            return
+        m0b, h0 = base["m0b"], base["h0"]
         m = _mem()
         out[f"rss_{when}"], out[f"hwm_{when}"] = m["VmRSS"] - m0b["VmRSS"], m["VmHWM"] - m0b["VmRSS"]
         h = _heap_in_use()
         out[f"heap_{when}"] = h - h0 if h is not None and h0 is not None else None
         if buf is not None:
-            out[f"n_stored_{when}"], out["n_ckpts"], out["n_replayed"] = buf.n_stored, len(buf.checkpoints), buf.n_replayed - replayed0
+            out[f"n_stored_{when}"], out["n_ckpts"] = buf.n_stored, len(buf.checkpoints)
+            out["n_replayed"] = buf.n_replayed - replayed0
 
     out = _gl_rollout(scene, robot, ctrl, q0, grad, probe, feed)
-    out.update(horizon=horizon, ckpt=ckpt, grad=grad, rss0=m0["VmRSS"], hwm0=m0["VmHWM"], peak_reset=peak_reset,
+    out.update(horizon=horizon, ckpt=ckpt, grad=grad, rss0=base["m0"]["VmRSS"], hwm0=base["m0"]["VmHWM"],
+               peak_reset=base["peak_reset"],
                state_bytes=8 * scene._rigid.B * (scene._rigid.n_qs + scene._rigid.n_dofs))
     _flush_kernel_cache()
     return out

@@ -17,24 +17,27 @@ linearly implicit (backward Euler on the linearised force). For each contact the
 W = h D + h^2 K with K = k sigmoid n n^T (normal stiffness), D = c sigmoid n n^T + eta (I - n n^T)
 (normal damping, and friction as a viscosity eta = mu f_n / sqrt(|u_t|^2 + eps^2): the secant of the
 friction law, so an implicit step can stop a sliding contact but never reverse it) enters the
-generalised mass matrix as J^T W J, and the force gets the explicit correction -h K u. J^T W J is
-accumulated like composite inertia (a 6x6 block per link, summed up the tree), so it fits the tree
-sparsity of M and its factorisation. For a contact between two moving bodies (J = J_a - J_b) the
-coupling J_a^T W J_b does not fit that sparsity: it is dropped and the diagonal blocks are doubled,
-2 (J_a^T W J_a + J_b^T W J_b) - J^T W J = (J_a + J_b)^T W (J_a + J_b) >= 0, so the step stays at least
-as implicit as the exact one (with the blocks taken once, each body would close the whole gap and two
-stacked boxes oscillate with period 2).
+generalised mass matrix as J^T W J, and the force gets the explicit correction -h K u. The part of
+J^T W J that lives on one kinematic tree (a contact against a static geom, and the two diagonal
+blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and b) is accumulated like
+composite inertia (a 6x6 block per link, summed up the tree), so it fits the tree sparsity of M. The
+coupling -(J_a^T W J_b + J_b^T W J_a) between two moving links does not: scenes with such contact
+pairs (objects stacked or touching each other, self-collision) accumulate it per link pair into
+`mass_cross` and factor M densely (func_factor_solve_dense); scenes whose contacts all involve a
+static geom (robots on the ground) keep the tree factorisation. (Dropping the coupling is not an
+option: stacked bodies then close the gap between them twice per step, or half of it when the blocks
+are doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
 
 Stages (each one loop over elements, see solver.py): geom poses, broad phase, clear the per-link
-accumulators, slots (geometry + force, accumulated onto the two links), sum up the tree, project onto
-the dofs (force += J^T f, M += J^T W J).
+(and per-link-pair) accumulators, slots (geometry + force, accumulated onto the two links), sum up the
+tree, project onto the dofs (force += J^T f, M += J^T W J), and with moving pairs the cross terms.
 """
 
 import numpy as np
 import taichi as ti
 
 from .collision import (SLOT_CYL_RIM, SLOT_SEGSEG, ContactBuildError, build_geoms, build_slots, candidate_pairs,
-                        func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations)
+                        func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
@@ -83,10 +86,8 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
             mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
             eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
             F = (fn - on * h * c.k * sg * un) * n - eta * ut
-            # both sides move: their coupling is dropped and the two diagonal blocks doubled (see above)
-            both = ti.cast(c.link_dyn[la] + c.link_dyn[lb] == 2, s.dtype)
             wn = on * (h * c.d * sg + h * h * c.k * sg)
-            W = (1.0 + both) * ((wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3))
+            W = (wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3)
             P = func_skew(pos)
             PW = P @ W
             Sww = -(PW @ P)
@@ -109,6 +110,12 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
                     c.link_Sww[i_b, lb] += Sww
                     c.link_Swv[i_b, lb] += PW
                     c.link_Svv[i_b, lb] += W
+                if ti.static(c.dense):
+                    lp = c.slot_lp[i_s]
+                    if lp >= 0:
+                        c.lp_Sww[i_b, lp] += Sww
+                        c.lp_Swv[i_b, lp] += PW
+                        c.lp_Svv[i_b, lp] += W
         else:
             c.c_fn[i_b, i_s] = 0.0
 
@@ -150,8 +157,113 @@ def func_contact_project(s: ti.template(), i_b, e, src, h):
                 s.force[i_b, i] += wi.dot(c.link_fn[i_b, i_l]) + vi.dot(c.link_ff[i_b, i_l])
 
 
+@ti.func
+def func_contact_clear_pairs(s: ti.template(), i_b, e, src, h):
+    c = s.contact
+    for lp in range(c.n_lp):
+        c.lp_Sww[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+        c.lp_Swv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+        c.lp_Svv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+
+
+@ti.func
+def func_contact_clear_cross(s: ti.template(), i_b, e, src, h):
+    c = s.contact
+    for ij in range(s.n_dofs * s.n_dofs):
+        c.mass_cross[i_b, ij // s.n_dofs, ij % s.n_dofs] = 0.0
+
+
+@ti.func
+def func_contact_cross(s: ti.template(), i_b, e, src, h):
+    """mass_cross[row, col] -= fac * cdof_i^T S(link pair) cdof_j over the static list of (i, j) with i
+    a dof moving one link of a touching pair and j one moving the other: the coupling
+    -(J_a^T W J_b + J_b^T W J_a) of J^T W J with J = J_a - J_b."""
+    c = s.contact
+    for t in range(c.n_cross):
+        i = c.cross_i[t]
+        j = c.cross_j[t]
+        lp = c.cross_lp[t]
+        Swv = c.lp_Swv[i_b, lp]
+        wi = s.cdof_w[i_b, i]
+        vi = s.cdof_v[i_b, i]
+        wj = s.cdof_w[i_b, j]
+        vj = s.cdof_v[i_b, j]
+        m = wj.dot(c.lp_Sww[i_b, lp] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + c.lp_Svv[i_b, lp] @ vi)
+        c.mass_cross[i_b, ti.max(i, j), ti.min(i, j)] += -c.cross_fac[t] * m
+
+
 CONTACT_STAGES = (func_geom_pose, func_broad_phase, func_contact_clear, func_contact_slots, func_contact_tree,
                   func_contact_project)
+CROSS_STAGES = (func_contact_clear_pairs, func_contact_clear_cross, func_geom_pose, func_broad_phase,
+                func_contact_clear, func_contact_slots, func_contact_tree, func_contact_project, func_contact_cross)
+
+
+# ------------------------------------------------------------------------------------------------
+# Dense factorisation for scenes with contacts between moving bodies (not differentiated by Taichi:
+# forward and hand-written adjoint, as the tree factorisation in inertia.py)
+# ------------------------------------------------------------------------------------------------
+@ti.func
+def func_dense_solve(s: ti.template(), i_b, x: ti.template(), e):
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with A = L D L^T in mass_fac (unit lower L, D on the diagonal)."""
+    n = s.n_dofs
+    for i in range(n):
+        acc = x[e, i_b, i]
+        for k in range(i):
+            acc -= s.mass_fac[i_b, i, k] * x[e, i_b, k]
+        x[e, i_b, i] = acc
+    for i in range(n):
+        x[e, i_b, i] /= s.mass_fac[i_b, i, i]
+    for ii in range(n):
+        i = n - 1 - ii
+        acc = x[e, i_b, i]
+        for k in range(i + 1, n):
+            acc -= s.mass_fac[i_b, k, i] * x[e, i_b, k]
+        x[e, i_b, i] = acc
+
+
+@ti.func
+def func_factor_solve_dense(s: ti.template(), i_b, e):
+    """qacc[e] = A^-1 force with A = M (tree entries) + mass_cross, by a dense L D L^T."""
+    c = s.contact
+    n = s.n_dofs
+    for i in range(n):
+        for j in range(i + 1):
+            s.mass_fac[i_b, i, j] = s.mass_mat[i_b, i, j] * s.dof_anc[i, j] + c.mass_cross[i_b, i, j]
+    for j in range(n):
+        dj = s.mass_fac[i_b, j, j]
+        for k in range(j):
+            dj -= s.mass_fac[i_b, j, k] * s.mass_fac[i_b, j, k] * s.mass_fac[i_b, k, k]
+        s.mass_fac[i_b, j, j] = dj
+        for i in range(j + 1, n):
+            v = s.mass_fac[i_b, i, j]
+            for k in range(j):
+                v -= s.mass_fac[i_b, i, k] * s.mass_fac[i_b, j, k] * s.mass_fac[i_b, k, k]
+            s.mass_fac[i_b, i, j] = v / dj
+    for i in range(n):
+        s.qacc[e, i_b, i] = s.force[i_b, i]
+    func_dense_solve(s, i_b, s.qacc, e)
+
+
+@ti.func
+def func_solve_grad_dense(s: ti.template(), i_b, e):
+    """Adjoint of qacc[e] = A^-1 force: force_bar += A^-1 qacc_bar, A_bar = -force_bar qacc^T (lower
+    triangle, symmetrised), split into the tree entries of mass_mat and mass_cross."""
+    c = s.contact
+    for i in range(s.n_dofs):
+        s.solve_tmp[0, i_b, i] = s.qacc.grad[e, i_b, i]
+    func_dense_solve(s, i_b, s.solve_tmp, 0)
+    for i in range(s.n_dofs):
+        s.force.grad[i_b, i] += s.solve_tmp[0, i_b, i]
+    for ij in range(s.n_dofs * s.n_dofs):
+        i = ij // s.n_dofs
+        j = ij % s.n_dofs
+        if j <= i:
+            g = s.solve_tmp[0, i_b, i] * s.qacc[e, i_b, j]
+            if i != j:
+                g += s.solve_tmp[0, i_b, j] * s.qacc[e, i_b, i]
+            c.mass_cross.grad[i_b, i, j] -= g
+            if s.dof_anc[i, j] == 1:
+                s.mass_mat.grad[i_b, i, j] -= g
 
 
 @ti.data_oriented
@@ -172,8 +284,6 @@ class ContactSolver:
         return ContactSolver(solver, geoms, pairs, options)
 
     def __init__(self, solver, geoms, pairs, options):
-        from .collision import link_is_dynamic
-
         self.geoms = geoms
         self.pairs = pairs
         slots = build_slots(geoms, pairs)
@@ -195,6 +305,26 @@ class ContactSolver:
         self.np_slot_gb = np.array([x[3] for x in slots], dtype=np.int32)
         self.np_slot_link_a = geoms.link[self.np_slot_ga]
         self.np_slot_link_b = geoms.link[self.np_slot_gb]
+        # contacts between two moving links couple their dofs outside the tree sparsity of M: such
+        # link pairs get a 6x6 accumulator, and the dof pairs they couple a static list (see above)
+        dyn_np = link_is_dynamic(solver)
+        lp_index, slot_lp = {}, []
+        for la, lb in zip(self.np_slot_link_a, self.np_slot_link_b):
+            if dyn_np[la] and dyn_np[lb]:
+                key = (min(la, lb), max(la, lb))
+                slot_lp.append(lp_index.setdefault(key, len(lp_index)))
+            else:
+                slot_lp.append(-1)
+        self.dense = len(lp_index) > 0
+        self.n_lp = len(lp_index)
+        cross = []
+        for (la, lb), lp in lp_index.items():
+            for i in _link_dofs(solver, la):
+                for j in _link_dofs(solver, lb):
+                    # (i, j) and (j, i) land on the same lower-triangle entry; on the diagonal (a common
+                    # ancestor of a self-collision pair) both terms of J_a^T W J_b + J_b^T W J_a do
+                    cross.append((i, j, lp, 2.0 if i == j else 1.0))
+        self.n_cross = len(cross)
 
         B, G, Pn, S, L = solver.n_envs, geoms.n, len(pairs), len(slots), max(solver.n_links, 1)
         f, g = solver.dtype, solver.requires_grad
@@ -220,6 +350,13 @@ class ContactSolver:
         self.geom_xpos, self.geom_xR = V3((B, G)), M3((B, G))
         self.link_fn, self.link_ff = V3((B, L)), V3((B, L))
         self.link_Sww, self.link_Swv, self.link_Svv = M3((B, L)), M3((B, L)), M3((B, L))
+        if self.dense:
+            D = max(solver.n_dofs, 1)
+            self.slot_lp = I(S)
+            self.lp_Sww, self.lp_Swv, self.lp_Svv = M3((B, self.n_lp)), M3((B, self.n_lp)), M3((B, self.n_lp))
+            self.cross_i, self.cross_j, self.cross_lp = I(self.n_cross), I(self.n_cross), I(self.n_cross)
+            self.cross_fac = ti.field(f, shape=self.n_cross)
+            self.mass_cross = ti.field(f, shape=(B, D, D), needs_grad=g)
         # outputs of the last evaluation (read by the entity API; no gradient)
         self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
         self.c_depth, self.c_fn = ti.field(f, shape=(B, S)), ti.field(f, shape=(B, S))
@@ -236,7 +373,7 @@ class ContactSolver:
         self.geom_kdop.from_numpy(geoms.kdop.astype(npf))
         self.geom_friction.from_numpy(np.ascontiguousarray(np.broadcast_to(geoms.friction, (B, G))).astype(npf))
         dyn = np.zeros(L, dtype=np.int32)
-        dyn[: solver.n_links] = link_is_dynamic(solver)
+        dyn[: solver.n_links] = dyn_np
         self.link_dyn.from_numpy(dyn)
         self.pair_ga.from_numpy(np.array([p[0] for p in pairs], dtype=np.int32))
         self.pair_gb.from_numpy(np.array([p[1] for p in pairs], dtype=np.int32))
@@ -251,6 +388,15 @@ class ContactSolver:
         self.stages = CONTACT_STAGES
         self.grad_fields = [self.geom_friction, self.geom_xpos, self.geom_xR, self.link_fn, self.link_ff,
                             self.link_Sww, self.link_Swv, self.link_Svv] if g else []
+        if self.dense:
+            self.slot_lp.from_numpy(np.array(slot_lp, dtype=np.int32))
+            self.cross_i.from_numpy(np.array([x[0] for x in cross], dtype=np.int32))
+            self.cross_j.from_numpy(np.array([x[1] for x in cross], dtype=np.int32))
+            self.cross_lp.from_numpy(np.array([x[2] for x in cross], dtype=np.int32))
+            self.cross_fac.from_numpy(np.array([x[3] for x in cross], dtype=npf))
+            self.stages = CROSS_STAGES
+            if g:
+                self.grad_fields += [self.lp_Sww, self.lp_Swv, self.lp_Svv, self.mass_cross]
 
     # ------------------------------------------------------------------ readers
     def read(self):
@@ -260,4 +406,14 @@ class ContactSolver:
                 "force": self.c_force.to_numpy(), "depth": self.c_depth.to_numpy(), "fn": self.c_fn.to_numpy()}
 
 
-__all__ = ["ContactSolver", "ContactBuildError", "CONTACT_STAGES"]
+def _link_dofs(solver, l):
+    """The dofs that move link l: its own and its ancestors'."""
+    out = []
+    while l >= 0:
+        d0 = solver.np_link_dof_start[l]
+        out.extend(range(d0, d0 + solver.np_link_ndof[l]))
+        l = solver.np_link_parent[l]
+    return out
+
+
+__all__ = ["ContactSolver", "ContactBuildError", "CONTACT_STAGES", "func_factor_solve_dense", "func_solve_grad_dense"]

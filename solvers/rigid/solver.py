@@ -18,6 +18,7 @@ import taichi as ti
 
 from .actuation import func_generalized_force
 from .bias import BIAS
+from .contact import func_factor_solve_dense, func_solve_grad_dense
 from .inertia import INERTIA, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
 from .kinematics import (JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS, LINK_STATE,
@@ -69,6 +70,8 @@ class RigidSolver:
 
             self.contact = ContactSolver.create(self, models, contact_options)
         self.dynamics_stages = DYNAMICS + (self.contact.stages if self.contact is not None else ())
+        # contacts between two moving bodies couple dofs outside the tree sparsity: dense factorisation
+        self.dense_solve = self.contact is not None and self.contact.dense
         if self.contact is not None and requires_grad:
             self.grad_fields = self.grad_fields + list(self.contact.grad_fields)
         self._fill_info(gravity)
@@ -325,14 +328,20 @@ class RigidSolver:
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
-            func_factor_solve(self, i_b, e)
+            if ti.static(self.dense_solve):
+                func_factor_solve_dense(self, i_b, e)
+            else:
+                func_factor_solve(self, i_b, e)
 
     @ti.kernel
     def kernel_solve_grad(self, e: ti.i32):
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
-            func_solve_grad(self, i_b, e)
+            if ti.static(self.dense_solve):
+                func_solve_grad_dense(self, i_b, e)
+            else:
+                func_solve_grad(self, i_b, e)
 
     @ti.kernel
     def kernel_integrate(self, kind: ti.i32, e: ti.i32, base: ti.i32, src: ti.i32, dst: ti.i32, h: float):
@@ -358,7 +367,10 @@ class RigidSolver:
                     for stage in ti.static(self.dynamics_stages):
                         stage(self, i_b, e, src, h)
                 elif op == OP_SOLVE:
-                    func_factor_solve(self, i_b, e)
+                    if ti.static(self.dense_solve):
+                        func_factor_solve_dense(self, i_b, e)
+                    else:
+                        func_factor_solve(self, i_b, e)
                 else:
                     for stage in ti.static(INTEGRATE):
                         stage(self, i_b, kind, e, base, src, dst, h)
