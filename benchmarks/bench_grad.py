@@ -262,7 +262,8 @@ def worker_genesis(urdf, steps, repeats) -> dict:
     scene = gs.Scene(
         sim_options=gs.options.SimOptions(dt=DT, requires_grad=True),
         # Genesis differentiates only approximate_implicitfast
-        rigid_options=gs.options.RigidOptions(enable_collision=False, integrator=gs.integrator.approximate_implicitfast),
+        rigid_options=gs.options.RigidOptions(enable_collision=False,
+                                              integrator=gs.integrator.approximate_implicitfast),
         show_viewer=False,
     )
     robot = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True))
@@ -330,7 +331,7 @@ def _ckpt_name(ck):
 def part_ratio(urdf, quick, tables, data):
     steps = 100
     rows = []
-    configs = [(0, 3 if quick else 7)] + ([] if quick else [(1024, 3)])  # 1024 envs: ~14 s a rollout
+    configs = [(0, 3 if quick else 7)] + ([] if quick else [(1024, 3)])  # 1024 envs: fewer, slower repeats
     for n_envs, repeats in configs:
         print(f"[1] backward/forward, {max(n_envs, 1)} env(s), {repeats} repeats ...", flush=True)
         res, err, wall = _child("ratio", urdf=str(urdf), n_envs=n_envs, steps=steps, repeats=repeats,
@@ -419,7 +420,8 @@ def part_memory(urdf, quick, tables, data):
         rows.append(row)
     data["memory"] = rows
     text = print_table(rows, [
-        ("grad", "requires_grad", ""), ("ckpt", "checkpoint_every", ""), ("T", "steps", ",d"), ("feed", "controls fed", ""),
+        ("grad", "requires_grad", ""), ("ckpt", "checkpoint_every", ""), ("T", "steps", ",d"),
+        ("feed", "controls fed", ""),
         ("rss_fwd", "RSS growth fwd MiB", ".1f"), ("hwm_fwd", "peak RSS growth fwd MiB", ".1f"),
         ("heap_fwd", "heap growth fwd MiB", ".1f"), ("kb_per_step", "heap KiB/step", ".2f"),
         ("state_kb", "one state KiB", ".2f"),
@@ -496,12 +498,13 @@ def main():
     total = time.time() - t0
     print(f"\ntotal {total:.0f} s", flush=True)
     header = (f"# genesis_lite gradient benchmark{' (--quick)' if args.quick else ''}\n\n"
-              f"`python benchmarks/bench_grad.py{' --quick' if args.quick else ''}`, {time.strftime('%Y-%m-%d %H:%M')}, "
+              f"`python benchmarks/bench_grad.py{' --quick' if args.quick else ''}`, "
+              f"{time.strftime('%Y-%m-%d %H:%M')}, "
               f"{os.cpu_count()} CPU cores, total {total:.0f} s. Stripped Panda URDF (common.write_stripped_panda), "
               "fixed base, f64, dt=0.01, enable_collision=False, default integrator (implicitfast); q0 and controls "
               "require grad; loss = squared position of the last link summed over envs.\n"
-              "Repeats: 1-env rows of table 1 are medians of 7 (3 with --quick), 1024-env rows of 3 (a 1024-env "
-              "rollout takes ~10-15 s); every memory row is a single rollout (10,000 steps: ~10-50 s).\n")
+              "Repeats: 1-env rows of table 1 are medians of 7 (3 with --quick), 1024-env rows of 3 (to keep the run "
+              "under ~10 minutes); every memory row is a single rollout.\n")
     if args.out and str(args.out):
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(header + "\n".join(tables) + "\n")

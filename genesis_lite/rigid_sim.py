@@ -155,8 +155,14 @@ class RigidSim:
 
     def set_ctrl(self, kind, values, envs, idx, mode):
         row = CTRL.index(kind)
+        values = values.to(self.dtype).reshape(len(envs), len(idx))
         out = self.ctrl.clone()
-        out[envs[:, None], row, idx[None, :]] = values.to(self.dtype).reshape(len(envs), len(idx))
+        full_envs, span = _as_slices(envs, self.B), _as_span(idx)
+        if full_envs and span is not None:
+            # basic slicing: autograd keeps no index tensors per step
+            out[:, row, span] = values
+        else:
+            out[envs[:, None], row, idx[None, :]] = values
         self.ctrl = out
         if mode is not None:
             m = self.ctrl_mode.clone()
@@ -245,7 +251,8 @@ class RigidSim:
         t = self.step_count
         keep = self.buffer.record(t, (inputs[0].detach(), inputs[1].detach()))
         if len(inputs) > 2 and self.buffer.every is not None:
-            self._step_inputs[t] = (inputs[2].detach(), self.ctrl_mode, [p.detach() for p in inputs[3:]])
+            # the parameter tensors themselves: replay recognises them and uploads nothing
+            self._step_inputs[t] = (inputs[2].detach(), self.ctrl_mode, list(inputs[3:]))
         return inputs if keep else (None, None) + tuple(inputs[2:])
 
     def restore(self, saved, context):
@@ -357,11 +364,29 @@ class RigidSim:
         self.set_state(qpos, qvel)
 
 
+def _as_slices(envs, n):
+    return len(envs) == n and bool((envs == torch.arange(n, device=envs.device)).all())
+
+
+def _as_span(idx):
+    """idx as a slice when it is a run of consecutive indices, else None."""
+    if len(idx) == 0:
+        return None
+    start = int(idx[0])
+    if bool((idx == torch.arange(start, start + len(idx), device=idx.device)).all()):
+        return slice(start, start + len(idx))
+    return None
+
+
 def _index_put(base, envs, idx, values):
     """base with base[envs][:, idx] = values, out of place (differentiable in base and values)."""
-    values = values.to(base.dtype)
+    values = values.to(base.dtype).reshape((len(envs), len(idx)) + base.shape[2:])
     out = base.clone()
-    out[envs[:, None], idx[None, :]] = values.reshape((len(envs), len(idx)) + base.shape[2:])
+    span = _as_span(idx)
+    if span is not None and _as_slices(envs, base.shape[0]):
+        out[:, span] = values
+    else:
+        out[envs[:, None], idx[None, :]] = values
     return out
 
 

@@ -7,9 +7,22 @@ solvers/buffer.py), `forward_step()`, `backward_step(saved, ...)`, `outputs()` a
 node of torch's graph, `OutputFunction` makes a getter one. torch then orders the backward calls
 (reverse time), sums gradients over steps and delivers them to leaf tensors.
 """
+import weakref
+
 import torch
 
 from ..errors import GenesisException
+
+
+def _bridge(ctx):
+    """The bridge a node belongs to. Nodes hold it weakly: a strong reference would make a cycle
+    through torch's C++ graph (bridge -> state tensor -> grad_fn -> ctx -> bridge) that Python's
+    collector cannot break, keeping Taichi alive at exit so it never writes its kernel cache."""
+    bridge = ctx.bridge()
+    if bridge is None:
+        raise GenesisException("backward through a rollout whose scene no longer exists: keep the scene alive "
+                               "until loss.backward() has run")
+    return bridge
 
 
 class StepFunction(torch.autograd.Function):
@@ -18,7 +31,7 @@ class StepFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, bridge, *inputs):
-        ctx.bridge = bridge
+        ctx.bridge = weakref.ref(bridge)
         ctx.token = bridge.rollout_token
         ctx.extra = bridge.step_context()
         ctx.save_for_backward(*bridge.to_save(inputs))
@@ -26,7 +39,7 @@ class StepFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads):
-        bridge = ctx.bridge
+        bridge = _bridge(ctx)
         bridge.check_token(ctx.token, "step")
         saved = bridge.restore(ctx.saved_tensors, ctx.extra)
         in_grads = bridge.backward_step(saved, ctx.extra, grads, ctx.needs_input_grad[1:])
@@ -38,7 +51,7 @@ class OutputFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, bridge, *state):
-        ctx.bridge = bridge
+        ctx.bridge = weakref.ref(bridge)
         ctx.token = bridge.rollout_token
         ctx.extra = bridge.step_context()
         ctx.save_for_backward(*bridge.to_save(state))
@@ -46,7 +59,7 @@ class OutputFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads):
-        bridge = ctx.bridge
+        bridge = _bridge(ctx)
         bridge.check_token(ctx.token, "getter")
         saved = bridge.restore(ctx.saved_tensors, ctx.extra)
         return (None,) + tuple(bridge.backward_outputs(saved, grads))

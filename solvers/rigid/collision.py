@@ -203,7 +203,8 @@ def candidate_pairs(geoms: GeomTable, solver, self_collision: bool, ignore_unsup
             if (ta == GEOM_MESH and tb == GEOM_MESH) or moving_plane:
                 bad.append((a, b, "a plane on a moving link" if moving_plane else "mesh against mesh"))
                 continue
-            pairs.append((a, b))
+            # a plane is always the second geom of its pair (the broad phase tests the first against it)
+            pairs.append((b, a) if ta == GEOM_PLANE else (a, b))
     if bad and not ignore_unsupported:
         a, b, why = bad[0]
         more = f" (and {len(bad) - 1} more such pairs)" if len(bad) > 1 else ""
@@ -441,17 +442,33 @@ def func_geom_pose(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
+def func_plane_extent(c: ti.template(), g, R, n):
+    """How far geom g (rotation R) reaches from its centre along -n: its support function. Exact for
+    sphere, capsule, box and cylinder; the bounding radius for meshes."""
+    t = c.geom_type[g]
+    sz = c.geom_size[g]
+    a = R.transpose() @ n  # n in the geom frame
+    box = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
+    cyl = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
+    cap = sz[1] * ti.abs(a[2]) + sz[0]
+    return ti.select(t == GEOM_BOX, box, ti.select(t == GEOM_CYLINDER, cyl, ti.select(
+        t == GEOM_CAPSULE, cap, ti.select(t == GEOM_SPHERE, sz[0], c.geom_rbound[g]))))
+
+
+@ti.func
 def func_broad_phase(s: ti.template(), i_b, e, src, h):
-    """pair_active: bounding spheres within the contact margin (a plane: the sphere reaches it)."""
+    """pair_active: the geom reaches within the contact margin of a plane (support function), or two
+    bounding spheres do."""
     c = s.contact
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]
         gb = c.pair_gb[i_p]
+        Ra = c.geom_xR[i_b, ga]
         Rb = c.geom_xR[i_b, gb]
-        ca = c.geom_xpos[i_b, ga] + c.geom_xR[i_b, ga] @ c.geom_center[ga]
+        ca = c.geom_xpos[i_b, ga] + Ra @ c.geom_center[ga]
         cb = c.geom_xpos[i_b, gb] + Rb @ c.geom_center[gb]
         nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
-        gap_plane = (ca - cb).dot(nb) - c.geom_rbound[ga]
+        gap_plane = (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb)
         gap_pair = (ca - cb).norm() - c.geom_rbound[ga] - c.geom_rbound[gb]
         gap = ti.select(c.geom_type[gb] == GEOM_PLANE, gap_plane, gap_pair)
         c.pair_active[i_b, i_p] = ti.select(gap < c.margin, 1, 0)

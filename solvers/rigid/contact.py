@@ -57,6 +57,63 @@ def func_contact_clear(s: ti.template(), i_b, e, src, h):
         c.link_Sww[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
         c.link_Swv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
         c.link_Svv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+        c.link_touch[i_b, i_l] = 0
+
+
+@ti.func
+def func_contact_force(s: ti.template(), i_b, i_s, h, pos, n, depth):
+    """Force and implicit block of slot i_s (within the contact margin), added onto its two links."""
+    c = s.contact
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    la = c.geom_link[ga]
+    lb = c.geom_link[gb]
+    u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
+    un = u.dot(n)
+    z = depth / c.delta
+    # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
+    zc = ti.min(ti.max(z, -60.0), 60.0)
+    sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zc)))
+    sg = 1.0 / (1.0 + ti.exp(-zc))
+    fn_raw = c.k * c.delta * sp - c.d * sg * un
+    on = ti.cast(fn_raw > 0, s.dtype)
+    fn = fn_raw * on
+    ut = u - un * n
+    mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
+    eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
+    F = (fn - on * h * c.k * sg * un) * n - eta * ut
+    wn = on * (h * c.d * sg + h * h * c.k * sg)
+    W = (wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3)
+    P = func_skew(pos)
+    PW = P @ W
+    Sww = -(PW @ P)
+    tq = pos.cross(F)
+    c.c_fn[i_b, i_s] = fn
+    if fn > 0:
+        c.c_pos[i_b, i_s] = pos
+        c.c_normal[i_b, i_s] = n
+        c.c_force[i_b, i_s] = F
+        c.c_depth[i_b, i_s] = depth
+        if c.link_dyn[la] == 1:
+            c.link_touch[i_b, la] = 1
+            c.link_ff[i_b, la] += F
+            c.link_fn[i_b, la] += tq
+            c.link_Sww[i_b, la] += Sww
+            c.link_Swv[i_b, la] += PW
+            c.link_Svv[i_b, la] += W
+        if c.link_dyn[lb] == 1:
+            c.link_touch[i_b, lb] = 1
+            c.link_ff[i_b, lb] += -F
+            c.link_fn[i_b, lb] += -tq
+            c.link_Sww[i_b, lb] += Sww
+            c.link_Swv[i_b, lb] += PW
+            c.link_Svv[i_b, lb] += W
+        if ti.static(c.dense):
+            lp = c.slot_lp[i_s]
+            if lp >= 0:
+                c.lp_Sww[i_b, lp] += Sww
+                c.lp_Swv[i_b, lp] += PW
+                c.lp_Svv[i_b, lp] += W
 
 
 @ti.func
@@ -68,56 +125,11 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
     for i_s in range(c.n_slots):
         if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
             pos, n, depth = func_slot_geometry(s, i_b, i_s)
-            ga = c.slot_ga[i_s]
-            gb = c.slot_gb[i_s]
-            la = c.geom_link[ga]
-            lb = c.geom_link[gb]
-            u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
-            un = u.dot(n)
-            z = depth / c.delta
-            # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
-            zc = ti.min(ti.max(z, -60.0), 60.0)
-            sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zc)))
-            sg = 1.0 / (1.0 + ti.exp(-zc))
-            fn_raw = c.k * c.delta * sp - c.d * sg * un
-            on = ti.cast((depth > -c.margin) & (fn_raw > 0), s.dtype)
-            fn = fn_raw * on
-            ut = u - un * n
-            mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
-            eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
-            F = (fn - on * h * c.k * sg * un) * n - eta * ut
-            wn = on * (h * c.d * sg + h * h * c.k * sg)
-            W = (wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3)
-            P = func_skew(pos)
-            PW = P @ W
-            Sww = -(PW @ P)
-            tq = pos.cross(F)
-            c.c_fn[i_b, i_s] = fn
-            if fn > 0:
-                c.c_pos[i_b, i_s] = pos
-                c.c_normal[i_b, i_s] = n
-                c.c_force[i_b, i_s] = F
-                c.c_depth[i_b, i_s] = depth
-                if c.link_dyn[la] == 1:
-                    c.link_ff[i_b, la] += F
-                    c.link_fn[i_b, la] += tq
-                    c.link_Sww[i_b, la] += Sww
-                    c.link_Swv[i_b, la] += PW
-                    c.link_Svv[i_b, la] += W
-                if c.link_dyn[lb] == 1:
-                    c.link_ff[i_b, lb] += -F
-                    c.link_fn[i_b, lb] += -tq
-                    c.link_Sww[i_b, lb] += Sww
-                    c.link_Swv[i_b, lb] += PW
-                    c.link_Svv[i_b, lb] += W
-                if ti.static(c.dense):
-                    lp = c.slot_lp[i_s]
-                    if lp >= 0:
-                        c.lp_Sww[i_b, lp] += Sww
-                        c.lp_Swv[i_b, lp] += PW
-                        c.lp_Svv[i_b, lp] += W
-        else:
-            c.c_fn[i_b, i_s] = 0.0
+            if depth > -c.margin:
+                func_contact_force(s, i_b, i_s, h, pos, n, depth)
+            else:
+                c.c_fn[i_b, i_s] = 0.0
+        # slots of inactive pairs keep stale outputs: readers mask them with pair_active
 
 
 @ti.func
@@ -127,7 +139,8 @@ def func_contact_tree(s: ti.template(), i_b, e, src, h):
     for k in range(s.n_links):
         i_l = s.n_links - 1 - k
         p = s.link_parent[i_l]
-        if p >= 0:
+        if (p >= 0) & (c.link_touch[i_b, i_l] == 1):
+            c.link_touch[i_b, p] = 1
             c.link_ff[i_b, p] += c.link_ff[i_b, i_l]
             c.link_fn[i_b, p] += c.link_fn[i_b, i_l]
             c.link_Sww[i_b, p] += c.link_Sww[i_b, i_l]
@@ -138,14 +151,14 @@ def func_contact_tree(s: ti.template(), i_b, e, src, h):
 @ti.func
 def func_contact_project(s: ti.template(), i_b, e, src, h):
     """force_i += cdof_i . wrench(subtree of link(i)); M[i, j] += cdof_j^T S(link(i)) cdof_i for j an
-    ancestor-or-self of i (the composite-inertia pattern of func_mass_matrix)."""
+    ancestor-or-self of i (the composite-inertia pattern of func_mass_matrix), over the static list of
+    such (i, j), skipping links with no contact below them."""
     c = s.contact
-    for ij in range(s.n_dofs * s.n_dofs):
-        i = ij // s.n_dofs
-        j = ij % s.n_dofs
+    for t in range(c.n_anc):
+        i = c.anc_i[t]
+        j = c.anc_j[t]
         i_l = s.dof_link[i]
-        # a subtree without contacts has S = 0 and no wrench (trace of the PSD block S_vv)
-        if (s.dof_anc[i, j] == 1) & (c.link_Svv[i_b, i_l].trace() > 0):
+        if c.link_touch[i_b, i_l] == 1:
             wi = s.cdof_w[i_b, i]
             vi = s.cdof_v[i_b, i]
             wj = s.cdof_w[i_b, j]
@@ -303,6 +316,7 @@ class ContactSolver:
         # static slot tables, kept in numpy for the readers
         self.np_slot_ga = np.array([x[2] for x in slots], dtype=np.int32)
         self.np_slot_gb = np.array([x[3] for x in slots], dtype=np.int32)
+        self.np_slot_pair = np.array([x[0] for x in slots], dtype=np.int32)
         self.np_slot_link_a = geoms.link[self.np_slot_ga]
         self.np_slot_link_b = geoms.link[self.np_slot_gb]
         # contacts between two moving links couple their dofs outside the tree sparsity of M: such
@@ -340,6 +354,10 @@ class ContactSolver:
         self.geom_kdop = ti.field(f, shape=(G, geoms.kdop.shape[1]))
         self.geom_friction = ti.field(f, shape=(B, G), needs_grad=g)
         self.link_dyn = I(L)
+        self.link_touch = I((B, L))  # a contact acts on the link or below it (this evaluation)
+        anc = [(i, j) for i in range(solver.n_dofs) for j in range(i + 1) if solver.np_dof_anc[i, j]]
+        self.n_anc = max(len(anc), 1)
+        self.anc_i, self.anc_j = I(self.n_anc), I(self.n_anc)
         # pairs and slots
         self.pair_ga, self.pair_gb = I(Pn), I(Pn)
         self.pair_active = I((B, Pn))
@@ -375,9 +393,12 @@ class ContactSolver:
         dyn = np.zeros(L, dtype=np.int32)
         dyn[: solver.n_links] = dyn_np
         self.link_dyn.from_numpy(dyn)
+        anc_arr = np.array(anc if anc else [(0, 0)], dtype=np.int32).reshape(-1, 2)
+        self.anc_i.from_numpy(np.ascontiguousarray(anc_arr[:, 0]))
+        self.anc_j.from_numpy(np.ascontiguousarray(anc_arr[:, 1]))
         self.pair_ga.from_numpy(np.array([p[0] for p in pairs], dtype=np.int32))
         self.pair_gb.from_numpy(np.array([p[1] for p in pairs], dtype=np.int32))
-        self.slot_pair.from_numpy(np.array([x[0] for x in slots], dtype=np.int32))
+        self.slot_pair.from_numpy(self.np_slot_pair)
         self.slot_kind.from_numpy(np.array([x[1] for x in slots], dtype=np.int32))
         self.slot_ga.from_numpy(self.np_slot_ga)
         self.slot_gb.from_numpy(self.np_slot_gb)
@@ -402,8 +423,10 @@ class ContactSolver:
     def read(self):
         """numpy views of the last evaluation: dict of position, normal, force (on the point side),
         depth, fn (normal force magnitude, 0 when not touching), each (B, n_slots[, 3])."""
+        active = self.pair_active.to_numpy()[:, self.np_slot_pair] == 1
         return {"position": self.c_pos.to_numpy(), "normal": self.c_normal.to_numpy(),
-                "force": self.c_force.to_numpy(), "depth": self.c_depth.to_numpy(), "fn": self.c_fn.to_numpy()}
+                "force": self.c_force.to_numpy(), "depth": self.c_depth.to_numpy(),
+                "fn": np.where(active, self.c_fn.to_numpy(), 0.0)}
 
 
 def _link_dofs(solver, l):

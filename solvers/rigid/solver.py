@@ -423,12 +423,18 @@ class RigidSolver:
 
     @ti.kernel
     def kernel_clear_grads(self):
-        """Zero every adjoint field in one launch (before each step's backward replay)."""
+        """Zero every adjoint field in one launch (before each step's backward replay). Constants,
+        not x * 0: a NaN left by an earlier failed backward must not survive."""
         for x in ti.static(self.grad_fields):
             if ti.static(self.serial):
                 ti.loop_config(serialize=True)
             for I in ti.grouped(ti.ndrange(*x.shape)):
-                x.grad[I] = ti.zero(x.grad[I])
+                if ti.static(not hasattr(x, "n")):
+                    x.grad[I] = 0.0
+                elif ti.static(x.m == 1):
+                    x.grad[I] = ti.Vector.zero(self.dtype, x.n)
+                else:
+                    x.grad[I] = ti.Matrix.zero(self.dtype, x.n, x.m)
 
     # ------------------------------------------------------------------ python entry points
     NO_NAN = 2**31 - 1

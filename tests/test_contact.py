@@ -1,0 +1,633 @@
+"""Contact, friction and joint limits (issue #4), at the defaults and dt = 0.01 s unless said.
+
+Physics is checked against analytic results (stopping distance v^2 / (2 mu g), rolling acceleration
+5/7 g sin(theta), static equilibria) and for stability (resting, stacking, standing, stress).
+Gradients are checked in float64 against central finite differences with gs.grad.check. They are the
+exact derivatives of the simulated (smoothed, discretised) model: that is what the finite-difference
+checks test, with tight tolerances. Against the idealised physics (hard contact, exact Coulomb friction,
+continuous time) they agree only up to the model's smoothing and the time step: the stopping-distance
+gradient is compared with d/dmu, d/dv of v^2 / (2 mu g) within a few percent, and the rest-height
+gradient with the derivative of the smoothed model's own equilibrium.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import genesis_lite as gs
+from genesis_lite.errors import GenesisException, SimulationNaNError
+
+G = 9.81
+DT = 0.01
+F64 = torch.float64
+
+
+def _t(x):
+    return torch.as_tensor(x, dtype=F64)
+
+
+def _np(x):
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def _scene(requires_grad=False, substeps=1, **rigid):
+    return gs.Scene(sim_options=gs.options.SimOptions(dt=DT, substeps=substeps, requires_grad=requires_grad),
+                    rigid_options=gs.options.RigidOptions(**rigid))
+
+
+def _anymal_standing_pose(robot):
+    names = [j.name for j in robot.joints if j.n_dofs == 1]
+    dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]
+    q = [0.0 if "HAA" in n else (0.4 if n[1] == "F" else -0.4) if "HFE" in n else (-0.8 if n[1] == "F" else 0.8)
+         for n in names]
+    return _t(q), dofs
+
+
+def _anymal_on_ground(urdf_path, requires_grad=False, z=0.62, kp=300.0, kv=10.0):
+    scene = _scene(requires_grad=requires_grad)
+    scene.add_entity(gs.morphs.Plane())
+    robot = scene.add_entity(gs.morphs.URDF(file=str(urdf_path("anymal")), fixed=False, pos=(0.0, 0.0, z)))
+    scene.build()
+    q0, dofs = _anymal_standing_pose(robot)
+    robot.set_dofs_kp(torch.full((len(dofs),), kp, dtype=F64), dofs)
+    robot.set_dofs_kv(torch.full((len(dofs),), kv, dtype=F64), dofs)
+    robot.set_dofs_position(q0, dofs)
+    robot.control_dofs_position(q0, dofs)
+    return scene, robot, q0, dofs
+
+
+# ------------------------------------------------------------------------------------------------
+# Resting, sliding, rolling, stacking, standing
+# ------------------------------------------------------------------------------------------------
+def test_box_rests_on_plane_10s():
+    """A box set down on the ground stays put for 10 s: drift < 1 mm, penetration < 2 mm, no jitter."""
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.3, 0.1), pos=(0.1, -0.2, 0.05)), material=gs.materials.Rigid(rho=1000.0))
+    scene.build()
+    p0 = _np(box.get_pos()).copy()
+    z, vmax_last = [], 0.0
+    for i in range(1000):
+        scene.step()
+        z.append(float(box.get_pos()[2]))
+        if i >= 900:
+            vmax_last = max(vmax_last, float(box.get_vel().abs().max()), float(box.get_ang().abs().max()))
+    p1 = _np(box.get_pos())
+    assert np.linalg.norm(p1[:2] - p0[:2]) < 1e-3
+    assert abs(p1[2] - 0.05) < 1e-3  # drift in height
+    assert 0.05 - min(z) < 2e-3  # penetration, the worst moment included
+    assert np.std(z[-100:]) < 1e-7 and vmax_last < 1e-5  # no jitter
+    q = _np(box.get_quat())
+    assert abs(abs(q[0]) - 1.0) < 1e-6
+
+
+@pytest.mark.parametrize("mu,v0", [(0.5, 3.0), (0.3, 2.0)])
+def test_sliding_box_stops_after_v2_over_2mug(mu, v0):
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)), material=gs.materials.Rigid(friction=mu))
+    scene.build()
+    for _ in range(20):
+        scene.step()
+    x0 = float(box.get_pos()[0])
+    box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+    for _ in range(int(1.5 * v0 / (mu * G) / DT) + 20):
+        scene.step()
+    d = float(box.get_pos()[0]) - x0
+    ref = v0 ** 2 / (2 * mu * G)
+    assert abs(d - ref) / ref < 0.05, (d, ref)
+    assert float(box.get_vel().abs().max()) < 1e-3  # it has stopped (no creep)
+
+
+@pytest.mark.parametrize("mu", [1.0, 0.05])
+def test_sphere_on_incline_rolls_or_slides(mu):
+    """On a 30 degree incline a solid sphere rolls without slip (a = 5/7 g sin) when mu > 2/7 tan, and
+    slides (a = g (sin - mu cos)) otherwise."""
+    th = np.deg2rad(30.0)
+    n = np.array([np.sin(th), 0.0, np.cos(th)])
+    down = np.array([np.cos(th), 0.0, -np.sin(th)])
+    r = 0.1
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane(normal=tuple(n)), material=gs.materials.Rigid(friction=mu))
+    ball = scene.add_entity(gs.morphs.Sphere(radius=r, pos=tuple(n * r)), material=gs.materials.Rigid(friction=mu))
+    scene.build()
+    s = []
+    for _ in range(100):
+        scene.step()
+        s.append(_np(ball.get_pos()) @ down)
+    t = np.arange(100) * DT
+    a = 2 * np.polyfit(t, np.array(s), 2)[0]
+    v, w = _np(ball.get_vel()), _np(ball.get_ang())
+    slip = np.linalg.norm(v + np.cross(w, -n * r))
+    if mu > 2.0 / 7.0 * np.tan(th):
+        assert abs(a - 5.0 / 7.0 * G * np.sin(th)) / (5.0 / 7.0 * G * np.sin(th)) < 0.01
+        assert slip < 0.01 * np.linalg.norm(v)
+    else:
+        ref = G * (np.sin(th) - mu * np.cos(th))
+        assert abs(a - ref) / ref < 0.01
+        assert slip > 0.5 * np.linalg.norm(v)
+
+
+def test_stack_of_five_boxes_stands_10s():
+    """Five boxes dropped 5 mm onto each other, slightly offset and turned, stand for 10 s."""
+    rng = np.random.default_rng(1)
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    a = 0.2
+    boxes = []
+    for i in range(5):
+        off = rng.uniform(-0.01, 0.01, 2)
+        yaw = rng.uniform(-0.05, 0.05)
+        boxes.append(scene.add_entity(gs.morphs.Box(size=(a, a, a), pos=(off[0], off[1], a / 2 + i * (a + 0.005)),
+                                                    quat=(np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)))))
+    scene.build()
+    p_start = None
+    for i in range(1000):
+        scene.step()
+        if i == 99:
+            p_start = np.array([_np(b.get_pos()) for b in boxes])
+    p = np.array([_np(b.get_pos()) for b in boxes])
+    v = max(float(b.get_vel().abs().max()) for b in boxes)
+    np.testing.assert_allclose(p[:, 2], a / 2 + a * np.arange(5), atol=1e-3)
+    assert np.abs(p - p_start).max() < 1e-3  # nothing creeps after settling
+    assert v < 1e-4
+
+
+def test_quadruped_held_by_pd_stands_10s(urdf_path):
+    """ANYmal (fixed=False) dropped onto the ground and held by PD stands for 10 s."""
+    scene, robot, q0, dofs = _anymal_on_ground(urdf_path)
+    zs = []
+    for i in range(1000):
+        scene.step()
+        if i >= 100:
+            zs.append(float(robot.get_pos()[2]))
+    quat = _np(robot.get_quat())
+    assert min(zs) > 0.45  # the base stays up (standing height ~0.49 m)
+    assert max(zs) - min(zs) < 5e-3  # no sinking or bouncing over 9 s
+    assert abs(quat[0]) > 0.999  # upright
+    assert float(robot.get_dofs_velocity().abs().max()) < 0.01
+    np.testing.assert_allclose(_np(robot.get_dofs_position(dofs)), _np(q0), atol=0.05)
+    # only the four feet touch the ground
+    contacts = robot.get_contacts()
+    feet = {robot.get_link(n).idx for n in ("LF_SHANK", "RF_SHANK", "LH_SHANK", "RH_SHANK")}
+    assert set(_np(contacts["link_a"]).tolist()) == feet
+    total = _np(robot.get_links_net_contact_force()).sum(0)
+    np.testing.assert_allclose(total, [0, 0, float(robot.get_mass()) * G], rtol=1e-3, atol=1e-2)
+
+
+def test_joint_driven_past_its_limit_stops_at_the_limit(assets_dir):
+    """assets/urdf/arm.urdf: shoulder_pitch has limits [-2, 2] rad; a PD target of 3 rad stops at 2."""
+    scene = _scene(enable_collision=False)
+    arm = scene.add_entity(gs.morphs.URDF(file=str(assets_dir / "urdf" / "arm.urdf"), fixed=True))
+    scene.build()
+    j = arm.get_joint("shoulder_pitch").dof_idx_local
+    lo, hi = (float(x[0]) for x in arm.get_dofs_limit([j]))
+    assert (lo, hi) == (-2.0, 2.0)
+    arm.set_dofs_kp(_t([100.0]), [j])
+    arm.set_dofs_kv(_t([10.0]), [j])
+    for target, limit in ((3.0, hi), (-3.0, lo)):
+        arm.control_dofs_position(_t([target]), [j])
+        qmax, vmax = -np.inf, 0.0
+        for _ in range(300):
+            scene.step()
+            q = float(arm.get_dofs_position([j])[0])
+            qmax = max(qmax, abs(q))
+            vmax = max(vmax, abs(float(arm.get_dofs_velocity([j])[0])))
+        # at rest at the limit, pushed past it by kp (target - limit) / joint_limit_stiffness
+        assert abs(q - limit) < 0.02, (q, limit)
+        assert abs(float(arm.get_dofs_velocity([j])[0])) < 1e-3
+        # on the way, at most one step's travel past it (the joint arrives at ~20 rad/s: the limit spring
+        # acts from the first step that starts beyond the limit)
+        assert qmax - abs(limit) < vmax * DT
+
+
+# ------------------------------------------------------------------------------------------------
+# Shapes against each other
+# ------------------------------------------------------------------------------------------------
+Q_X90 = (np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0)  # axis along y
+Q_Y90 = (np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0)  # axis along x
+
+
+@pytest.fixture(scope="module")
+def mesh_files(tmp_path_factory):
+    import trimesh
+
+    d = tmp_path_factory.mktemp("meshes")
+    trimesh.creation.icosphere(subdivisions=2, radius=0.1).export(d / "ico.stl")
+    trimesh.creation.box(extents=(0.3, 0.2, 0.1)).export(d / "box.obj")
+    flat = trimesh.Trimesh(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], faces=[[0, 1, 2], [1, 3, 2]])
+    flat.export(d / "flat.stl")
+    return d
+
+
+def test_every_supported_pair_comes_to_rest(mesh_files):
+    """One scene, cases side by side: each top shape settles on its bottom shape (or the ground) at the
+    height the geometry says, within 0.2 mm, and stops."""
+    M = gs.morphs
+    ico, mbox = str(mesh_files / "ico.stl"), str(mesh_files / "box.obj")
+    cases = [  # (bottom or None for the ground, top, expected top height)
+        (None, M.Sphere(radius=0.1, pos=(0, 0, 0.2)), 0.1),
+        (None, M.Capsule(radius=0.05, height=0.2, pos=(0, 0, 0.2), quat=Q_X90), 0.05),
+        (None, M.Capsule(radius=0.05, height=0.2, pos=(0, 0, 0.3)), 0.15),
+        (None, M.Cylinder(radius=0.05, height=0.2, pos=(0, 0, 0.2)), 0.1),
+        (None, M.Cylinder(radius=0.05, height=0.2, pos=(0, 0, 0.2), quat=Q_X90), 0.05),
+        (None, M.Mesh(file=ico, pos=(0, 0, 0.2)), None),
+        (None, M.Mesh(file=mbox, pos=(0, 0, 0.2)), 0.05),
+        (M.Box(size=(0.4, 0.4, 0.2), pos=(0, 0, 0.1)), M.Sphere(radius=0.1, pos=(0.05, 0, 0.35)), 0.3),
+        (M.Box(size=(0.4, 0.4, 0.2), pos=(0, 0, 0.1)), M.Box(size=(0.1, 0.1, 0.1), pos=(0.1, 0.05, 0.3)), 0.25),
+        (M.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)), M.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.32),
+                                                               quat=(np.cos(np.pi / 8), 0, 0, np.sin(np.pi / 8))), 0.3),
+        (M.Box(size=(0.4, 0.4, 0.2), pos=(0, 0, 0.1)), M.Capsule(radius=0.05, height=0.2, pos=(0, 0, 0.3), quat=Q_X90), 0.25),
+        (M.Box(size=(0.4, 0.4, 0.2), pos=(0, 0, 0.1)), M.Cylinder(radius=0.05, height=0.2, pos=(0, 0, 0.32)), 0.3),
+        (M.Cylinder(radius=0.2, height=0.2, pos=(0, 0, 0.1)), M.Box(size=(0.1, 0.1, 0.1), pos=(0.05, 0, 0.3)), 0.25),
+        (M.Cylinder(radius=0.2, height=0.2, pos=(0, 0, 0.1)), M.Sphere(radius=0.05, pos=(0.05, 0, 0.3)), 0.25),
+        (M.Capsule(radius=0.05, height=0.3, pos=(0, 0, 0.05), quat=Q_X90),
+         M.Capsule(radius=0.05, height=0.3, pos=(0, 0, 0.17), quat=Q_Y90), 0.15),
+        (M.Mesh(file=mbox, pos=(0, 0, 0.05)), M.Box(size=(0.1, 0.1, 0.1), pos=(0.05, 0, 0.2)), 0.15),
+        (M.Mesh(file=mbox, pos=(0, 0, 0.05)), M.Sphere(radius=0.05, pos=(0.05, 0, 0.2)), 0.15),
+        (M.Box(size=(0.4, 0.4, 0.2), pos=(0, 0, 0.1)), M.Mesh(file=ico, pos=(0, 0, 0.35)), None),
+    ]
+    # the mesh cases never meet, but any two meshes form a (mesh against mesh, unsupported) candidate pair
+    scene = _scene(ignore_unsupported_pairs=True)
+    scene.add_entity(gs.morphs.Plane())
+    tops = []
+    for k, (bottom, top, _) in enumerate(cases):
+        shift = np.array([1.0 * k, 0.0, 0.0])
+        for m in (bottom, top):
+            if m is not None:
+                m.pos = np.asarray(m.pos) + shift
+        if bottom is not None:
+            scene.add_entity(bottom)
+        tops.append(scene.add_entity(top))
+    scene.build()
+    assert scene.rigid_solver.dense_solve  # moving bodies touch each other: the coupled solve
+    for _ in range(200):
+        scene.step()
+    # the icosphere's lowest vertex: its hull's extent along -z
+    lowest = None
+    for (bottom, top, z), ent in zip(cases, tops):
+        got = float(ent.get_pos()[2])
+        if z is None:
+            lowest = -float(ent.model.links[0].geoms[0].vertices[:, 2].min()) if lowest is None else lowest
+            z = lowest + (0.0 if bottom is None else 0.2)
+        assert abs(got - z) < 2e-4, (type(bottom).__name__, type(top).__name__, got, z)
+        assert float(ent.get_vel().abs().max()) < 2e-3, (type(bottom).__name__, type(top).__name__)
+
+
+def test_adjacent_links_never_collide_and_self_collision_is_an_option(assets_dir):
+    """chain30 folded onto itself: off by default, non-adjacent links collide with the option on, and
+    parent/child links never do."""
+    def build(**kw):
+        scene = _scene(**kw)
+        chain = scene.add_entity(gs.morphs.URDF(file=str(assets_dir / "urdf" / "chain30.urdf"), fixed=True))
+        scene.build()
+        return scene, chain
+
+    scene, chain = build()
+    assert scene.rigid_solver.contact is None  # alone, without self-collision: nothing can touch
+    scene, chain = build(enable_self_collision=True)
+    c = scene.rigid_solver.contact
+    parent = scene.rigid_solver.np_link_parent
+    links = {(int(c.geoms.link[a]), int(c.geoms.link[b])) for a, b in c.pairs}
+    assert links and all(parent[la] != lb and parent[lb] != la and la != lb for la, lb in links)
+    assert (3, 1) in links or (1, 3) in links
+
+
+def test_collision_off_and_no_pairs_compile_nothing():
+    """RigidOptions(enable_collision=False), or a scene where no two geoms can touch, has no contact
+    solver and no contact stages in its step."""
+    for kw, plane in (({"enable_collision": False}, True), ({}, False)):
+        scene = _scene(**kw)
+        if plane:
+            scene.add_entity(gs.morphs.Plane())
+        box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)))
+        scene.build()
+        s = scene.rigid_solver
+        assert s.contact is None and not s.dense_solve
+        from solvers.rigid.solver import DYNAMICS
+
+        assert s.dynamics_stages == DYNAMICS
+        for _ in range(10):
+            scene.step()
+        assert float(box.get_pos()[2]) < 0.1 - 0.5 * G * 0.1 ** 2 + 1e-3  # falls freely
+        assert box.get_contacts()["position"].shape == (0, 3)
+        np.testing.assert_allclose(_np(box.get_links_net_contact_force()), 0.0)
+        box.set_friction(0.3)
+        np.testing.assert_allclose(_np(box.get_friction()), [0.3])
+
+
+# ------------------------------------------------------------------------------------------------
+# Contact readers and friction parameter
+# ------------------------------------------------------------------------------------------------
+def test_contacts_readable():
+    scene = _scene()
+    plane = scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0.3, 0, 0.1)), material=gs.materials.Rigid(rho=500.0))
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.05, pos=(0.3, 0, 0.25)))
+    scene.build()
+    for _ in range(100):
+        scene.step()
+    m_box, m_ball = float(box.get_mass()), float(ball.get_mass())
+    c = box.get_contacts()
+    assert set(c) >= {"link_a", "link_b", "geom_a", "geom_b", "position", "normal", "force_a", "force_b", "penetration"}
+    assert (_np(c["link_a"]) == box.base_link.idx).all()  # this entity is side a
+    ground = _np(c["link_b"]) == plane.base_link.idx
+    assert ground.sum() == 4  # the four bottom corners
+    np.testing.assert_allclose(np.abs(_np(c["position"])[ground][:, :2] - [0.3, 0]), 0.1, atol=1e-4)
+    np.testing.assert_allclose(_np(c["normal"])[ground], np.tile([0, 0, 1.0], (4, 1)), atol=1e-9)
+    np.testing.assert_allclose(_np(c["force_a"])[ground].sum(0), [0, 0, (m_box + m_ball) * G], rtol=1e-4)
+    np.testing.assert_allclose(_np(c["force_b"]), -_np(c["force_a"]))
+    on_ball = box.get_contacts(with_entity=ball)
+    assert len(on_ball["position"]) >= 1 and (_np(on_ball["link_b"]) == ball.base_link.idx).all()
+    np.testing.assert_allclose(_np(on_ball["force_a"]).sum(0), [0, 0, -m_ball * G], rtol=1e-4)
+    np.testing.assert_allclose(_np(on_ball["position"])[:, 2], 0.2, atol=1e-4)
+    np.testing.assert_allclose(_np(box.get_links_net_contact_force()), [[0, 0, m_box * G]], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(_np(ball.get_links_net_contact_force()), [[0, 0, m_ball * G]], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(_np(plane.get_links_net_contact_force()), [[0, 0, -(m_box + m_ball) * G]], rtol=1e-4)
+
+
+def test_contacts_batched():
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)))
+    scene.build(n_envs=3)
+    box.set_pos(_t([[0, 0, 0.1], [0, 0, 1.0], [1, 0, 0.1]]))
+    scene.step()
+    c = box.get_contacts()
+    mask = _np(c["valid_mask"])
+    assert mask.shape[0] == 3 and c["position"].shape[:2] == mask.shape
+    assert mask.sum(1).tolist() == [4, 0, 4]  # env 1 is in the air
+    f = _np(box.get_links_net_contact_force())
+    assert f.shape == (3, 1, 3) and f[1].max() == 0 and f[0, 0, 2] > 0
+
+
+def test_friction_parameter():
+    """Friction comes from the material, can be set per entity (a tensor, per geom or per env), and a
+    contact uses the larger coefficient of its two geoms."""
+    scene = _scene()
+    plane = scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.1))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)), material=gs.materials.Rigid(friction=0.4))
+    scene.build(n_envs=2)
+    np.testing.assert_allclose(_np(plane.get_friction()), [[0.1], [0.1]])
+    np.testing.assert_allclose(_np(box.get_friction()), [[0.4], [0.4]])
+    box.set_friction(_t([[0.2], [0.6]]))
+    np.testing.assert_allclose(_np(box.get_friction()), [[0.2], [0.6]])
+    box.set_dofs_velocity(_t([2.0, 0, 0, 0, 0, 0]))
+    x0 = _np(box.get_pos())[:, 0].copy()
+    for _ in range(150):
+        scene.step()
+    d = _np(box.get_pos())[:, 0] - x0
+    np.testing.assert_allclose(d, [4.0 / (2 * 0.2 * G), 4.0 / (2 * 0.6 * G)], rtol=0.05)
+    plane.set_friction(0.5, envs_idx=[0])  # max(0.5, 0.2) in env 0
+    np.testing.assert_allclose(_np(plane.get_friction()), [[0.5], [0.1]])
+
+
+# ------------------------------------------------------------------------------------------------
+# Gradients
+# ------------------------------------------------------------------------------------------------
+def test_grad_stopping_distance_wrt_mu_and_v():
+    """Exact against finite differences; within 3 % of d/dmu, d/dv of v^2 / (2 mu g) (the model's
+    friction is smoothed below 1 mm/s and integrated at dt = 0.01 s)."""
+    scene = _scene(requires_grad=True)
+    plane = scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)))
+    scene.build()
+    for _ in range(20):
+        scene.step()
+    s0 = scene.get_state()
+    x0 = float(box.get_pos()[0])
+
+    def distance(mu, v):
+        scene.reset(s0)
+        plane.set_friction(mu)
+        box.set_friction(mu)
+        box.set_dofs_velocity(torch.cat([v.reshape(1), torch.zeros(5, dtype=F64)]))
+        for _ in range(70):
+            scene.step()
+        return box.get_pos()[0] - x0
+
+    mu, v = 0.5, 2.0
+    rep = gs.grad.check(distance, {"mu": _t(mu), "v": _t(v)}, tol=1e-6)
+    assert rep.ok, str(rep)
+    g_mu, g_v = (float(g) for g in rep.autograd)
+    assert abs(g_mu / (-v ** 2 / (2 * mu ** 2 * G)) - 1) < 0.03
+    assert abs(g_v / (v / (mu * G)) - 1) < 0.03
+
+
+def test_grad_rest_height_wrt_mass():
+    """A dropped box's rest height against its mass: exact against finite differences and equal to the
+    derivative of the smoothed model's equilibrium, 4 k delta softplus(depth / delta) = m g."""
+    scene = _scene(requires_grad=True)
+    scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.15)))
+    scene.build()
+
+    def rest_height(m):
+        scene.reset()
+        box.set_links_mass(m.reshape(1))
+        for _ in range(150):
+            scene.step()
+        return box.get_pos()[2]
+
+    m = 1.6
+    rep = gs.grad.check(rest_height, {"mass": _t(m)}, tol=1e-6)
+    assert rep.ok, str(rep)
+    opt = scene.rigid_options
+    k, dl = opt.contact_stiffness, opt.contact_smoothing
+    y = m * G / (4 * k * dl)
+    z = np.log(np.expm1(y))  # depth / delta at equilibrium
+    analytic = -G / (4 * k / (1 + np.exp(-z)))
+    assert abs(float(rep.autograd[0]) / analytic - 1) < 1e-6
+
+
+def test_grad_quadruped_base_position_wrt_pd_targets(urdf_path):
+    """ANYmal standing on the ground, PD targets held for 50 steps: the final base position against the
+    12 targets, exact against finite differences."""
+    scene, robot, q0, dofs = _anymal_on_ground(urdf_path, requires_grad=True)
+    with torch.no_grad():
+        for _ in range(100):
+            scene.step()
+    s0 = scene.get_state()
+    w = _t([1.0, 0.5, 2.0])
+
+    def base(target):
+        scene.reset(s0)
+        robot.control_dofs_position(target, dofs)
+        for _ in range(50):
+            scene.step()
+        return (robot.get_pos() * w).sum()
+
+    target = q0 + 0.1 * torch.sin(torch.arange(12, dtype=F64))
+    rep = gs.grad.check(base, {"targets": target}, tol=1e-5)
+    assert rep.ok, str(rep)
+    assert float(rep.autograd[0].norm()) > 1e-2
+
+
+def test_grad_through_contact_between_moving_bodies():
+    """A box resting on another one (the coupled, densely factorised solve): exact against finite
+    differences in its mass, its friction and its initial velocity."""
+    scene = _scene(requires_grad=True)
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.2))
+    lower = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)), material=gs.materials.Rigid(friction=0.2))
+    top = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.03, 0, 0.26), quat=(0.99, 0.1, 0.05, 0.0)))
+    scene.build()
+    assert scene.rigid_solver.dense_solve
+
+    def loss(m, mu, v):
+        scene.reset()
+        top.set_links_mass(m.reshape(1))
+        top.set_friction(mu)
+        top.set_dofs_velocity(torch.cat([v, torch.zeros(3, dtype=F64)]))
+        for _ in range(40):
+            scene.step()
+        p, q = top.get_pos(), lower.get_pos()
+        return p[0] + 0.3 * p[1] + 2 * p[2] + q[0]
+
+    rep = gs.grad.check(loss, {"mass": _t(0.5), "mu": _t(0.8), "v": _t([0.5, 0.2, -0.3])}, tol=1e-5)
+    assert rep.ok, str(rep)
+    assert all(float(g.norm()) > 1e-4 for g in rep.autograd)
+
+
+# ------------------------------------------------------------------------------------------------
+# Stress
+# ------------------------------------------------------------------------------------------------
+def _quadruped_random_targets(urdf_path, n_steps):
+    scene, robot, q0, dofs = _anymal_on_ground(urdf_path)
+    rng = np.random.default_rng(0)
+    zmin, vmax = np.inf, 0.0
+    for i in range(n_steps):
+        if i % 50 == 0:
+            robot.control_dofs_position(q0 + _t(rng.uniform(-0.5, 0.5, len(dofs))), dofs)
+        scene.step()
+        if i % 10 == 0:
+            zmin = min(zmin, float(robot.get_pos()[2]))
+            vmax = max(vmax, float(robot.get_dofs_velocity().abs().max()))
+    assert torch.isfinite(robot.get_qpos()).all()
+    assert zmin > 0.2 and vmax < 50.0  # it may crouch and stumble, never sink or fly off
+
+
+def test_stress_quadruped_random_pd_targets_1000_steps(urdf_path):
+    _quadruped_random_targets(urdf_path, 1000)
+
+
+@pytest.mark.slow
+def test_stress_quadruped_random_pd_targets_10000_steps(urdf_path):
+    _quadruped_random_targets(urdf_path, 10000)
+
+
+def test_stress_heavy_box_on_light_box():
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    light = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)), material=gs.materials.Rigid(rho=125.0))
+    heavy = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.305)), material=gs.materials.Rigid(rho=125000.0))
+    scene.build()
+    assert abs(float(light.get_mass()) - 1.0) < 1e-9 and abs(float(heavy.get_mass()) - 1000.0) < 1e-6
+    for _ in range(500):
+        scene.step()
+    zl, zh = float(light.get_pos()[2]), float(heavy.get_pos()[2])
+    assert 0.1 - zl < 5e-3  # the light box is pressed ~2.5 mm into the ground by 10 kN
+    assert 0 < 0.2 - (zh - zl) < 2e-3  # and the heavy one ~0.6 mm into it
+    assert max(float(light.get_vel().abs().max()), float(heavy.get_vel().abs().max())) < 1e-5
+    np.testing.assert_allclose(_np(heavy.get_links_net_contact_force()), [[0, 0, 1000 * G]], rtol=1e-4)
+
+
+def test_stress_chain30_falls_on_the_ground(assets_dir):
+    """The 30-link chain (0.1 kg links, no joint damping) dropped onto the ground. Its free swing alone
+    diverges at dt = 0.01 s with one substep (in MuJoCo too): 4 substeps. Energy never grows, the chain
+    comes to rest on the ground."""
+    scene = _scene(substeps=4)
+    scene.add_entity(gs.morphs.Plane())
+    chain = scene.add_entity(gs.morphs.URDF(file=str(assets_dir / "urdf" / "chain30.urdf"), fixed=False, pos=(0, 0, 3.2)))
+    scene.build()
+    e0 = float(chain.get_total_energy())
+    emax = e0
+    for _ in range(400):
+        scene.step()
+        emax = max(emax, float(chain.get_total_energy()))
+    assert emax <= e0 + 1e-6
+    z = _np(chain.get_links_pos())[:, 2]
+    assert z.min() > 0.0 and z.max() < 0.2  # lying on the ground
+    assert float(chain.get_dofs_velocity().abs().max()) < 0.1
+
+
+@pytest.mark.parametrize("z0", [0.39, 0.5])
+def test_stress_sphere_hits_ground_at_20mps(z0):
+    """No tunnelling (a plane is a half-space: a centre below it is still pushed out), no explosion."""
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(0, 0, z0)))
+    scene.build()
+    ball.set_dofs_velocity(_t([0, 0, -20.0, 0, 0, 0]))
+    zmin, up = np.inf, 0.0
+    for _ in range(200):
+        scene.step()
+        zmin, up = min(zmin, float(ball.get_pos()[2])), max(up, float(ball.get_vel()[2]))
+    assert zmin > -0.1  # never fully through
+    assert up < 5.0  # at most a modest rebound, no energy gain
+    assert abs(float(ball.get_pos()[2]) - 0.1) < 1e-3
+
+
+def test_exploding_state_names_step_entity_and_quantity():
+    scene = _scene(contact_stiffness=1e14, contact_damping=0.0)
+    scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)), name="crate")
+    scene.build()
+    box.set_dofs_velocity(_t([0, 0, 0, 1e300, 1e300, 1e300]))
+    with pytest.raises(SimulationNaNError, match=r"crate.*(qpos|qvel).*step \d+"):
+        for _ in range(64):
+            scene.step()
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input
+# ------------------------------------------------------------------------------------------------
+def test_negative_friction_is_an_error():
+    with pytest.raises(ValueError, match="friction"):
+        gs.materials.Rigid(friction=-0.1)
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    box = scene.add_entity(gs.morphs.Box(pos=(0, 0, 0.5)))
+    scene.build()
+    with pytest.raises(GenesisException, match="friction"):
+        box.set_friction(-0.5)
+    with pytest.raises(GenesisException, match="friction"):
+        box.set_friction(float("nan"))
+
+
+@pytest.mark.parametrize("name,value", [("contact_stiffness", -1.0), ("contact_damping", -1.0),
+                                        ("contact_smoothing", 0.0), ("friction_smoothing", -1e-3),
+                                        ("max_mesh_contact_points", 2), ("contact_stiffness", float("inf"))])
+def test_bad_contact_options_are_errors(name, value):
+    with pytest.raises(ValueError, match=name):
+        gs.options.RigidOptions(**{name: value})
+
+
+def test_unsupported_pair_is_an_error(mesh_files):
+    def build(**kw):
+        scene = _scene(**kw)
+        scene.add_entity(gs.morphs.Mesh(file=str(mesh_files / "box.obj"), pos=(0, 0, 0.05)))
+        scene.add_entity(gs.morphs.Mesh(file=str(mesh_files / "ico.stl"), pos=(0, 0, 0.5)))
+        scene.build()
+        return scene
+
+    with pytest.raises(ValueError, match="mesh against mesh.*ignore_unsupported_pairs"):
+        build()
+    assert build(ignore_unsupported_pairs=True).rigid_solver.contact is None
+
+
+def test_mesh_without_volume_is_an_error(mesh_files, tmp_path):
+    flat = str(mesh_files / "flat.stl")
+    scene = _scene()
+    with pytest.raises(ValueError, match="volume"):
+        scene.add_entity(gs.morphs.Mesh(file=flat))
+    # a URDF link with an explicit inertial (so loading succeeds) and a flat collision mesh
+    urdf = tmp_path / "flat.urdf"
+    urdf.write_text(f"""<robot name="flat"><link name="base">
+      <inertial><mass value="1"/><inertia ixx="1e-2" iyy="1e-2" izz="1e-2" ixy="0" ixz="0" iyz="0"/></inertial>
+      <collision><geometry><mesh filename="{flat}"/></geometry></collision></link></robot>""")
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=False, pos=(0, 0, 1)))
+    with pytest.raises(ValueError, match="no volume"):
+        scene.build()
