@@ -86,7 +86,7 @@ class RigidOptions(_Options):
     joint_limit_damping: float = 1e2
     enable_mimic: bool = True
     check_nan: bool = True
-    contact_smoothing: float = 2e-5
+    contact_smoothing: float = 5e-6
     friction_smoothing: float = 1e-3
     max_mesh_contact_points: int = 32
     ignore_unsupported_pairs: bool = False

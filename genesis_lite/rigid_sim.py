@@ -94,7 +94,8 @@ class RigidSim:
         """True when this step must be recorded for torch (something upstream requires grad)."""
         if not (self.requires_grad and torch.is_grad_enabled()):
             return False
-        if self.qpos.requires_grad or self.qvel.requires_grad:
+        q, v = self.get_state()  # after an untracked step the state lives only in the fields
+        if q.requires_grad or v.requires_grad:
             return True
         if self.ctrl.requires_grad:
             return True

@@ -57,7 +57,9 @@ class ContactMixin:
                     f"entity '{self.name}': set_friction with a tensor that requires grad, but the scene has no "
                     "collision pairs (or RigidOptions(enable_collision=False)), so friction has no effect and would "
                     "receive no gradient. Add a ground plane or other colliding entities, or pass friction.detach().")
-            self._friction_no_contact = vals.detach().clone()
+            full = self._friction_table().clone()
+            full[envs.to(full.device)] = vals.detach().to(full.dtype)
+            self._friction_no_contact = full
             return
         idx = torch.arange(n, device=vals.device) + self._geom_start()
         sim.set_param("friction", vals, envs, idx)
@@ -68,14 +70,19 @@ class ContactMixin:
         envs = self._envs(envs_idx)
         n = self.n_geoms
         if self._contact is None:
-            v = getattr(self, "_friction_no_contact", None)
-            if v is None:
-                base = torch.tensor([g.friction if g.friction is not None else self.material.friction
-                                     for l in self.model.links for g in l.geoms], dtype=sim.dtype, device=sim.device)
-                v = base.reshape(1, n).expand(sim.B, n)
-            return self._out(v[envs])
+            return self._out(self._friction_table()[envs])
         s = self._geom_start()
         return self._out(sim.params["friction"][envs][:, s:s + n])
+
+    def _friction_table(self):
+        """(n_envs, n_geoms) frictions of a scene without contacts (kept for get_friction only)."""
+        v = getattr(self, "_friction_no_contact", None)
+        if v is None:
+            sim = self._sim
+            base = torch.tensor([g.friction if g.friction is not None else self.material.friction
+                                 for l in self.model.links for g in l.geoms], dtype=sim.dtype, device=sim.device)
+            v = base.reshape(1, -1).expand(sim.B, base.numel())
+        return v
 
     # ---------------------------------------------------------------- contacts
     def _contact_slots(self, with_entity=None):

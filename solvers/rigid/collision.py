@@ -24,7 +24,10 @@ geom's centre.
 
 Which pairs are candidates: geoms of different entities; geoms of one entity only with
 `enable_self_collision`, and never on the same or adjacent (parent/child) links; never two geoms that
-cannot move. A cheap bounding-sphere test per pair (the broad phase) skips the slots of far pairs.
+cannot move. A cheap test per pair (the broad phase: the geom's support function against a plane,
+bounding spheres otherwise) skips the slots of pairs that are not within the contact margin, so a
+robot standing on the ground computes only its feet's slots. A mesh is contacted through at most
+RigidOptions.max_mesh_contact_points of its hull vertices (farthest-point sampled, extremes kept).
 """
 
 from dataclasses import dataclass, field

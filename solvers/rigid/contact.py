@@ -7,10 +7,18 @@ side relative to the other at the contact point:
     normal     f_n = k * delta * softplus(d / delta) - c * sigmoid(d / delta) * (u . n),  clipped at 0
     friction   f_t = -mu * f_n * u_t / sqrt(|u_t|^2 + eps^2)        mu = max(mu_a, mu_b)
 
-k = contact_stiffness (N/m per contact point), c = contact_damping (N s/m), delta = contact_smoothing
-(m), eps = friction_smoothing (m/s), as in RigidOptions. Every term is differentiable in the state and
-in mu, k's and c's inputs; only the clip at f_n = 0 (fast separation) and the slot's on/off at the
-contact margin (where the force is below 1e-8 k delta) are kinks.
+Friction scales with the net normal force f_n of the step's start. Known limitation: on the step a
+body lands (or is placed overlapping) f_n exceeds the impulse the implicit step delivers by orders of
+magnitude (its damping is far above critical, its spring force is that of a penetration the step
+undoes), so a body landing while sliding loses far more tangential speed than mu times its normal
+impulse; bodies in steady contact (resting, sliding, rolling, standing) are not affected. Substeps
+shrink the effect (~h^2).
+
+Every term is differentiable in the state and in mu, k and c; the only kinks are the clip at f_n = 0
+(fast separation) and the slot's on/off at the contact margin (where the force is below 1e-8 k delta).
+Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
+tests/test_contact.py checks against finite differences); they approach those of hard contact and
+exact Coulomb friction only as delta, eps and dt go to 0.
 
 Stiff contacts at dt = 0.01 are stable because they are integrated like the joint-limit springs:
 linearly implicit (backward Euler on the linearised force). For each contact the 3x3 matrix
