@@ -57,6 +57,26 @@ def func_skew(p):
 
 
 @ti.func
+def func_acc(s: ti.template(), x: ti.template(), i_b, i, v):
+    """x[i_b, i] += v. Without gradients as a plain read-modify-write: one thread owns an env's
+    elements, and `+=` on a field inside the parallel env loop compiles to an f64 atomic (a
+    compare-and-swap loop, the main cost of these stages). With gradients `+=`, which Taichi's reverse
+    mode needs."""
+    if ti.static(s.requires_grad):
+        x[i_b, i] += v
+    else:
+        x[i_b, i] = x[i_b, i] + v
+
+
+@ti.func
+def func_acc2(s: ti.template(), x: ti.template(), i_b, i, j, v):
+    if ti.static(s.requires_grad):
+        x[i_b, i, j] += v
+    else:
+        x[i_b, i, j] = x[i_b, i, j] + v
+
+
+@ti.func
 def func_contact_clear(s: ti.template(), i_b, e, src, h):
     c = s.contact
     for i_l in range(s.n_links):
@@ -104,24 +124,24 @@ def func_contact_force(s: ti.template(), i_b, i_s, h, pos, n, depth):
         c.c_depth[i_b, i_s] = depth
         if c.link_dyn[la] == 1:
             c.link_touch[i_b, la] = 1
-            c.link_ff[i_b, la] += F
-            c.link_fn[i_b, la] += tq
-            c.link_Sww[i_b, la] += Sww
-            c.link_Swv[i_b, la] += PW
-            c.link_Svv[i_b, la] += W
+            func_acc(s, c.link_ff, i_b, la, F)
+            func_acc(s, c.link_fn, i_b, la, tq)
+            func_acc(s, c.link_Sww, i_b, la, Sww)
+            func_acc(s, c.link_Swv, i_b, la, PW)
+            func_acc(s, c.link_Svv, i_b, la, W)
         if c.link_dyn[lb] == 1:
             c.link_touch[i_b, lb] = 1
-            c.link_ff[i_b, lb] += -F
-            c.link_fn[i_b, lb] += -tq
-            c.link_Sww[i_b, lb] += Sww
-            c.link_Swv[i_b, lb] += PW
-            c.link_Svv[i_b, lb] += W
+            func_acc(s, c.link_ff, i_b, lb, -F)
+            func_acc(s, c.link_fn, i_b, lb, -tq)
+            func_acc(s, c.link_Sww, i_b, lb, Sww)
+            func_acc(s, c.link_Swv, i_b, lb, PW)
+            func_acc(s, c.link_Svv, i_b, lb, W)
         if ti.static(c.dense):
             lp = c.slot_lp[i_s]
             if lp >= 0:
-                c.lp_Sww[i_b, lp] += Sww
-                c.lp_Swv[i_b, lp] += PW
-                c.lp_Svv[i_b, lp] += W
+                func_acc(s, c.lp_Sww, i_b, lp, Sww)
+                func_acc(s, c.lp_Swv, i_b, lp, PW)
+                func_acc(s, c.lp_Svv, i_b, lp, W)
 
 
 @ti.func
@@ -149,33 +169,42 @@ def func_contact_tree(s: ti.template(), i_b, e, src, h):
         p = s.link_parent[i_l]
         if (p >= 0) & (c.link_touch[i_b, i_l] == 1):
             c.link_touch[i_b, p] = 1
-            c.link_ff[i_b, p] += c.link_ff[i_b, i_l]
-            c.link_fn[i_b, p] += c.link_fn[i_b, i_l]
-            c.link_Sww[i_b, p] += c.link_Sww[i_b, i_l]
-            c.link_Swv[i_b, p] += c.link_Swv[i_b, i_l]
-            c.link_Svv[i_b, p] += c.link_Svv[i_b, i_l]
+            func_acc(s, c.link_ff, i_b, p, c.link_ff[i_b, i_l])
+            func_acc(s, c.link_fn, i_b, p, c.link_fn[i_b, i_l])
+            func_acc(s, c.link_Sww, i_b, p, c.link_Sww[i_b, i_l])
+            func_acc(s, c.link_Swv, i_b, p, c.link_Swv[i_b, i_l])
+            func_acc(s, c.link_Svv, i_b, p, c.link_Svv[i_b, i_l])
+
+
+@ti.func
+def func_contact_dof(s: ti.template(), i_b, e, src, h):
+    """Per dof i: force_i += cdof_i . wrench(subtree of link(i)) (J^T f), and the spatial vector
+    S(link(i)) cdof_i that the next stage dots with the ancestors' cdofs."""
+    c = s.contact
+    for i in range(s.n_dofs):
+        i_l = s.dof_link[i]
+        touch = c.link_touch[i_b, i_l] == 1
+        wi = s.cdof_w[i_b, i]
+        vi = s.cdof_v[i_b, i]
+        Swv = c.link_Swv[i_b, i_l]
+        zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+        c.dof_Sw[i_b, i] = ti.select(touch, c.link_Sww[i_b, i_l] @ wi + Swv @ vi, zero)
+        c.dof_Sv[i_b, i] = ti.select(touch, Swv.transpose() @ wi + c.link_Svv[i_b, i_l] @ vi, zero)
+        if touch:
+            func_acc(s, s.force, i_b, i, wi.dot(c.link_fn[i_b, i_l]) + vi.dot(c.link_ff[i_b, i_l]))
 
 
 @ti.func
 def func_contact_project(s: ti.template(), i_b, e, src, h):
-    """force_i += cdof_i . wrench(subtree of link(i)); M[i, j] += cdof_j^T S(link(i)) cdof_i for j an
-    ancestor-or-self of i (the composite-inertia pattern of func_mass_matrix), over the static list of
-    such (i, j), skipping links with no contact below them."""
+    """M[i, j] += cdof_j^T S(link(i)) cdof_i for j an ancestor-or-self of i (the composite-inertia
+    pattern of func_mass_matrix), over the static list of such (i, j), skipping links with no contact
+    below them."""
     c = s.contact
     for t in range(c.n_anc):
         i = c.anc_i[t]
         j = c.anc_j[t]
-        i_l = s.dof_link[i]
-        if c.link_touch[i_b, i_l] == 1:
-            wi = s.cdof_w[i_b, i]
-            vi = s.cdof_v[i_b, i]
-            wj = s.cdof_w[i_b, j]
-            vj = s.cdof_v[i_b, j]
-            Swv = c.link_Swv[i_b, i_l]
-            m = wj.dot(c.link_Sww[i_b, i_l] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + c.link_Svv[i_b, i_l] @ vi)
-            s.mass_mat[i_b, i, j] += m
-            if i == j:
-                s.force[i_b, i] += wi.dot(c.link_fn[i_b, i_l]) + vi.dot(c.link_ff[i_b, i_l])
+        if c.link_touch[i_b, s.dof_link[i]] == 1:
+            func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(c.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(c.dof_Sv[i_b, i]))
 
 
 @ti.func
@@ -210,13 +239,14 @@ def func_contact_cross(s: ti.template(), i_b, e, src, h):
         wj = s.cdof_w[i_b, j]
         vj = s.cdof_v[i_b, j]
         m = wj.dot(c.lp_Sww[i_b, lp] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + c.lp_Svv[i_b, lp] @ vi)
-        c.mass_cross[i_b, ti.max(i, j), ti.min(i, j)] += -c.cross_fac[t] * m
+        func_acc2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)
 
 
 CONTACT_STAGES = (func_geom_pose, func_broad_phase, func_contact_clear, func_contact_slots, func_contact_tree,
-                  func_contact_project)
+                  func_contact_dof, func_contact_project)
 CROSS_STAGES = (func_contact_clear_pairs, func_contact_clear_cross, func_geom_pose, func_broad_phase,
-                func_contact_clear, func_contact_slots, func_contact_tree, func_contact_project, func_contact_cross)
+                func_contact_clear, func_contact_slots, func_contact_tree, func_contact_dof, func_contact_project,
+                func_contact_cross)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -363,6 +393,7 @@ class ContactSolver:
         self.geom_friction = ti.field(f, shape=(B, G), needs_grad=g)
         self.link_dyn = I(L)
         self.link_touch = I((B, L))  # a contact acts on the link or below it (this evaluation)
+        self.dof_Sw, self.dof_Sv = V3((B, max(solver.n_dofs, 1))), V3((B, max(solver.n_dofs, 1)))
         anc = [(i, j) for i in range(solver.n_dofs) for j in range(i + 1) if solver.np_dof_anc[i, j]]
         self.n_anc = max(len(anc), 1)
         self.anc_i, self.anc_j = I(self.n_anc), I(self.n_anc)
@@ -416,7 +447,7 @@ class ContactSolver:
 
         self.stages = CONTACT_STAGES
         self.grad_fields = [self.geom_friction, self.geom_xpos, self.geom_xR, self.link_fn, self.link_ff,
-                            self.link_Sww, self.link_Swv, self.link_Svv] if g else []
+                            self.link_Sww, self.link_Swv, self.link_Svv, self.dof_Sw, self.dof_Sv] if g else []
         if self.dense:
             self.slot_lp.from_numpy(np.array(slot_lp, dtype=np.int32))
             self.cross_i.from_numpy(np.array([x[0] for x in cross], dtype=np.int32))
