@@ -36,7 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # genesis_lite without an install
-from common import Timer, find_robots_dir, median_rate, print_table, run_python  # noqa: E402
+from common import Timer, find_robots_dir, median_rate, plot_rates, print_table, run_python  # noqa: E402
 
 DT = 0.01
 # MuJoCo's implicitfast treats a position actuator's kv implicitly but its kp explicitly: with kp = 300
@@ -384,28 +384,7 @@ def main():
     if args.json:
         args.json.write_text(json.dumps({"speed": rows, "no_pairs": nopair, "stress": stress}, indent=2))
     if args.plot:
-        _plot(rows, args.plot)
-
-
-def _plot(rows, path):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed: no plot", file=sys.stderr)
-        return
-    ok = [r for r in rows if r.get("rate")]
-    fig, ax = plt.subplots(figsize=(8, 0.6 * len(ok) + 1.5))
-    ax.barh([f"{r['engine']}, {r['envs']} env" for r in ok], [r["rate"] for r in ok])
-    ax.set_xscale("log")
-    ax.set_xlabel("steps/s (env-steps/s), log scale")
-    ax.set_title(f"ANYmal on the ground under PD, dt={DT}")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    print(f"wrote {path}")
+        plot_rates(rows, args.plot, f"ANYmal on the ground under PD, dt={DT}")
 
 
 if __name__ == "__main__":

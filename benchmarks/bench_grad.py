@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # genesis_lite without an install
-from common import DT, PANDA_HOME, Timer, print_table, run_python, write_stripped_panda  # noqa: E402
+from common import DT, PANDA_HOME, Timer, print_table, pyplot, run_python, save_figure, write_stripped_panda  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 GENESIS_PYTHON = os.environ.get("GENESIS_PYTHON", "/tmp/gvenv/bin/python")
@@ -516,13 +516,8 @@ def main():
 
 
 def _plot(rows, path):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed: no plot", file=sys.stderr)
+    plt = pyplot()
+    if plt is None:
         return
     fig, ax = plt.subplots(figsize=(6, 4))
     for key in sorted({(r["grad"], r["ckpt"]) for r in rows}):
@@ -534,10 +529,7 @@ def _plot(rows, path):
     ax.set_ylabel("RSS growth after the forward (MiB)")
     ax.set_title("genesis_lite, Panda 1 env")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    print(f"wrote {path}")
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

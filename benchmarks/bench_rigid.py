@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # genesis_lite without an install
-from common import (DT, PANDA_HOME, Timer, median_rate, mujoco_model, panda_urdf,  # noqa: E402
+from common import (DT, PANDA_HOME, Timer, median_rate, mujoco_model, panda_urdf, plot_rates,  # noqa: E402
                     print_table, run_python, write_stripped_panda)
 
 HERE = Path(__file__).resolve().parent
@@ -297,29 +297,8 @@ def main():
     if args.json:
         args.json.write_text(json.dumps({"speed": rows, "build": build_rows}, indent=2))
     if args.plot:
-        _plot(rows, args.plot)
+        plot_rates(rows, args.plot, f"Panda, dt={DT}")
     shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _plot(rows, path):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed: no plot", file=sys.stderr)
-        return
-    ok = [r for r in rows if r.get("rate")]
-    fig, ax = plt.subplots(figsize=(8, 0.6 * len(ok) + 1.5))
-    ax.barh([f"{r['engine']}, {r['envs']} env" for r in ok], [r["rate"] for r in ok])
-    ax.set_xscale("log")
-    ax.set_xlabel("steps/s (env-steps/s), log scale")
-    ax.set_title(f"Panda, dt={DT}")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

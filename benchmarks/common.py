@@ -144,3 +144,37 @@ def print_table(rows: list[dict], columns: Sequence[tuple[str, str, str]], title
     text = "\n".join(lines)
     print(text, flush=True)
     return text
+
+
+def pyplot():
+    """matplotlib.pyplot with a headless backend, or None (with a message) when it is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not installed: no plot", file=sys.stderr)
+        return None
+    return plt
+
+
+def save_figure(fig, path: Path) -> None:
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
+def plot_rates(rows: list[dict], path: Path, title: str) -> None:
+    """Horizontal bar chart of the rows' steps/s (log scale), one bar per engine and env count."""
+    plt = pyplot()
+    if plt is None:
+        return
+    ok = [r for r in rows if r.get("rate")]
+    fig, ax = plt.subplots(figsize=(8, 0.6 * len(ok) + 1.5))
+    ax.barh([f"{r['engine']}, {r['envs']} env" for r in ok], [r["rate"] for r in ok])
+    ax.set_xscale("log")
+    ax.set_xlabel("steps/s (env-steps/s), log scale")
+    ax.set_title(title)
+    save_figure(fig, path)
