@@ -222,7 +222,7 @@ def worker_memory(urdf, horizon, ckpt, grad, feed) -> dict:
     q0 = _q0(0, n)
     _gl_rollout(scene, robot, _controls(min(horizon, 2 * (ckpt or 10)), 0, n), q0, grad)  # compile
     ctrl = _controls(horizon, 0, n)
-    buf = scene._rigid.buffer
+    buf = scene._simulator.buffer
     replayed0 = buf.n_replayed if buf is not None else 0  # the counter spans rollouts
     base = {}
 

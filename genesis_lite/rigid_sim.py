@@ -1,5 +1,6 @@
 """The scene's side of the rigid solver: torch mirrors of state, controls and parameters, their
-upload to the solver's fields, and the gradient bridge (grad/functions.py) for rigid steps.
+upload to the solver's fields, and the rigid part of the scene's step node (simulator.py) and of the
+link getters' nodes (grad/functions.py).
 
 Invariant: slot 0 of the solver's state fields holds the current state. With gradients, the
 current state is also a pair of torch tensors (qpos, qvel) in the autograd graph; controls and
@@ -7,15 +8,14 @@ parameters are torch tensors whose values are uploaded to the fields before the 
 """
 from __future__ import annotations
 
-import numpy as np
 import taichi as ti
 import torch
 
-from solvers.buffer import StepBuffer
 from solvers.rigid.solver import RigidSolver
 
 from .errors import GenesisException, SimulationNaNError
-from .grad.functions import OutputFunction, StepFunction, require_token
+from .grad.functions import OutputFunction
+from .grad.indexing import as_slices, as_span, index_put, raise_if_nan_grad
 
 # name -> (solver field, trailing shape, axis it is indexed by)
 PARAMS = {
@@ -34,6 +34,12 @@ CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dof
 
 
 class RigidSim:
+    """Bridge of the rigid solver (the protocol is in simulator.py). Step inputs: qpos, qvel (its
+    state), the packed controls and the parameters; step output: the packed state [qpos | qvel]."""
+
+    n_state = 2
+    n_outputs = 1
+
     def __init__(self, scene, models, n_envs, sim_options, rigid_options):
         import genesis_lite as gs
 
@@ -56,11 +62,7 @@ class RigidSim:
                                   mimic=rigid_options.enable_mimic)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
-        self.rollout_token = 0
-        self.step_count = 0
-        self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
-        self._step_inputs = {}
-        self._backward_done = False
+        self.sim = None  # the scene's Simulator, set when it takes this bridge
         # parameters: base values from the model, then the user's setter calls replayed on top
         self.param_names = [k for k in PARAMS if not PARAMS[k][0].startswith("contact.") or s.contact is not None]
         self.param_base = {k: self._field_to_torch(self.param_field(k)) for k in self.param_names}
@@ -90,17 +92,6 @@ class RigidSim:
     def _c(self, t):
         return t.detach().to(self.dtype).contiguous()
 
-    def grad_tracking(self):
-        """True when this step must be recorded for torch (something upstream requires grad)."""
-        if not (self.requires_grad and torch.is_grad_enabled()):
-            return False
-        q, v = self.get_state()  # after an untracked step the state lives only in the fields
-        if q.requires_grad or v.requires_grad:
-            return True
-        if self.ctrl.requires_grad:
-            return True
-        return any(p.requires_grad for p in self.params.values())
-
     # ---------------------------------------------------------------- state
     def set_state(self, qpos, qvel):
         self.qpos, self.qvel = qpos, qvel
@@ -111,6 +102,18 @@ class RigidSim:
         if self.qpos is None:
             self.qpos, self.qvel = self._split(self._read_state(0))
         return self.qpos, self.qvel
+
+    state = get_state
+
+    def inputs(self):
+        return list(self.get_state()) + [self.ctrl] + [self.params[k] for k in self.param_names]
+
+    def context(self):
+        """The control modes of the step (which of the packed controls act)."""
+        return self.ctrl_mode
+
+    def state_from_outputs(self, outs):
+        return self._split(outs[0])
 
     def _read_state(self, slot):
         x = torch.empty(self.B, self.n_qs + self.n_dofs, dtype=self.dtype, device=self.device)
@@ -158,7 +161,7 @@ class RigidSim:
         row = CTRL.index(kind)
         values = values.to(self.dtype).reshape(len(envs), len(idx))
         out = self.ctrl.clone()
-        full_envs, span = _as_slices(envs, self.B), _as_span(idx)
+        full_envs, span = as_slices(envs, self.B), as_span(idx)
         if full_envs and span is not None:
             # basic slicing: autograd keeps no index tensors per step
             out[:, row, span] = values
@@ -177,7 +180,7 @@ class RigidSim:
         self.param_ops[name] = [op for op in self.param_ops[name]
                                 if not (torch.equal(op[1], envs) and torch.equal(op[2], idx))]
         self.param_ops[name].append((values, envs, idx))
-        self.params[name] = _index_put(self.params[name], envs, idx, values)
+        self.params[name] = index_put(self.params[name], envs, idx, values)
         self._params_dirty.add(name)
 
     def rebuild_params(self):
@@ -192,40 +195,45 @@ class RigidSim:
                 # value computed in an earlier rollout keeps its value only (its graph belongs to
                 # that rollout and has been freed by its backward)
                 remake = getattr(values, "_gs_remake", None)
-                p = _index_put(p, envs, idx, remake() if remake is not None else values.detach())
+                p = index_put(p, envs, idx, remake() if remake is not None else values.detach())
             self.params[name] = p
             self._params_dirty.add(name)
 
     def set_force_range(self, lo, hi, envs, idx):
-        self.force_lo = _index_put(self.force_lo, envs, idx, lo.detach())
-        self.force_hi = _index_put(self.force_hi, envs, idx, hi.detach())
+        self.force_lo = index_put(self.force_lo, envs, idx, lo.detach())
+        self.force_hi = index_put(self.force_hi, envs, idx, hi.detach())
         self.solver.dof_force_lo.from_torch(self._c(self.force_lo))
         self.solver.dof_force_hi.from_torch(self._c(self.force_hi))
 
     # ---------------------------------------------------------------- stepping
-    def step(self):
-        if self._backward_done:
-            raise GenesisException("scene.step() after loss.backward(): this rollout's gradient buffers have been "
-                                   "consumed. Call scene.reset() to start a new rollout.")
-        self._upload()
-        if self.grad_tracking():
-            inputs = [self.qpos, self.qvel, self.ctrl] + [self.params[k] for k in self.param_names]
-            self.qpos, self.qvel = self._split(StepFunction.apply(self, *inputs))
-            self._state_on_device = True
+    upload = _upload
+
+    def step_fused(self, step):
+        self.solver.step(step)
+
+    def substep(self, i, grad, step):
+        if grad:
+            self.solver.substep(i)
         else:
-            self.solver.step(self.step_count + 1)
-            self.qpos = self.qvel = None
-        self.step_count += 1
+            self.solver.substep_fused(step, i)
+
+    def untracked_step_done(self):
+        self.qpos = self.qvel = None
+        self._state_on_device = True
         self._outputs = None
+
+    def read_outputs(self):
+        """The step's result (packed state of the last slot), which also becomes slot 0."""
+        self._outputs = None
+        return [self._read_state(self.solver.last_slot)]
 
     def first_nan_step(self):
         """The first step after which the (fused-path) state was not finite, or None."""
         k = self.solver.nan_step[None]
         return None if k == self.solver.NO_NAN else k
 
-    def check_finite(self, entities, step=None):
+    def check_finite(self, entities, step):
         """Raise SimulationNaNError naming the entity, the quantity and the step if the state is not finite."""
-        step = self.step_count if step is None else step
         q, v = self.get_state()
         for name, x in (("qpos", q), ("qvel", v)):
             bad = ~torch.isfinite(x.detach())
@@ -237,70 +245,33 @@ class RigidSim:
                     f"{f' in env {i_b}' if self.scene.n_envs else ''}. The simulation diverged: reduce dt or raise "
                     "substeps, lower gains/stiffness, or check the inputs set before this step.")
 
-    # ---------------------------------------------------------------- gradient bridge (rigid side)
-    def check_token(self, token, what):
-        require_token(self.rollout_token, token, what)
-        self._backward_done = True
-
-    def step_context(self):
-        """What a step or getter node remembers besides its tensors: the step index and control modes."""
-        return (self.step_count, self.ctrl_mode)
-
-    def to_save(self, inputs):
-        """The tensors a node keeps: everything, or everything but the state when checkpointing
-        (the state at a checkpoint goes to the buffer, others are recomputed in backward)."""
-        t = self.step_count
-        keep = self.buffer.record(t, (inputs[0].detach(), inputs[1].detach()))
-        if len(inputs) > 2 and self.buffer.every is not None:
-            # the parameter tensors themselves: replay recognises them and uploads nothing
-            self._step_inputs[t] = (inputs[2].detach(), self.ctrl_mode, list(inputs[3:]))
-        return inputs if keep else (None, None) + tuple(inputs[2:])
-
-    def restore(self, saved, context):
-        if saved[0] is not None:
-            return saved
-        q, v = self.buffer.get(context[0])
-        return (q, v) + tuple(saved[2:])
-
-    def _replay_step(self, state, t):
-        """Re-run step t forward from `state` with the inputs it had (for checkpoint windows)."""
-        ctrl, mode, params = self._step_inputs[t]
-        self._replay_inputs(state[0], state[1], ctrl, mode, params, clear=False)
-        return self._split(self.forward_step())
-
-    def forward_step(self):
-        self.solver.run_ops()
-        return self._read_state(self.solver.last_slot)
-
-    def _replay_inputs(self, qpos, qvel, ctrl=None, mode=None, params=None, clear=True):
-        s = self.solver
-        if clear:
-            s.kernel_clear_grads()
+    # ---------------------------------------------------------------- the rigid part of the step node
+    def load(self, values, mode):
+        """Write a step's inputs (qpos, qvel, ctrl, *params) into the fields, for its backward or replay."""
+        qpos, qvel, ctrl, params = values[0], values[1], values[2], values[3:]
         self._write_state(qpos, qvel)
-        if ctrl is not None:
-            self._load_ctrl(ctrl, mode)
-            self._ctrl_dirty = True
-        if params is not None:
-            for k, p in zip(self.param_names, params):
-                if self._loaded_params.get(k) is not p:
-                    self.param_field(k).from_torch(self._c(p))
-                    self._loaded_params[k] = p
-                    self._params_dirty.add(k)
+        self._load_ctrl(ctrl, mode)
+        self._ctrl_dirty = True
+        for k, p in zip(self.param_names, params):
+            if self._loaded_params.get(k) is not p:
+                self.param_field(k).from_torch(self._c(p))
+                self._loaded_params[k] = p
+                self._params_dirty.add(k)
         self._state_on_device = False
         self._outputs = None
 
-    def backward_step(self, saved, context, grads, needs):
-        """Gradients of one step's inputs (qpos, qvel, ctrl, *params) given the gradient of its
-        packed output state."""
-        s = self.solver
-        qpos, qvel, ctrl, params = saved[0], saved[1], saved[2], saved[3:]
-        step, mode = context
-        self._replay_inputs(qpos, qvel, ctrl, mode, params)
+    def clear_grads(self):
+        self.solver.kernel_clear_grads()
+
+    def vjp(self, grads, loss):
         (gx,) = grads
         if gx is None:
-            gx = torch.zeros(self.B, self.n_qs + self.n_dofs, dtype=self.dtype, device=self.device)
-        s.kernel_seed_state_grad(s.last_slot, self._c(gx))
-        s.backward_ops()
+            return
+        self.solver.kernel_vjp(self.solver.last_slot, self._c(gx), loss)
+
+    def input_grads(self, needs, step):
+        """Gradients of one step's inputs (qpos, qvel, ctrl, *params) from the adjoint fields."""
+        s = self.solver
         nx = self.n_qs + self.n_dofs
         g = torch.empty(self.B, nx + 3 * self.n_dofs, dtype=self.dtype, device=self.device)
         s.kernel_get_grads(g)
@@ -313,7 +284,7 @@ class RigidSim:
                 out.append(pg)
             else:
                 out.append(None)
-        _raise_if_nan_grad(out, step)
+        raise_if_nan_grad(out, step)
         return out
 
     def outputs(self):
@@ -321,6 +292,7 @@ class RigidSim:
         if self._outputs is None:
             self._upload()
             s = self.solver
+            s.scratch_overwritten()
             s.kernel_kinematics(0)
             L = self.n_links
             o = [torch.empty(self.B, L, k, dtype=self.dtype, device=self.device) for k in (3, 4, 3, 3)]
@@ -336,68 +308,33 @@ class RigidSim:
             return out
         return self.outputs()
 
-    def backward_outputs(self, saved, grads):
+    def backward_outputs(self, state, grads, step):
+        """Gradients of (qpos, qvel) given those of the link outputs: kinematics replayed on a Tape."""
         s = self.solver
-        self._replay_inputs(saved[0], saved[1])
-        s.kernel_kinematics(0)
+        self._write_state(*state)
+        self._state_on_device = False
+        self._outputs = None
+        s.kernel_clear_grads()
         L = self.n_links
         g = [self._c(x) if x is not None else torch.zeros(self.B, L, k, dtype=self.dtype, device=self.device)
              for x, k in zip(grads, (3, 4, 3, 3))]
-        s.kernel_seed_link_grad(*g)
-        s.kernel_kinematics.grad(0)
+        s.scratch_overwritten()
+        with ti.ad.Tape(loss=self.sim.loss, clear_gradients=False):
+            s.kernel_kinematics(0)
+            s.kernel_link_vjp(*g, self.sim.loss)
         g = torch.empty(self.B, self.n_qs + 4 * self.n_dofs, dtype=self.dtype, device=self.device)
         s.kernel_get_grads(g)
         gq, gv = g[:, : self.n_qs], g[:, self.n_qs: self.n_qs + self.n_dofs]
-        _raise_if_nan_grad([gq, gv], self.step_count)
+        raise_if_nan_grad([gq, gv], step)
         return gq, gv
 
     # ---------------------------------------------------------------- rollouts
-    def new_rollout(self, qpos, qvel):
-        self.rollout_token += 1
-        self._backward_done = False
-        self.step_count = 0
+    def new_rollout(self, state):
+        qpos, qvel = state
         self.solver.nan_step[None] = self.solver.NO_NAN
-        if self.buffer is not None:
-            self.buffer.clear()
-        self._step_inputs = {}
         self.reset_controls()
         self.rebuild_params()
         self.set_state(qpos, qvel)
-
-
-def _as_slices(envs, n):
-    return len(envs) == n and bool((envs == torch.arange(n, device=envs.device)).all())
-
-
-def _as_span(idx):
-    """idx as a slice when it is a run of consecutive indices, else None."""
-    if len(idx) == 0:
-        return None
-    start = int(idx[0])
-    if bool((idx == torch.arange(start, start + len(idx), device=idx.device)).all()):
-        return slice(start, start + len(idx))
-    return None
-
-
-def _index_put(base, envs, idx, values):
-    """base with base[envs][:, idx] = values, out of place (differentiable in base and values)."""
-    values = values.to(base.dtype).reshape((len(envs), len(idx)) + base.shape[2:])
-    out = base.clone()
-    span = _as_span(idx)
-    if span is not None and _as_slices(envs, base.shape[0]):
-        out[:, span] = values
-    else:
-        out[envs[:, None], idx[None, :]] = values
-    return out
-
-
-def _raise_if_nan_grad(grads, step):
-    for g in grads:
-        if g is not None and not torch.isfinite(g).all():
-            raise SimulationNaNError(
-                f"a gradient became NaN or infinite in the backward pass of step {step}: the rollout is not "
-                "differentiable there (a diverging state, a singular pose, or a saturated quantity). Shorten the "
-                "horizon, reduce dt, or check the loss.")
 
 
 def _entity_of(entities, i, name):

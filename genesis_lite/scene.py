@@ -16,11 +16,13 @@ from .options import RigidOptions, SimOptions
 
 @dataclass
 class SimState:
-    """A snapshot of the scene's state (detached tensors), for scene.reset(state)."""
+    """A snapshot of the scene's state (detached tensors), for scene.reset(state): `solvers` holds
+    each solver's state tensors; `qpos`/`qvel` are the rigid solver's (None without rigid entities)."""
 
-    qpos: torch.Tensor
-    qvel: torch.Tensor
+    solvers: tuple
     step: int
+    qpos: Optional[torch.Tensor] = None
+    qvel: Optional[torch.Tensor] = None
 
 
 class Scene:
@@ -44,6 +46,7 @@ class Scene:
         self.entities: List = []
         self._built = False
         self._rigid = None
+        self._simulator = None
         self.n_envs = 0
 
     # ---------------------------------------------------------------- construction
@@ -58,7 +61,7 @@ class Scene:
     @property
     def t(self):
         """Steps taken since the last reset."""
-        return self._rigid.step_count if self._rigid is not None else 0
+        return self._simulator.step_count if self._simulator is not None else 0
 
     @property
     def rigid_solver(self):
@@ -98,7 +101,10 @@ class Scene:
         for e in self.entities:
             e._on_build(ls, qs, ds)
             ls, qs, ds = ls + e.n_links, qs + e.n_qs, ds + e.n_dofs
+        from .simulator import Simulator
+
         self._rigid = RigidSim(self, [e.model for e in self.entities], self.n_envs, self.sim_options, self.rigid_options)
+        self._simulator = Simulator([self._rigid], self.sim_options)
         self._built = True
         self._init_state = self.get_state()
 
@@ -110,29 +116,34 @@ class Scene:
 
     def step(self):
         """Advance every solver by sim_options.dt."""
-        sim = self._sim("step")
+        self._sim("step")
+        sim = self._simulator
         sim.step()
-        if not self.rigid_options.check_nan:
+        rigid = self._rigid
+        if rigid is None or not self.rigid_options.check_nan:
             return
-        if sim.qpos is not None:  # the state is in torch already (gradient path): check it every step
-            sim.check_finite(self.entities)
+        if rigid.qpos is not None:  # the state is in torch already (gradient path): check it every step
+            rigid.check_finite(self.entities, sim.step_count)
         elif sim.step_count % 16 == 0:  # fused path: the kernel recorded the first bad step
-            bad = sim.first_nan_step()
+            bad = rigid.first_nan_step()
             if bad is not None:
-                sim.check_finite(self.entities, step=bad)
+                rigid.check_finite(self.entities, bad)
 
     def get_state(self) -> SimState:
-        q, v = self._sim("get_state").get_state()
-        return SimState(q.detach().clone(), v.detach().clone(), self._rigid.step_count)
+        """The current state of every solver (detached copies) and the step count."""
+        self._sim("get_state")
+        states = tuple(tuple(x.detach().clone() for x in b.state()) for b in self._simulator.bridges)
+        q, v = states[0] if self._rigid is not None else (None, None)
+        return SimState(states, self._simulator.step_count, q, v)
 
     def reset(self, state: Optional[SimState] = None):
         """Return to the state right after build() (or to `state` from get_state()). Controls are
         cleared; parameters set with setters are kept. Starts a new rollout for gradients."""
-        sim = self._sim("reset")
+        self._sim("reset")
         state = state if state is not None else self._init_state
         if not isinstance(state, SimState):
             raise TypeError("scene.reset(state): state must come from scene.get_state()")
-        sim.new_rollout(state.qpos.clone(), state.qvel.clone())
+        self._simulator.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
 
     def set_gravity(self, gravity, envs_idx=None):
         """Gravity (m/s^2, world frame); differentiable."""
@@ -147,6 +158,7 @@ class Scene:
         sim = self._rigid
         sim._upload()
         s = sim.solver
+        s.scratch_overwritten()
         s.kernel_mass_matrix(0)
         M = s.mass_mat.to_torch(device=sim.device).to(sim.dtype)
         low = torch.tril(M)

@@ -313,7 +313,7 @@ def test_checkpointing_gives_identical_gradients_with_bounded_storage():
         loss.backward()
         results[every] = (q0.grad, u.grad)
         if every:
-            buf = scene._rigid.buffer
+            buf = scene._simulator.buffer
             assert len(buf.checkpoints) == math.ceil((T + 1) / every)
             assert buf.n_replayed > 0
     assert torch.equal(results[None][0], results[4][0]) and torch.equal(results[None][1], results[4][1])

@@ -15,6 +15,7 @@ import torch
 from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 
 from ..errors import GenesisException
+from ..grad.indexing import index_put
 from ..grad.tensor import wrap
 from .contact_api import ContactMixin
 
@@ -354,25 +355,23 @@ class RigidEntity(ContactMixin):
         """Set generalised positions (free bases: xyz then quaternion wxyz); zeroes the velocity like Genesis."""
         envs, qs = self._envs(envs_idx), self._qs(qs_idx_local)
         vals = self._values(qpos, envs, len(qs), "qpos")
-        from ..rigid_sim import _index_put
 
         q0, v0 = self._sim.get_state()
-        q = _index_put(q0, envs, qs, vals)
+        q = index_put(q0, envs, qs, vals)
         v = None
         if zero_velocity:
             d = self._dofs(None)
-            v = _index_put(v0, envs, d, torch.zeros(len(envs), len(d), dtype=v0.dtype, device=v0.device))
+            v = index_put(v0, envs, d, torch.zeros(len(envs), len(d), dtype=v0.dtype, device=v0.device))
         self._set_state(q, v)
 
     def set_dofs_position(self, position, dofs_idx_local=None, envs_idx=None, zero_velocity=True):
         """Set dof positions (m, rad; a free joint's six are xyz and a rotation vector)."""
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
         vals = self._values(position, envs, len(d), "position")
-        from ..rigid_sim import _index_put
 
         q0, v0 = self._sim.get_state()
         full = self._dof_positions(q0[envs])
-        full = _index_put(full, torch.arange(len(envs), device=full.device), d - self._dof_start, vals)
+        full = index_put(full, torch.arange(len(envs), device=full.device), d - self._dof_start, vals)
         qe = q0[envs].clone()
         cols = []
         for j in self.joints:
@@ -390,23 +389,22 @@ class RigidEntity(ContactMixin):
             idx.extend(range(qs, qs + val.shape[1]))
         if parts:
             qe = torch.cat(parts, -1)
-            q = _index_put(q0, envs, torch.tensor(idx, device=q0.device), qe)
+            q = index_put(q0, envs, torch.tensor(idx, device=q0.device), qe)
         else:
             q = q0
         v = None
         if zero_velocity:
             dd = self._dofs(None)
-            v = _index_put(v0, envs, dd, torch.zeros(len(envs), len(dd), dtype=v0.dtype, device=v0.device))
+            v = index_put(v0, envs, dd, torch.zeros(len(envs), len(dd), dtype=v0.dtype, device=v0.device))
         self._set_state(q, v)
 
     def set_dofs_velocity(self, velocity, dofs_idx_local=None, envs_idx=None):
         """Set dof velocities (m/s, rad/s; free bases: world-frame linear then angular)."""
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
         vals = self._values(velocity, envs, len(d), "velocity")
-        from ..rigid_sim import _index_put
 
         _, v0 = self._sim.get_state()
-        self._set_state(v=_index_put(v0, envs, d, vals))
+        self._set_state(v=index_put(v0, envs, d, vals))
 
     def _free_base(self, what):
         j = self.joints[0]

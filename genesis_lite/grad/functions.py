@@ -1,11 +1,11 @@
 """The autograd functions through which torch sees a simulation.
 
-One mechanism for every solver: a solver bridge implements `step_context()`, `to_save(inputs)` /
-`restore(saved, context)` (which may drop the state and recompute it from a checkpoint: see
-solvers/buffer.py), `forward_step()`, `backward_step(saved, ...)`, `outputs()` and
-`backward_outputs(saved, grads)`; `StepFunction` makes one scene step a
-node of torch's graph, `OutputFunction` makes a getter one. torch then orders the backward calls
-(reverse time), sums gradients over steps and delivers them to leaf tensors.
+`StepFunction` makes one scene step a node of torch's graph: its inputs are the states, controls and
+parameters of every solver of the scene (genesis_lite/simulator.py lists them), its outputs their next
+states. `OutputFunction` makes a getter that needs the solver (link poses from joint angles) a node.
+torch then orders the backward calls (reverse time), sums gradients over steps and delivers them to
+leaf tensors. Inside a node's backward the owner replays the step's kernel launches on a
+`ti.ad.Tape`, which runs their adjoints in reverse.
 """
 import weakref
 
@@ -14,55 +14,56 @@ import torch
 from ..errors import GenesisException
 
 
-def _bridge(ctx):
-    """The bridge a node belongs to. Nodes hold it weakly: a strong reference would make a cycle
-    through torch's C++ graph (bridge -> state tensor -> grad_fn -> ctx -> bridge) that Python's
-    collector cannot break, keeping Taichi alive at exit so it never writes its kernel cache."""
-    bridge = ctx.bridge()
-    if bridge is None:
+def _owner(ctx):
+    """The simulator or solver bridge a node belongs to. Nodes hold it weakly: a strong reference
+    would make a cycle through torch's C++ graph (owner -> state tensor -> grad_fn -> ctx -> owner)
+    that Python's collector cannot break, keeping Taichi alive at exit so it never writes its kernel
+    cache."""
+    owner = ctx.owner()
+    if owner is None:
         raise GenesisException("backward through a rollout whose scene no longer exists: keep the scene alive "
                                "until loss.backward() has run")
-    return bridge
+    return owner
 
 
 class StepFunction(torch.autograd.Function):
-    """(state_t, controls_t, parameters) -> state_{t+1}; the forward has already been set up in the
-    solver fields by the bridge, the backward replays the step and its adjoint."""
+    """(states_t, controls_t, parameters) of every solver -> states_{t+1}; the forward has already
+    been set up in the solver fields by the simulator, the backward replays the step on a Tape."""
 
     @staticmethod
-    def forward(ctx, bridge, *inputs):
-        ctx.bridge = weakref.ref(bridge)
-        ctx.token = bridge.rollout_token
-        ctx.extra = bridge.step_context()
-        ctx.save_for_backward(*bridge.to_save(inputs))
-        return bridge.forward_step()
+    def forward(ctx, sim, *inputs):
+        ctx.owner = weakref.ref(sim)
+        ctx.token = sim.rollout_token
+        ctx.extra = sim.step_context()
+        ctx.save_for_backward(*sim.to_save(inputs))
+        return sim.forward_step()
 
     @staticmethod
     def backward(ctx, *grads):
-        bridge = _bridge(ctx)
-        bridge.check_token(ctx.token, "step")
-        saved = bridge.restore(ctx.saved_tensors, ctx.extra)
-        in_grads = bridge.backward_step(saved, ctx.extra, grads, ctx.needs_input_grad[1:])
+        sim = _owner(ctx)
+        sim.check_token(ctx.token, "step")
+        saved = sim.restore(ctx.saved_tensors, ctx.extra)
+        in_grads = sim.backward_step(saved, ctx.extra, grads, ctx.needs_input_grad[1:])
         return (None,) + tuple(in_grads)
 
 
 class OutputFunction(torch.autograd.Function):
-    """state_t -> a getter's outputs (link poses, velocities) at that step."""
+    """A solver's state at one step -> a getter's outputs (link poses, velocities) at that step."""
 
     @staticmethod
     def forward(ctx, bridge, *state):
-        ctx.bridge = weakref.ref(bridge)
-        ctx.token = bridge.rollout_token
-        ctx.extra = bridge.step_context()
-        ctx.save_for_backward(*bridge.to_save(state))
+        ctx.owner = weakref.ref(bridge)
+        ctx.token = bridge.sim.rollout_token
+        ctx.step = bridge.sim.step_count
+        ctx.save_for_backward(*bridge.sim.getter_to_save(bridge, state))
         return bridge.outputs()
 
     @staticmethod
     def backward(ctx, *grads):
-        bridge = _bridge(ctx)
-        bridge.check_token(ctx.token, "getter")
-        saved = bridge.restore(ctx.saved_tensors, ctx.extra)
-        return (None,) + tuple(bridge.backward_outputs(saved, grads))
+        bridge = _owner(ctx)
+        bridge.sim.check_token(ctx.token, "getter")
+        state = bridge.sim.getter_restore(bridge, ctx.saved_tensors, ctx.step)
+        return (None,) + tuple(bridge.backward_outputs(state, grads, ctx.step))
 
 
 def require_token(current, token, what):

@@ -5,10 +5,13 @@ axis); parameters and controls have an env axis [i_b, ...]; state has a slot axi
 holding the step's schedule of intermediate states (two slots for plain Euler, so memory does not grow
 with the horizon); per-evaluation scratch (poses, inertias, forces) is written once per evaluation.
 
-A step is a schedule of ops (dynamics at a slot, factor+solve, integrate, copy-back). Without
-gradients it runs as one fused kernel. With gradients it runs op by op through `run_op`, and
-`backward_step` replays the same ops then their adjoints (Taichi autodiff; the linear solve has a
-hand-written adjoint).
+A step is a schedule of ops per substep (dynamics + factor-solve at a slot, integrate, copy-back).
+Without gradients it runs as one fused kernel. With gradients each substep runs op by op
+(`substep(i)`) so that the scene can record it on a `ti.ad.Tape` (genesis_lite/simulator.py): an
+evaluation (dynamics + factor-solve) is one `ti.ad.grad_replaced` call whose adjoint, registered with
+`ti.ad.grad_for`, recomputes the evaluation's scratch when a later one has overwritten it, runs the
+hand-written adjoint of the factor-solve and then Taichi's adjoint of the dynamics kernel;
+integration kernels are recorded as they are.
 """
 
 from typing import List
@@ -75,6 +78,8 @@ class RigidSolver:
         if self.contact is not None and requires_grad:
             self.grad_fields = self.grad_fields + list(self.contact.grad_fields)
         self._fill_info(gravity)
+        self._scratch = None  # the (e, src, h) whose evaluation the scratch fields hold, if any
+        self.evaluate = self._evaluation_unit()
 
     # ------------------------------------------------------------------ build
     def _layout(self, models, use_mimic):
@@ -178,11 +183,13 @@ class RigidSolver:
         self.np_dof_anc = anc
 
     def _schedule(self):
-        """The ops of one step: (op, kind, e, base, src, dst, h)."""
+        """The ops of one step, (op, kind, e, base, src, dst, h), and where each substep's begin in
+        that list (substep i moves the state from slot substep_slot[i] to substep_slot[i + 1])."""
         h = self.dt / self.substeps
-        ops = []
+        ops, first = [], []
         if self.integrator == INTEGRATOR_RK4:
             for i in range(self.substeps):
+                first.append(len(ops))
                 base = 4 * i
                 for k, c in enumerate((0.5, 0.5, 1.0, 1.0)):
                     e = 4 * i + k
@@ -195,11 +202,16 @@ class RigidSolver:
             self.n_slots, self.n_evals = 4 * self.substeps + 1, 4 * self.substeps
         else:
             for i in range(self.substeps):
+                first.append(len(ops))
                 ops.append((OP_DYN, 0, i, i, i, 0, h))
                 ops.append((OP_SOLVE, 0, i, i, i, 0, 0.0))
                 ops.append((OP_INT, INT_EULER, i, i, i, i + 1, h))
             self.n_slots, self.n_evals = self.substeps + 1, self.substeps
         self.ops = ops
+        self.substep_first_op = first + [len(ops)]
+        self.substep_ops = [ops[first[i]:self.substep_first_op[i + 1]] for i in range(self.substeps)]
+        per = (self.n_slots - 1) // self.substeps
+        self.substep_slot = [per * i for i in range(self.substeps + 1)]
         self.last_slot = self.n_slots - 1
 
     def _allocate(self):
@@ -352,14 +364,15 @@ class RigidSolver:
                 stage(self, i_b, kind, e, base, src, dst, h)
 
     @ti.kernel
-    def kernel_step_fused(self, step: ti.i32):
-        """The whole schedule of one step, all envs, one launch (no gradient bookkeeping). Records
-        in nan_step the first `step` after which some state is not finite (checked for free here,
-        read by the scene every few steps)."""
+    def kernel_step_fused(self, step: ti.i32, k0: ti.i32, k1: ti.i32, finish: ti.i32):
+        """Ops k0..k1-1 of the schedule (the whole step, or one substep when another solver steps
+        between substeps), all envs, one launch (no gradient bookkeeping). With `finish` the last slot
+        becomes slot 0 and nan_step records the first `step` after which some state is not finite
+        (checked for free here, read by the scene every few steps)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
-            for k in range(self.n_ops):
+            for k in range(k0, k1):
                 op = self.sched[k, 0]
                 kind, e, base, src, dst = self.sched[k, 1], self.sched[k, 2], self.sched[k, 3], self.sched[k, 4], self.sched[k, 5]
                 h = self.sched_h[k]
@@ -374,16 +387,17 @@ class RigidSolver:
                 else:
                     for stage in ti.static(INTEGRATE):
                         stage(self, i_b, kind, e, base, src, dst, h)
-            for i_q in range(self.n_qs):
-                x = self.qpos[self.n_slots - 1, i_b, i_q]
-                self.qpos[0, i_b, i_q] = x
-                if ti.math.isnan(x) or ti.math.isinf(x):
-                    ti.atomic_min(self.nan_step[None], step)
-            for i_d in range(self.n_dofs):
-                x = self.qvel[self.n_slots - 1, i_b, i_d]
-                self.qvel[0, i_b, i_d] = x
-                if ti.math.isnan(x) or ti.math.isinf(x):
-                    ti.atomic_min(self.nan_step[None], step)
+            if finish:
+                for i_q in range(self.n_qs):
+                    x = self.qpos[self.n_slots - 1, i_b, i_q]
+                    self.qpos[0, i_b, i_q] = x
+                    if ti.math.isnan(x) or ti.math.isinf(x):
+                        ti.atomic_min(self.nan_step[None], step)
+                for i_d in range(self.n_dofs):
+                    x = self.qvel[self.n_slots - 1, i_b, i_d]
+                    self.qvel[0, i_b, i_d] = x
+                    if ti.math.isnan(x) or ti.math.isinf(x):
+                        ti.atomic_min(self.nan_step[None], step)
 
     @ti.kernel
     def kernel_kinematics(self, src: ti.i32):
@@ -441,41 +455,51 @@ class RigidSolver:
 
     def step(self, step: int = 0):
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
-        self.kernel_step_fused(step)
+        self._scratch = None
+        self.kernel_step_fused(step, 0, self.n_ops, 1)
 
-    def run_ops(self):
-        """The step's ops one launch each (the form that backward replays); the caller ends the step
-        with kernel_get_state(last_slot, ...), which also copies the result back to slot 0."""
-        for op in self.ops:
-            self._run_op(op)
+    def substep_fused(self, step: int, i: int):
+        """Substep i without gradient bookkeeping (scenes where another solver steps between
+        substeps); the last substep makes its result the current state (slot 0)."""
+        self._scratch = None
+        self.kernel_step_fused(step, self.substep_first_op[i], self.substep_first_op[i + 1], int(i == self.substeps - 1))
 
-    def _run_op(self, op):
-        kind_op, kind, e, base, src, dst, h = op
-        if kind_op == OP_DYN:
+    def substep(self, i: int):
+        """Substep i's ops one launch each, the form a ti.ad.Tape records (gradient path). The state
+        moves from slot i (or the substep's first RK slot) to the substep's last slot."""
+        for kind_op, kind, e, base, src, dst, h in self.substep_ops[i]:
+            if kind_op == OP_DYN:
+                self.evaluate(e, src, h)
+            elif kind_op == OP_INT:
+                self.kernel_integrate(kind, e, base, src, dst, h)
+
+    def _evaluation_unit(self):
+        """Dynamics at slot src + factor-solve into qacc[e], as one call on the tape. Its adjoint
+        recomputes the evaluation first when the scratch fields (poses, M, its factor) hold another
+        one, then runs the adjoint of the solve (hand-written: for qacc = M^-1 f, f_bar = M^-1 qacc_bar
+        and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel."""
+
+        @ti.ad.grad_replaced
+        def evaluate(e, src, h):
             self.kernel_dynamics(e, src, h)
-        elif kind_op == OP_SOLVE:
             self.kernel_factor_solve(e)
-        else:
-            self.kernel_integrate(kind, e, base, src, dst, h)
+            self._scratch = (e, src, h)
 
-    def backward_ops(self):
-        """Adjoint of the step's ops, given qpos.grad/qvel.grad of the last slot and the forward
-        state in slot 0 (the forward is replayed here first)."""
-        for op in self.ops:
-            self._run_op(op)
-        last_dyn = max(i for i, op in enumerate(self.ops) if op[0] == OP_DYN)
-        for i in range(len(self.ops) - 1, -1, -1):
-            kind_op, kind, e, base, src, dst, h = self.ops[i]
-            if kind_op == OP_INT:
-                self.kernel_integrate.grad(kind, e, base, src, dst, h)
-            elif kind_op == OP_SOLVE:
-                if i < last_dyn:
-                    # scratch and factor were overwritten by later evaluations: recompute this one
-                    self.kernel_dynamics(e, src, self.ops[i - 1][6])
-                    self.kernel_factor_solve(e)
-                self.kernel_solve_grad(e)
-            else:
-                self.kernel_dynamics.grad(e, src, h)
+        @ti.ad.grad_for(evaluate)
+        def evaluate_grad(e, src, h):
+            if self._scratch != (e, src, h):
+                self.kernel_dynamics(e, src, h)
+                self.kernel_factor_solve(e)
+                self._scratch = (e, src, h)
+            self.kernel_solve_grad(e)
+            self.kernel_dynamics.grad(e, src, h)
+
+        return evaluate
+
+    def scratch_overwritten(self):
+        """Called by every launch outside `evaluate` that writes the scratch fields (getters' kinematics,
+        the mass matrix, the fused step, the coupler), so a pending adjoint recomputes its evaluation."""
+        self._scratch = None
 
     # ------------------------------------------------------------------ state and gradient I/O
     # Every torch tensor passed to a kernel costs ~30 us here, so each crossing packs its data in one:
@@ -504,14 +528,16 @@ class RigidSolver:
                 self.qvel[0, i_b, i_d] = self.qvel[slot, i_b, i_d]
 
     @ti.kernel
-    def kernel_seed_state_grad(self, slot: ti.i32, g: ti.types.ndarray()):
+    def kernel_vjp(self, slot: ti.i32, g: ti.types.ndarray(), loss: ti.template()):
+        """loss += <g, state in `slot`>: the scalar whose adjoint a step's ti.ad.Tape propagates, g being
+        the gradient torch hands the step's output state (packed like kernel_get_state)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.n_envs):
             for i_q in range(self.n_qs):
-                self.qpos.grad[slot, i_b, i_q] += g[i_b, i_q]
+                loss[None] += g[i_b, i_q] * self.qpos[slot, i_b, i_q]
             for i_d in range(self.n_dofs):
-                self.qvel.grad[slot, i_b, i_d] += g[i_b, self.n_qs + i_d]
+                loss[None] += g[i_b, self.n_qs + i_d] * self.qvel[slot, i_b, i_d]
 
     @ti.kernel
     def kernel_get_grads(self, g: ti.types.ndarray()):
@@ -596,23 +622,22 @@ class RigidSolver:
                 quat[i_b, i_l, k] = self.link_quat[i_b, i_l][k]
 
     @ti.kernel
-    def kernel_seed_link_grad(self, pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
-                              ang: ti.types.ndarray()):
-        """Adjoint of kernel_link_outputs: output gradients into link_pos, link_quat, cvel."""
+    def kernel_link_vjp(self, pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
+                        ang: ti.types.ndarray(), loss: ti.template()):
+        """loss += <output gradients, kernel_link_outputs's outputs>, for a getter's ti.ad.Tape."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b, i_l in ti.ndrange(self.n_envs, self.n_links):
             p = self.link_pos[i_b, i_l]
             w = self.cvel_w[i_b, i_l]
-            gp = ti.Vector([pos[i_b, i_l, 0], pos[i_b, i_l, 1], pos[i_b, i_l, 2]])
-            gvel = ti.Vector([vel[i_b, i_l, 0], vel[i_b, i_l, 1], vel[i_b, i_l, 2]])
-            gw = ti.Vector([ang[i_b, i_l, 0], ang[i_b, i_l, 1], ang[i_b, i_l, 2]])
-            # vel = cvel_v + w x p
-            self.link_pos.grad[i_b, i_l] += gp + gvel.cross(w)
-            self.cvel_v.grad[i_b, i_l] += gvel
-            self.cvel_w.grad[i_b, i_l] += gw + p.cross(gvel)
+            v = self.cvel_v[i_b, i_l] + w.cross(p)
+            q = self.link_quat[i_b, i_l]
+            acc = 0.0
+            for k in ti.static(range(3)):
+                acc += pos[i_b, i_l, k] * p[k] + vel[i_b, i_l, k] * v[k] + ang[i_b, i_l, k] * w[k]
             for k in ti.static(range(4)):
-                self.link_quat.grad[i_b, i_l][k] += quat[i_b, i_l, k]
+                acc += quat[i_b, i_l, k] * q[k]
+            loss[None] += acc
 
     @ti.kernel
     def kernel_check_finite(self, slot: ti.i32) -> ti.i32:

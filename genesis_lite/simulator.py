@@ -1,0 +1,189 @@
+"""The simulator: steps every solver of a scene together, as one node of torch's graph per step.
+
+A scene has one bridge per solver it needs (rigid_sim.RigidSim, mpm_sim.MPMSim): each holds torch
+mirrors of its solver's state, controls and parameters and moves them in and out of the solver's
+Taichi fields. A step runs, substep by substep, the MPM solver's substep (with the rigid-MPM coupling
+inside its grid update when the scene has both kinds) and then the rigid solver's.
+
+Without gradients the step is plain kernel launches and the state stays in the fields. With
+gradients the step is a `StepFunction` node (grad/functions.py) whose inputs are every bridge's
+state, controls and parameters. Its backward loads the step's inputs back into the fields (from the
+node's saved tensors, or recomputed from a checkpoint by `solvers/buffer.py`), replays the step's
+launches on a `ti.ad.Tape` whose loss is <gradient of the outputs, outputs>, and lets the Tape run
+their adjoints in reverse; the pieces whose scratch later pieces overwrite (a rigid evaluation, an
+MPM substep) are `ti.ad.grad_replaced` calls that recompute it in their adjoint. Then each bridge
+reads the gradients of its inputs out of the fields.
+
+Bridge protocol (duck-typed): `n_state` (its leading state inputs), `inputs()`, `context()`,
+`upload()`, `load(values, context)`, `clear_grads()`, `substep(i, grad, step)`, `step_fused(step)`
+(optional: a whole step in one launch when it is the only solver), `untracked_step_done()`,
+`read_outputs()`, `state_from_outputs(outs)`, `set_state(*state)`, `state()`, `vjp(grads, loss)`,
+`input_grads(needs, step)`, `new_rollout(state)`.
+"""
+from __future__ import annotations
+
+from typing import List
+
+import taichi as ti
+import torch
+
+from solvers.buffer import StepBuffer
+
+from .errors import GenesisException
+from .grad.functions import StepFunction, require_token
+
+
+class Simulator:
+    def __init__(self, bridges: List, sim_options):
+        import genesis_lite as gs
+
+        self.bridges = bridges
+        self.substeps = sim_options.substeps
+        self.requires_grad = sim_options.requires_grad
+        self.rollout_token = 0
+        self.step_count = 0
+        self._backward_done = False
+        self._step_inputs = {}
+        self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
+        # the Tape's loss: <gradient torch hands a node's outputs, those outputs>
+        self.loss = ti.field(gs.ti_float, shape=(), needs_grad=True) if self.requires_grad else None
+        for b in bridges:
+            b.sim = self
+
+    # ---------------------------------------------------------------- stepping
+    def grad_tracking(self) -> bool:
+        """True when this step must be recorded for torch (something upstream requires grad)."""
+        if not (self.requires_grad and torch.is_grad_enabled()):
+            return False
+        return any(x.requires_grad for b in self.bridges for x in b.inputs())
+
+    def step(self):
+        if self._backward_done:
+            raise GenesisException("scene.step() after loss.backward(): this rollout's gradient buffers have been "
+                                   "consumed. Call scene.reset() to start a new rollout.")
+        for b in self.bridges:
+            b.upload()
+        if self.grad_tracking():
+            inputs = [x for b in self.bridges for x in b.inputs()]
+            outs = StepFunction.apply(self, *inputs)
+            outs = outs if isinstance(outs, tuple) else (outs,)
+            for b, o in zip(self.bridges, self._split(outs, [b.n_outputs for b in self.bridges])):
+                b.set_state(*b.state_from_outputs(o))
+        else:
+            self._run(grad=False)
+            for b in self.bridges:
+                b.untracked_step_done()
+        self.step_count += 1
+
+    def _run(self, grad: bool):
+        """One step of every solver: substep by substep, or the only solver's fused step."""
+        step = self.step_count + 1
+        if not grad and len(self.bridges) == 1 and hasattr(self.bridges[0], "step_fused"):
+            self.bridges[0].step_fused(step)
+            return
+        for i in range(self.substeps):
+            for b in self.bridges:
+                b.substep(i, grad, step)
+
+    @staticmethod
+    def _split(xs, counts):
+        out, k = [], 0
+        for n in counts:
+            out.append(list(xs[k:k + n]))
+            k += n
+        return out
+
+    def _input_counts(self):
+        return [len(b.inputs()) for b in self.bridges]
+
+    # ---------------------------------------------------------------- the step node (grad/functions.py)
+    def check_token(self, token, what):
+        require_token(self.rollout_token, token, what)
+        self._backward_done = True
+
+    def step_context(self):
+        """What a step node remembers besides its tensors: the step index, each bridge's input counts
+        and context (control modes, ...)."""
+        return (self.step_count, self._input_counts(), [b.context() for b in self.bridges])
+
+    def _states(self, per_bridge):
+        return tuple(tuple(x.detach() for x in xs[:b.n_state]) for b, xs in zip(self.bridges, per_bridge))
+
+    def to_save(self, inputs):
+        """The tensors a node keeps: everything, or everything but the states when checkpointing
+        (the states at a checkpoint go to the buffer, the others are recomputed in backward)."""
+        t = self.step_count
+        per = self._split(inputs, self._input_counts())
+        keep = self.buffer.record(t, self._states(per))
+        if keep:
+            return inputs
+        # the non-state inputs themselves: a replay recognises parameter tensors and uploads nothing
+        self._step_inputs[t] = ([xs[b.n_state:] for b, xs in zip(self.bridges, per)], [b.context() for b in self.bridges])
+        return tuple(None if i < b.n_state else x for b, xs in zip(self.bridges, per) for i, x in enumerate(xs))
+
+    def restore(self, saved, context):
+        step, counts, _ = context
+        per = self._split(saved, counts)
+        if all(x is not None for xs in per for x in xs):
+            return per
+        states = self.buffer.get(step)
+        return [list(s) + xs[b.n_state:] for b, s, xs in zip(self.bridges, states, per)]
+
+    def _load(self, per, contexts):
+        for b, xs, c in zip(self.bridges, per, contexts):
+            b.load(xs, c)
+
+    def forward_step(self):
+        self._run(grad=True)
+        return tuple(o for b in self.bridges for o in b.read_outputs())
+
+    def _replay_step(self, states, t):
+        """Re-run step t forward from `states` with the inputs it had (checkpoint windows)."""
+        rests, contexts = self._step_inputs[t]
+        per = [list(s) + list(rest) for s, rest in zip(states, rests)]
+        self._load(per, contexts)
+        outs = self.forward_step()
+        return tuple(tuple(b.state_from_outputs(o))
+                     for b, o in zip(self.bridges, self._split(outs, [b.n_outputs for b in self.bridges])))
+
+    def backward_step(self, per, context, grads, needs):
+        """Gradients of one step's inputs given the gradients of its outputs."""
+        step, counts, contexts = context
+        self._load(per, contexts)
+        for b in self.bridges:
+            b.clear_grads()
+        out_grads = self._split(grads, [b.n_outputs for b in self.bridges])
+        with ti.ad.Tape(loss=self.loss, clear_gradients=False):
+            self._run(grad=True)
+            for b, g in zip(self.bridges, out_grads):
+                b.vjp(g, self.loss)
+        result = []
+        for b, n in zip(self.bridges, self._split(needs, counts)):
+            result.extend(b.input_grads(n, step))
+        return result
+
+    # ---------------------------------------------------------------- getters (OutputFunction)
+    def getter_to_save(self, bridge, state):
+        """A getter node keeps its bridge's state, or, when checkpointing, offers the whole scene's
+        state at this step to the buffer and keeps nothing."""
+        if self.buffer.every is None:
+            return state
+        full = tuple(tuple(x.detach() for x in b.state()) for b in self.bridges)
+        self.buffer.record(self.step_count, full)
+        return tuple(None for _ in state)
+
+    def getter_restore(self, bridge, saved, step):
+        if all(x is not None for x in saved):
+            return saved
+        return self.buffer.get(step)[self.bridges.index(bridge)]
+
+    # ---------------------------------------------------------------- rollouts
+    def new_rollout(self, states):
+        self.rollout_token += 1
+        self._backward_done = False
+        self.step_count = 0
+        if self.buffer is not None:
+            self.buffer.clear()
+        self._step_inputs = {}
+        for b, s in zip(self.bridges, states):
+            b.new_rollout(s)
