@@ -19,3 +19,115 @@ class Rigid:
             raise ValueError(f"gs.materials.Rigid(rho={self.rho!r}): density must be a positive number (kg/m^3)")
         if not (np.isfinite(self.friction) and self.friction >= 0):
             raise ValueError(f"gs.materials.Rigid(friction={self.friction!r}): friction must be a finite number >= 0")
+
+
+def _check_positive(owner, name, v, unit):
+    if not (isinstance(v, (int, float, np.floating)) and np.isfinite(v) and v > 0):
+        raise ValueError(f"gs.materials.{owner}({name}={v!r}): must be a positive number ({unit})")
+
+
+class MPM:
+    """Materials of MPM entities (soft bodies, plasticine, sand, liquids), Genesis's names and defaults.
+
+    All take E (Young's modulus, Pa), nu (Poisson's ratio, -1 < nu < 0.5) and rho (density, kg/m^3).
+    Parameters can be changed per entity, per particle and differentiably after build with
+    `entity.set_material(...)`."""
+
+    @dataclass
+    class Base:
+        E: float = 1e6
+        nu: float = 0.2
+        rho: float = 1000.0
+
+        code = -1  # solvers/mpm/constitutive.py MAT_* (set by each material)
+
+        def __post_init__(self):
+            owner = f"MPM.{type(self).__name__}"
+            _check_positive(owner, "E", self.E, "Pa")
+            _check_positive(owner, "rho", self.rho, "kg/m^3")
+            if not (isinstance(self.nu, (int, float, np.floating)) and -1.0 < self.nu < 0.5):
+                raise ValueError(f"gs.materials.{owner}(nu={self.nu!r}): Poisson's ratio must lie in (-1, 0.5); 0.5 "
+                                 "would make the material incompressible, which explicit MPM cannot step")
+            self._check()
+
+        def _check(self):
+            pass
+
+        @property
+        def mu(self) -> float:
+            return self.E / (2.0 * (1.0 + self.nu))
+
+        @property
+        def lam(self) -> float:
+            return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+
+        def wave_speed(self) -> float:
+            """Speed of elastic pressure waves sqrt((lam + 2 mu) / rho), m/s: what limits the time step."""
+            return float(np.sqrt((self.lam + 2.0 * self.mu) / self.rho))
+
+    @dataclass
+    class Elastic(Base):
+        """A hyperelastic solid: model "corotation" (corotated linear elasticity) or "neohooken"
+        (neo-Hookean, spelled as Genesis spells it)."""
+
+        E: float = 3e5
+        model: str = "corotation"
+
+        def _check(self):
+            if self.model not in ("corotation", "neohooken"):
+                raise ValueError(f"gs.materials.MPM.Elastic(model={self.model!r}): use 'corotation' or 'neohooken'")
+
+        @property
+        def code(self):
+            return 0 if self.model == "corotation" else 1
+
+    @dataclass
+    class ElastoPlastic(Base):
+        """Plasticine: corotated elasticity with a von Mises yield surface (yield_stress, Pa; Genesis's
+        `von_mises_yield_stress`)."""
+
+        yield_stress: float = 1e4
+        code = 2
+
+        def _check(self):
+            _check_positive("MPM.ElastoPlastic", "yield_stress", self.yield_stress, "Pa")
+
+    @dataclass
+    class Sand(Base):
+        """Granular material: Drucker-Prager plasticity with the given friction_angle (degrees)."""
+
+        friction_angle: float = 45.0
+        code = 3
+
+        def _check(self):
+            if not (isinstance(self.friction_angle, (int, float, np.floating)) and 0 < self.friction_angle < 90):
+                raise ValueError(f"gs.materials.MPM.Sand(friction_angle={self.friction_angle!r}): must lie in (0, 90) "
+                                 "degrees")
+
+    @dataclass
+    class Liquid(Base):
+        """A weakly compressible liquid (bulk modulus from E and nu) with optional viscosity (Pa s)."""
+
+        viscosity: float = 0.0
+        code = 4
+
+        def _check(self):
+            if not (isinstance(self.viscosity, (int, float, np.floating)) and np.isfinite(self.viscosity)
+                    and self.viscosity >= 0):
+                raise ValueError(f"gs.materials.MPM.Liquid(viscosity={self.viscosity!r}): must be a number >= 0 (Pa s)")
+
+        def wave_speed(self) -> float:
+            """Liquids have no shear stiffness: sqrt(lam / rho)."""
+            return float(np.sqrt(self.lam / self.rho))
+
+
+def sand_alpha(friction_angle_deg):
+    """Drucker-Prager cone coefficient of a friction angle (degrees): sqrt(2/3) 2 sin(phi) / (3 - sin(phi)).
+    Works on floats and torch tensors (differentiably)."""
+    import torch
+
+    if isinstance(friction_angle_deg, torch.Tensor):
+        s = torch.sin(torch.deg2rad(friction_angle_deg))
+        return (2.0 / 3.0) ** 0.5 * 2.0 * s / (3.0 - s)
+    s = np.sin(np.deg2rad(friction_angle_deg))
+    return float(np.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s))

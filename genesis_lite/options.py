@@ -1,4 +1,4 @@
-"""Validated option dataclasses: SimOptions, RigidOptions (the Genesis names and defaults)."""
+"""Validated option dataclasses: SimOptions, RigidOptions, MPMOptions (the Genesis names and defaults)."""
 from __future__ import annotations
 
 import enum
@@ -107,6 +107,47 @@ class RigidOptions(_Options):
         m = self.max_mesh_contact_points
         if not (isinstance(m, (int, np.integer)) and not isinstance(m, bool) and m >= 4):
             self._err("max_mesh_contact_points", m, "must be an integer >= 4")
+
+
+@dataclass
+class MPMOptions(_Options):
+    """The MPM solver's background grid: grid_density cells per metre between lower_bound and
+    upper_bound (m, world frame), whose faces are walls with Coulomb friction wall_friction;
+    particle_size (m) is the spacing of the particles sampled in an entity (default 0.01 * 64 /
+    grid_density, Genesis's). The 3 outermost cells of each face belong to the walls: particles start
+    inside [lower_bound + 3 dx, upper_bound - 3 dx] (dx = 1 / grid_density)."""
+
+    grid_density: float = 64.0
+    lower_bound: Tuple[float, float, float] = (-1.0, -1.0, 0.0)
+    upper_bound: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    particle_size: Optional[float] = None
+    wall_friction: float = 0.5
+    enable_CPIC: bool = False
+
+    def _validate(self):
+        d = self.grid_density
+        if not (isinstance(d, (int, float)) and np.isfinite(d) and d > 0):
+            self._err("grid_density", d, "must be a positive number of cells per metre")
+        lo = np.asarray(self.lower_bound, dtype=float)
+        hi = np.asarray(self.upper_bound, dtype=float)
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            self._err("lower_bound/upper_bound", (self.lower_bound, self.upper_bound), "must be three finite numbers each (m)")
+        if not np.all(hi - lo >= 8.0 / d):
+            self._err("upper_bound", self.upper_bound, f"must exceed lower_bound {tuple(lo)} by at least 8 cells "
+                      f"({8.0 / d:g} m) on every axis: 3 cells of wall on each side and room for particles")
+        self.lower_bound, self.upper_bound = tuple(float(x) for x in lo), tuple(float(x) for x in hi)
+        if self.particle_size is None:
+            self.particle_size = 0.01 * 64.0 / float(d)
+        elif not (isinstance(self.particle_size, (int, float)) and np.isfinite(self.particle_size) and self.particle_size > 0):
+            self._err("particle_size", self.particle_size, "must be a positive number (m) or None")
+        if not (isinstance(self.wall_friction, (int, float)) and np.isfinite(self.wall_friction) and self.wall_friction >= 0):
+            self._err("wall_friction", self.wall_friction, "must be a finite number >= 0")
+        if self.enable_CPIC:
+            self._err("enable_CPIC", self.enable_CPIC, "CPIC (thin rigid shells in MPM) is not implemented; leave it False")
+
+    @property
+    def dx(self) -> float:
+        return 1.0 / float(self.grid_density)
 
 
 @dataclass

@@ -49,7 +49,7 @@ class RigidSim:
         self.device = gs.device
         self.requires_grad = sim_options.requires_grad
         # a collision geom without its own friction (GeomDesc.friction None) takes its entity's material's
-        for ent in scene.entities:
+        for ent in scene.rigid_entities:
             for link in ent.model.links:
                 for g in link.geoms:
                     if g.friction is None:

@@ -1,6 +1,7 @@
 """Scene: holds entities, decides which solvers exist, and advances them together."""
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from typing import List, Optional
@@ -11,7 +12,9 @@ import torch
 from . import materials as gmat
 from . import morphs as gm
 from .errors import GenesisException
-from .options import RigidOptions, SimOptions
+from .options import MPMOptions, RigidOptions, SimOptions
+
+logger = logging.getLogger("genesis_lite")
 
 
 @dataclass
@@ -30,7 +33,7 @@ class Scene:
     gs.options; `requires_grad=True` in SimOptions makes every getter part of torch's graph."""
 
     def __init__(self, sim_options: Optional[SimOptions] = None, rigid_options: Optional[RigidOptions] = None,
-                 viewer_options=None, show_viewer: bool = False, **kwargs):
+                 mpm_options: Optional[MPMOptions] = None, viewer_options=None, show_viewer: bool = False, **kwargs):
         import genesis_lite as gs
 
         gs._assert_initialized()
@@ -40,12 +43,19 @@ class Scene:
             raise TypeError(f"sim_options must be gs.options.SimOptions, got {type(self.sim_options).__name__}")
         if not isinstance(self.rigid_options, RigidOptions):
             raise TypeError(f"rigid_options must be gs.options.RigidOptions, got {type(self.rigid_options).__name__}")
+        if mpm_options is not None and not isinstance(mpm_options, MPMOptions):
+            raise TypeError(f"mpm_options must be gs.options.MPMOptions, got {type(mpm_options).__name__}")
+        self._mpm_options_given = mpm_options is not None
+        self.mpm_options = mpm_options if mpm_options is not None else MPMOptions()
         unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options"}
         if unknown:
             raise TypeError(f"gs.Scene got unexpected arguments {sorted(unknown)}")
         self.entities: List = []
+        self.rigid_entities: List = []
+        self.mpm_entities: List = []
         self._built = False
         self._rigid = None
+        self._mpm = None
         self._simulator = None
         self.n_envs = 0
 
@@ -67,8 +77,14 @@ class Scene:
     def rigid_solver(self):
         return self._rigid.solver if self._rigid is not None else None
 
+    @property
+    def mpm_solver(self):
+        return self._mpm.solver if self._mpm is not None else None
+
     def add_entity(self, morph, material=None, surface=None, visualize_contact=False, name=None):
-        """Add a rigid entity described by `morph` (gs.morphs.*) made of `material` (gs.materials.Rigid)."""
+        """Add an entity described by `morph` (gs.morphs.*) made of `material`: gs.materials.Rigid (the
+        default) makes a rigid body or robot, a gs.materials.MPM.* material fills the morph's volume
+        with MPM particles."""
         from .entities.rigid_entity import RigidEntity
         from .loaders import load_morph
 
@@ -77,81 +93,140 @@ class Scene:
         if not isinstance(morph, gm.Morph):
             raise TypeError(f"add_entity expects a gs.morphs.* instance, got {type(morph).__name__}")
         material = material if material is not None else gmat.Rigid()
-        if not isinstance(material, gmat.Rigid):
-            raise TypeError(f"add_entity: material must be gs.materials.Rigid, got {type(material).__name__}")
+        if not isinstance(material, (gmat.Rigid, gmat.MPM.Base)):
+            raise TypeError(f"add_entity: material must be gs.materials.Rigid or gs.materials.MPM.*, got "
+                            f"{type(material).__name__}")
         if name is None:
             stem = os.path.splitext(os.path.basename(morph.file))[0] if isinstance(morph, gm.FileMorph) else type(morph).__name__.lower()
             name = f"{stem}_{len(self.entities)}"
-        model = load_morph(morph, material, name)
-        model.validate()
-        ent = RigidEntity(self, len(self.entities), model, morph, material)
+        if isinstance(material, gmat.MPM.Base):
+            ent = self._add_mpm_entity(morph, material, name)
+        else:
+            model = load_morph(morph, material, name)
+            model.validate()
+            ent = RigidEntity(self, len(self.entities), model, morph, material)
+            ent._solver_idx = len(self.rigid_entities)
+            self.rigid_entities.append(ent)
         self.entities.append(ent)
         return ent
 
+    def _add_mpm_entity(self, morph, material, name):
+        from .entities.mpm_entity import MPMEntity
+        from .loaders.particles import sample_particles
+
+        particles, vol = sample_particles(morph, self.mpm_options.particle_size, name)
+        ent = MPMEntity(self, len(self.entities), morph, material, name, particles, vol)
+        self.mpm_entities.append(ent)
+        return ent
+
     def build(self, n_envs: int = 0, env_spacing=None, **kwargs):
-        """Allocate the solvers' fields for `n_envs` parallel environments (0: unbatched) and compile."""
-        from .rigid_sim import RigidSim
+        """Allocate the solvers' fields for `n_envs` parallel environments (0: unbatched) and compile.
+        A solver is built only when the scene has entities for it."""
+        from .simulator import Simulator
 
         if self._built:
             raise GenesisException("scene.build() called twice: a scene is built once; create a new gs.Scene")
         if not (isinstance(n_envs, (int, np.integer)) and n_envs >= 0):
             raise ValueError(f"scene.build(n_envs={n_envs!r}): n_envs must be an integer >= 0")
         self.n_envs = int(n_envs)
-        ls = qs = ds = 0
-        for e in self.entities:
-            e._on_build(ls, qs, ds)
-            ls, qs, ds = ls + e.n_links, qs + e.n_qs, ds + e.n_dofs
-        from .simulator import Simulator
+        bridges = []
+        if self.mpm_entities:
+            bridges.append(self._build_mpm())
+        elif self._mpm_options_given:
+            raise GenesisException("scene: mpm_options were given but the scene has no MPM entity; add an entity made "
+                                   "of a gs.materials.MPM.* material, or drop mpm_options")
+        if self.rigid_entities or not self.mpm_entities:
+            from .rigid_sim import RigidSim
 
-        self._rigid = RigidSim(self, [e.model for e in self.entities], self.n_envs, self.sim_options, self.rigid_options)
-        self._simulator = Simulator([self._rigid], self.sim_options)
+            ls = qs = ds = 0
+            for e in self.rigid_entities:
+                e._on_build(ls, qs, ds)
+                ls, qs, ds = ls + e.n_links, qs + e.n_qs, ds + e.n_dofs
+            self._rigid = RigidSim(self, [e.model for e in self.rigid_entities], self.n_envs, self.sim_options,
+                                   self.rigid_options)
+            bridges.append(self._rigid)
+        if self.rigid_entities and self.mpm_entities:
+            logger.info("scene: rigid and MPM entities are simulated side by side but do not interact "
+                        "(rigid-MPM coupling is not enabled)")
+        self._simulator = Simulator(bridges, self.sim_options)
         self._built = True
         self._init_state = self.get_state()
+
+    def _build_mpm(self):
+        from .mpm_sim import MPMSim, check_time_step
+
+        opts = self.mpm_options
+        lo = np.asarray(opts.lower_bound) + 3 * opts.dx
+        hi = np.asarray(opts.upper_bound) - 3 * opts.dx
+        p = 0
+        for e in self.mpm_entities:
+            below, above = e._x0.min(0) < lo, e._x0.max(0) > hi
+            if below.any() or above.any():
+                axis = "xyz"[int(np.argmax(below | above))]
+                raise GenesisException(
+                    f"MPM entity '{e.name}': its particles span {e._x0.min(0).round(4).tolist()} .. "
+                    f"{e._x0.max(0).round(4).tolist()} m, partly outside the MPM domain along {axis} (particles must "
+                    f"start within {lo.round(4).tolist()} .. {hi.round(4).tolist()} m: MPMOptions lower_bound/upper_bound "
+                    "less 3 cells of wall). Move the entity or enlarge the domain.")
+            e._on_build(p)
+            p += e.n_particles
+        check_time_step(self.mpm_entities, opts, self.sim_options)
+        self._mpm = MPMSim(self, self.mpm_entities, self.n_envs, self.sim_options, opts)
+        return self._mpm
 
     # ---------------------------------------------------------------- running
     def _sim(self, what):
         if not self._built:
             raise GenesisException(f"scene.{what}() before scene.build(): call scene.build() first")
-        return self._rigid
+        return self._simulator
 
     def step(self):
         """Advance every solver by sim_options.dt."""
-        self._sim("step")
-        sim = self._simulator
+        sim = self._sim("step")
         sim.step()
         rigid = self._rigid
-        if rigid is None or not self.rigid_options.check_nan:
-            return
-        if rigid.qpos is not None:  # the state is in torch already (gradient path): check it every step
-            rigid.check_finite(self.entities, sim.step_count)
-        elif sim.step_count % 16 == 0:  # fused path: the kernel recorded the first bad step
-            bad = rigid.first_nan_step()
-            if bad is not None:
-                rigid.check_finite(self.entities, bad)
+        if rigid is not None and self.rigid_options.check_nan:
+            if rigid.qpos is not None:  # the state is in torch already (gradient path): check it every step
+                rigid.check_finite(self.rigid_entities, sim.step_count)
+            elif sim.step_count % 16 == 0:  # fused path: the kernel recorded the first bad step
+                bad = rigid.first_nan_step()
+                if bad is not None:
+                    rigid.check_finite(self.rigid_entities, bad)
+        mpm = self._mpm
+        if mpm is not None:
+            if mpm._state is not None:
+                mpm.check_finite(sim.step_count)
+            elif sim.step_count % 16 == 0 and mpm.count_nonfinite():
+                mpm.check_finite(sim.step_count)
 
     def get_state(self) -> SimState:
         """The current state of every solver (detached copies) and the step count."""
-        self._sim("get_state")
-        states = tuple(tuple(x.detach().clone() for x in b.state()) for b in self._simulator.bridges)
-        q, v = states[0] if self._rigid is not None else (None, None)
-        return SimState(states, self._simulator.step_count, q, v)
+        sim = self._sim("get_state")
+        states = tuple(tuple(x.detach().clone() for x in b.state()) for b in sim.bridges)
+        q, v = self._rigid.get_state() if self._rigid is not None else (None, None)
+        q, v = (q.detach().clone(), v.detach().clone()) if q is not None else (None, None)
+        return SimState(states, sim.step_count, q, v)
 
     def reset(self, state: Optional[SimState] = None):
-        """Return to the state right after build() (or to `state` from get_state()). Controls are
-        cleared; parameters set with setters are kept. Starts a new rollout for gradients."""
-        self._sim("reset")
+        """Return to the state right after build() (or to `state` from get_state()). Controls and
+        external forces are cleared; parameters set with setters are kept. Starts a new rollout for
+        gradients."""
+        sim = self._sim("reset")
         state = state if state is not None else self._init_state
         if not isinstance(state, SimState):
             raise TypeError("scene.reset(state): state must come from scene.get_state()")
-        self._simulator.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
+        sim.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
 
     def set_gravity(self, gravity, envs_idx=None):
-        """Gravity (m/s^2, world frame); differentiable."""
-        sim = self._sim("set_gravity")
+        """Gravity (m/s^2, world frame) of every solver; differentiable."""
+        self._sim("set_gravity")
         ent = _SceneParams(self)
         envs = ent._envs(envs_idx)
         vals = ent._values(gravity, envs, 3, "gravity")
-        sim.set_param("gravity", vals, envs, torch.arange(3, device=vals.device))
+        if self._rigid is not None:
+            self._rigid.set_param("gravity", vals, envs, torch.arange(3, device=vals.device))
+        if self._mpm is not None:
+            self._mpm.set_param("gravity", vals, envs, torch.arange(3, device=vals.device))
 
     # ---------------------------------------------------------------- solver-wide reads used by entities
     def _mass_matrix(self):

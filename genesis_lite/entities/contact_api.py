@@ -29,8 +29,8 @@ class ContactMixin:
     def _geom_start(self):
         c = self._contact
         if c is not None:
-            return c.entity_geom_start[self.idx]
-        return sum(e.n_geoms for e in self._scene.entities[: self.idx])
+            return c.entity_geom_start[self._solver_idx]
+        return sum(e.n_geoms for e in self._scene.rigid_entities[: self._solver_idx])
 
     # ---------------------------------------------------------------- friction
     def set_friction(self, friction, envs_idx=None):

@@ -1,0 +1,206 @@
+"""MPMEntity: a thin view (a particle index range) over the MPM solver's state, with Genesis's API.
+
+Getters return genesis_lite.grad.Tensor on gs.device in the scene precision, with a leading env axis
+when the scene was built with n_envs > 0; setters take tensors, arrays or lists, and tensors that
+require grad carry gradients into the rollout (scenes with requires_grad=True).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import GenesisException
+from ..grad.indexing import index_put
+from ..grad.tensor import wrap
+from .rigid_entity import RigidEntity
+
+
+@dataclass
+class MPMEntityState:
+    """Particle positions (m), velocities (m/s), affine velocities C (1/s) and deformation gradients F
+    of one MPM entity at one step; tensors in the autograd graph of a requires_grad scene."""
+
+    pos: torch.Tensor
+    vel: torch.Tensor
+    C: torch.Tensor
+    F: torch.Tensor
+
+
+class MPMEntity:
+    """Particles sampled in a morph's volume, made of one gs.materials.MPM material."""
+
+    # index and value validation are the rigid entities' (same rules, same messages)
+    _idx = RigidEntity._idx
+    _envs = RigidEntity._envs
+    _values = RigidEntity._values
+    _device = RigidEntity._device
+
+    def __init__(self, scene, idx, morph, material, name, particles, vol):
+        self._scene = scene
+        self.idx = idx
+        self.morph = morph
+        self.material = material
+        self.name = name
+        self._x0 = particles
+        self._vol = vol
+        self.n_particles = len(particles)
+        self._p_start = -1
+
+    def _on_build(self, p_start):
+        self._p_start = p_start
+
+    @property
+    def is_built(self):
+        return self._scene.is_built
+
+    @property
+    def _sim(self):
+        if not self._scene.is_built:
+            raise GenesisException(f"MPM entity '{self.name}': call scene.build() before reading or setting its state")
+        return self._scene._mpm
+
+    @property
+    def _range(self):
+        return slice(self._p_start, self._p_start + self.n_particles)
+
+    def _particles(self, idx=None):
+        return self._idx(idx, self.n_particles, "particles_idx_local", self._p_start)
+
+    def _out(self, t):
+        return wrap(t if self._scene.n_envs > 0 else t[0])
+
+    def _state_part(self, k, envs_idx):
+        return self._out(self._sim.state()[k][self._envs(envs_idx)][:, self._range])
+
+    # ---------------------------------------------------------------- getters
+    def get_particles_pos(self, envs_idx=None):
+        """Particle positions (m), (n_particles, 3)."""
+        return self._state_part(0, envs_idx)
+
+    def get_particles_vel(self, envs_idx=None):
+        """Particle velocities (m/s), (n_particles, 3)."""
+        return self._state_part(1, envs_idx)
+
+    def get_particles_C(self, envs_idx=None):
+        """Particle affine velocities (APIC C, 1/s), (n_particles, 3, 3)."""
+        return self._state_part(2, envs_idx)
+
+    def get_particles_F(self, envs_idx=None):
+        """Particle deformation gradients, (n_particles, 3, 3)."""
+        return self._state_part(3, envs_idx)
+
+    def _masses(self):
+        return self._sim.mass[self._range]
+
+    def get_mass(self):
+        """Total mass (kg)."""
+        return float(self._masses().sum())
+
+    def get_pos(self, envs_idx=None):
+        """Centre of mass (m)."""
+        m = self._masses()
+        x = self._sim.state()[0][self._envs(envs_idx)][:, self._range]
+        return self._out((x * m[None, :, None]).sum(1) / m.sum())
+
+    def get_vel(self, envs_idx=None):
+        """Velocity of the centre of mass (m/s)."""
+        m = self._masses()
+        v = self._sim.state()[1][self._envs(envs_idx)][:, self._range]
+        return self._out((v * m[None, :, None]).sum(1) / m.sum())
+
+    def get_state(self, envs_idx=None) -> MPMEntityState:
+        return MPMEntityState(*(self._state_part(k, envs_idx) for k in range(4)))
+
+    # ---------------------------------------------------------------- state setters
+    def _set_part(self, k, values, envs, idx):
+        sim = self._sim
+        state = list(sim.state())
+        state[k] = index_put(state[k], envs, idx, values)
+        sim.set_state(*state)
+
+    def _per_particle(self, x, envs, idx, what, trailing):
+        """x as (len(envs), len(idx), *trailing): one value for all particles (shape `trailing`, or
+        (n_envs, *trailing) batched) or one per particle."""
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else np.shape(x)
+        one = shape == tuple(trailing) or (self._scene.n_envs > 0 and shape == (len(envs),) + tuple(trailing))
+        if not one:
+            return self._values(x, envs, len(idx), what, trailing)
+        t = x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x, dtype=np.float64))
+        vals = self._values(t.reshape(shape[:-len(trailing) or None] + (1,) + tuple(trailing))
+                            if shape != tuple(trailing) else t.reshape((1,) + tuple(trailing)),
+                            envs, 1, what, trailing).expand((len(envs), len(idx)) + tuple(trailing))
+        if isinstance(x, torch.Tensor) and x.requires_grad and x.is_leaf:
+            vals._gs_remake = lambda: self._per_particle(x, envs, idx, what, trailing)
+        return vals
+
+    def set_particles_pos(self, pos, particles_idx_local=None, envs_idx=None):
+        """Set particle positions (m): (n, 3) for the particles chosen (all by default)."""
+        envs, idx = self._envs(envs_idx), self._particles(particles_idx_local)
+        self._set_part(0, self._values(pos, envs, len(idx), "pos", (3,)), envs, idx)
+
+    def set_particles_vel(self, vel, particles_idx_local=None, envs_idx=None):
+        """Set particle velocities (m/s): (n, 3) for the particles chosen (all by default)."""
+        envs, idx = self._envs(envs_idx), self._particles(particles_idx_local)
+        self._set_part(1, self._values(vel, envs, len(idx), "vel", (3,)), envs, idx)
+
+    def set_position(self, pos, envs_idx=None):
+        """Move the entity: pos (3,) puts its centre of mass there (the shape is kept), (n_particles, 3)
+        sets every particle."""
+        envs, idx = self._envs(envs_idx), self._particles(None)
+        t = torch.as_tensor(pos) if not isinstance(pos, torch.Tensor) else pos
+        if t.shape[-2:] == (self.n_particles, 3):
+            return self.set_particles_pos(pos, envs_idx=envs_idx)
+        c = self._values(pos, envs, 1, "pos", (3,))
+        m = self._masses()
+        x = self._sim.state()[0][envs][:, self._range]
+        com = (x * m[None, :, None]).sum(1, keepdim=True) / m.sum()
+        self._set_part(0, x - com + c, envs, idx)
+
+    def set_velocity(self, vel, envs_idx=None):
+        """Velocity (m/s) of every particle: (3,) for all of them or (n_particles, 3)."""
+        envs, idx = self._envs(envs_idx), self._particles(None)
+        self._set_part(1, self._per_particle(vel, envs, idx, "velocity", (3,)), envs, idx)
+
+    # ---------------------------------------------------------------- forces and materials
+    def set_particles_force(self, force, particles_idx_local=None, envs_idx=None):
+        """External force on each particle (N, world frame), from the next step on until changed: (3,)
+        for every particle or (n, 3) one each. Differentiable."""
+        envs, idx = self._envs(envs_idx), self._particles(particles_idx_local)
+        self._sim.set_force(self._per_particle(force, envs, idx, "force", (3,)), envs, idx)
+
+    def set_material(self, E=None, nu=None, yield_stress=None, friction_angle=None, viscosity=None, envs_idx=None):
+        """Change material parameters: Young's modulus E (Pa), Poisson's ratio nu, yield stress (Pa,
+        ElastoPlastic), friction angle (degrees, Sand), viscosity (Pa s, Liquid). Each a number, a
+        tensor of shape () or (n_particles,) (batched scenes: also (n_envs, n_particles)); tensors that
+        require grad receive gradients (real Genesis takes only floats here)."""
+        envs, idx = self._envs(envs_idx), self._particles(None)
+        checks = {"E": (0.0, None, "Pa, > 0"), "nu": (-1.0, 0.5, "in (-1, 0.5)"),
+                  "yield_stress": (0.0, None, "Pa, > 0"), "friction_angle": (0.0, 90.0, "degrees, in (0, 90)"),
+                  "viscosity": (None, None, "Pa s, >= 0")}
+        for key, value in (("E", E), ("nu", nu), ("yield_stress", yield_stress), ("friction_angle", friction_angle),
+                           ("viscosity", viscosity)):
+            if value is None:
+                continue
+            vals = self._per_particle(value, envs, idx, key, ())
+            lo, hi, what = checks[key]
+            v = vals.detach()
+            bad = (v < 0).any() if key == "viscosity" else ((v <= lo).any() or (hi is not None and (v >= hi).any()))
+            if bad:
+                raise GenesisException(f"MPM entity '{self.name}': {key} must be {what}; got values from "
+                                       f"{v.min().item():g} to {v.max().item():g}")
+            self._sim.set_param(key, vals, envs, idx)
+
+    def get_material(self, key, envs_idx=None):
+        """Per-particle value of a material parameter ("E", "nu", "yield_stress", "friction_angle",
+        "viscosity"), (n_particles,)."""
+        from ..mpm_sim import MATERIAL_KEYS
+
+        if key not in MATERIAL_KEYS:
+            raise GenesisException(f"MPM entity '{self.name}': unknown material parameter {key!r}; one of "
+                                   f"{list(MATERIAL_KEYS)}")
+        return self._out(self._sim.values[key][self._envs(envs_idx)][:, self._range])
+
+    def __repr__(self):
+        return f"<MPMEntity '{self.name}': {self.n_particles} particles of {type(self.material).__name__}>"

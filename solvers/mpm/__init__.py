@@ -1,0 +1,1 @@
+"""MLS-MPM solver: soft bodies, plasticine, sand and liquids on a background grid."""

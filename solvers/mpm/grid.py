@@ -1,0 +1,40 @@
+"""Stage 3 of an MLS-MPM substep, grid update, one node each: momentum -> velocity, gravity, then the
+walls at the domain's faces (Coulomb friction); the rigid boundaries of solvers/coupling.py come after
+these when a scene couples rigid bodies to MPM.
+
+Single-assignment form with 0/1 masks for Taichi's reverse mode (no branches on differentiable data).
+"""
+import taichi as ti
+
+TINY = 1e-30
+
+
+@ti.func
+def func_grid_velocity(s: ti.template(), i_b, I, dt):
+    """Velocity of node I from its momentum and mass, with gravity, before boundaries."""
+    m = s.grid_m[i_b, I]
+    inv_m = ti.cast(m > 0.0, float) / ti.max(m, TINY)
+    return s.grid_mv[i_b, I] * inv_m + dt * s.gravity[i_b]
+
+
+@ti.func
+def func_wall(s: ti.template(), v, I, d: ti.template()):
+    """Grid velocity v at node I after the walls normal to axis d: a node within `bound` cells of
+    a face loses its velocity into the wall and Coulomb friction (coefficient wall_friction) slows
+    its tangential velocity by mu |v_n|, never reversing it."""
+    low = ti.cast(I[d] < s.bound, float)
+    high = ti.cast(I[d] >= s.grid_res[d] - s.bound, float)
+    n = ti.Vector([1.0 if d == 0 else 0.0, 1.0 if d == 1 else 0.0, 1.0 if d == 2 else 0.0]) * (low - high)
+    vn = v.dot(n)
+    into = ti.cast(vn < 0.0, float) * (low + high)
+    vt = v - vn * n
+    vt_norm = ti.sqrt(vt.dot(vt) + TINY)
+    slide = vt * ti.max(0.0, 1.0 + s.wall_friction * vn / vt_norm)
+    return into * slide + (1.0 - into) * v
+
+
+@ti.func
+def func_walls(s: ti.template(), v, I):
+    v1 = func_wall(s, v, I, 0)
+    v2 = func_wall(s, v1, I, 1)
+    return func_wall(s, v2, I, 2)

@@ -1,0 +1,35 @@
+"""Stage 2 of an MLS-MPM substep (quadratic B-splines, APIC), particle to grid: each particle adds its
+mass, its momentum m v plus its external impulse dt f, and the affine momentum
+(m C - dt V 4/dx^2 tau)(x_node - x_p) to the 27 nodes around it.
+
+Written for Taichi's reverse mode: every local is assigned once, the scatter is an atomic add (its
+adjoint is a gather).
+"""
+import taichi as ti
+
+
+@ti.func
+def func_stencil(s: ti.template(), x):
+    """Lower corner `base` of the 3x3x3 stencil around x, the offset fx of x from it (cells) and the
+    quadratic B-spline weights per axis."""
+    xg = (x - s.lower) * s.inv_dx
+    base = ti.cast(ti.floor(xg - 0.5), ti.i32)
+    fx = xg - ti.cast(base, float)
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    return base, fx, w
+
+
+@ti.func
+def func_p2g(s: ti.template(), i_b, i_p, src, dt):
+    x = s.x[src, i_b, i_p]
+    m = s.p_mass[i_p]
+    base, fx, w = func_stencil(s, x)
+    stress = (-dt * s.p_vol[i_p] * 4.0 * s.inv_dx * s.inv_dx) * s.tau[i_b, i_p]
+    affine = stress + m * s.C[src, i_b, i_p]
+    mv = m * s.v[src, i_b, i_p] + dt * s.f_ext[i_b, i_p]
+    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
+        dpos = (ti.cast(offset, float) - fx) * s.dx
+        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
+        I = base + offset
+        s.grid_mv[i_b, I] += weight * (mv + affine @ dpos)
+        s.grid_m[i_b, I] += weight * m

@@ -1,0 +1,396 @@
+"""MPMSolver: the particles of every MPM entity of a scene on one background grid (MLS-MPM, APIC).
+
+Fields (axes as in DESIGN.md): particle state x, v, C, F has a slot axis [t, i_b, i_p] holding the
+substeps of one step (one slot without gradients: substeps update it in place; substeps + 1 with
+gradients, each substep writing the next slot once); per-particle data without an env axis (mass,
+volume, material); parameters and external forces [i_b, i_p]; the grid [i_b, node] and the stress
+tau [i_b, i_p] are scratch, rewritten every substep.
+
+A substep is the launches of `_substep_launches`: clear the grid, constitutive update (F, tau),
+particle-to-grid, grid update (gravity, walls, rigid boundaries), grid-to-particle. With gradients it
+is one `ti.ad.grad_replaced` call on the scene's Tape, whose adjoint recomputes the substep's grid
+(another substep has overwritten it) by replaying the launches under a nested Tape, which then runs
+their adjoints in reverse; the SVD-based constitutive update is itself such a call with a
+hand-written adjoint (constitutive.py).
+"""
+
+import numpy as np
+import taichi as ti
+import torch
+
+from .constitutive import (AD_MATERIALS, MAT_ELASTIC, MAT_LIQUID, MAT_NEOHOOKEAN, SVD_MATERIALS, func_ad_material,
+                           func_principal, func_svd_adjoint)
+from .g2p import func_g2p
+from .grid import func_grid_velocity, func_walls
+from .p2g import func_p2g
+from .svd import func_svd3
+
+BOUND = 3  # grid nodes at each face that act as walls (particles live inside them)
+
+
+@ti.data_oriented
+class MPMSolver:
+    """n_envs environments of n_particles particles (positions x0 (P, 3) m, volumes vol (P,) m^3,
+    masses mass (P,) kg, material codes mat (P,)) on the grid of [lower, upper] with cells of dx m;
+    dt is one scene step (s), split into `substeps`; wall_friction is the walls' Coulomb coefficient;
+    coupler (solvers/coupling.py) adds rigid boundaries to the grid update."""
+
+    def __init__(self, n_envs, x0, vol, mass, mat, lower, upper, dx, dt, substeps, gravity, dtype, requires_grad,
+                 wall_friction, coupler=None):
+        self.n_envs = n_envs
+        self.n_particles = len(x0)
+        self.dtype = dtype
+        self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
+        self.dx = float(dx)
+        self.inv_dx = 1.0 / self.dx
+        self.lower = ti.Vector([float(v) for v in lower])
+        res = np.round((np.asarray(upper, float) - np.asarray(lower, float)) * self.inv_dx).astype(int) + 1
+        self.grid_res = tuple(int(r) for r in res)
+        self.bound = BOUND
+        upper_eff = np.asarray(lower, float) + (res - 1) * self.dx
+        self.np_lower, self.np_upper = np.asarray(lower, float), upper_eff
+        # plain floats: compile-time constants (a ti.Vector attribute in the clamp crashed g2p's adjoint)
+        self.x_min = tuple(float(v) for v in self.np_lower + self.dx)
+        self.x_max = tuple(float(v) for v in upper_eff - self.dx)
+        self.dt = dt
+        self.substeps = substeps
+        self.h = dt / substeps
+        self.requires_grad = requires_grad
+        self.wall_friction = float(wall_friction)
+        self.mats = sorted(set(int(m) for m in mat))
+        self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
+        self.has_ad = any(m in AD_MATERIALS for m in self.mats)
+        self.coupler = coupler
+        self.coupled = coupler is not None
+        self.n_slots = substeps + 1 if requires_grad else 1
+        self._allocate()
+        self._fill(x0, vol, mass, mat, gravity)
+        self._make_units()
+
+    # ------------------------------------------------------------------ build
+    def _allocate(self):
+        B, P, S = self.n_envs, self.n_particles, self.n_slots
+        f, g = self.dtype, self.requires_grad
+        V3 = lambda shape, grad=g: ti.Vector.field(3, f, shape=shape, needs_grad=grad)  # noqa: E731
+        M3 = lambda shape, grad=g: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=grad)  # noqa: E731
+        F = lambda shape, grad=g: ti.field(f, shape=shape, needs_grad=grad)  # noqa: E731
+        self.x, self.v, self.C, self.F = V3((S, B, P)), V3((S, B, P)), M3((S, B, P)), M3((S, B, P))
+        self.tau = M3((B, P))
+        self.p_mass, self.p_vol = F(P, False), F(P, False)
+        self.p_mat = ti.field(ti.i32, shape=P)
+        self.mu, self.lam, self.yield_stress, self.alpha, self.viscosity = (F((B, P)) for _ in range(5))
+        self.f_ext = V3((B, P))
+        self.gravity = V3(B)
+        G = (B,) + self.grid_res
+        self.grid_m, self.grid_mv, self.grid_v = F(G), V3(G), V3(G)
+        self.nan_count = ti.field(ti.i32, shape=())
+        # the block of grid nodes the particles of a substep can touch: the grid loops skip the rest
+        self.active_lo = ti.Vector.field(3, ti.i32, shape=())
+        self.active_n = ti.Vector.field(3, ti.i32, shape=())
+        self.grad_fields = [self.x, self.v, self.C, self.F, self.tau, self.mu, self.lam, self.yield_stress,
+                            self.alpha, self.viscosity, self.f_ext, self.gravity, self.grid_m, self.grid_mv,
+                            self.grid_v] if g else []
+        self.grid_grad_fields = [self.grid_m, self.grid_mv, self.grid_v, self.tau] if g else []
+
+    def _fill(self, x0, vol, mass, mat, gravity):
+        nd = self.np_dtype
+        self.p_mass.from_numpy(np.asarray(mass, nd))
+        self.p_vol.from_numpy(np.asarray(vol, nd))
+        self.p_mat.from_numpy(np.asarray(mat, np.int32))
+        self.gravity.from_numpy(np.tile(np.asarray(gravity, nd), (self.n_envs, 1)))
+        self.x0 = np.asarray(x0, nd)
+
+    def _make_units(self):
+        """The Tape-recorded calls with their own adjoints (see the module docstring)."""
+
+        @ti.ad.grad_replaced
+        def constitutive_svd(src, dst):
+            self.kernel_constitutive_svd(src, dst, self.h)
+
+        @ti.ad.grad_for(constitutive_svd)
+        def constitutive_svd_grad(src, dst):
+            self.kernel_constitutive_svd_grad(src, dst, self.h)
+
+        @ti.ad.no_grad
+        def clear_grid(src):
+            self._clear_grid(src)
+
+        @ti.ad.grad_replaced
+        def substep_unit(i):
+            self._substep_launches(i, i + 1)
+
+        @ti.ad.grad_for(substep_unit)
+        def substep_unit_grad(i):
+            # another substep has overwritten the grid: recompute this one's, and let a nested Tape run
+            # the adjoints of its launches in reverse, from zeroed grid adjoints
+            self._region = tuple(int(r) for r in self.kernel_active_region(i))
+            self.kernel_clear_grid_grads()
+            with ti.ad.Tape(loss=torch.zeros((), dtype=torch.float64, requires_grad=True), clear_gradients=False):
+                self._substep_launches(i, i + 1, taped=True)
+
+        self.constitutive_svd = constitutive_svd
+        self.clear_grid = clear_grid
+        self.substep_unit = substep_unit
+
+    # ------------------------------------------------------------------ stepping
+    def _clear_grid(self, src):
+        self._region = tuple(int(r) for r in self.kernel_active_region(src))
+        self.kernel_clear_grid()
+
+    def _substep_launches(self, src, dst, taped=False):
+        """One substep's launches. `taped`: they are being recorded on the nested Tape of the substep's
+        adjoint, so the pieces with adjoints of their own go through their grad_replaced / no_grad
+        wrappers. Otherwise they are plain launches: Taichi clears its 'inside a grad_replaced call'
+        flag when such a wrapper returns, so one called inside the substep's own grad_replaced forward
+        would let the launches after it onto the scene's Tape."""
+        if taped:
+            self.clear_grid(src)
+        else:
+            self._clear_grid(src)
+        if self.has_svd:
+            if taped:
+                self.constitutive_svd(src, dst)
+            else:
+                self.kernel_constitutive_svd(src, dst, self.h)
+        if self.has_ad:
+            self.kernel_constitutive_ad(src, dst, self.h)
+        self.kernel_p2g(src, self.h)
+        if self.coupler is not None:
+            self.coupler.before_grid(src)
+        self.kernel_grid_update(self.h, *self._region)
+        self.kernel_g2p(src, dst, self.h)
+
+    def substep(self, i: int, grad: bool):
+        """Substep i of the step: with gradients from slot i to slot i + 1 as one call on the Tape;
+        without, in place in slot 0."""
+        if grad:
+            self.substep_unit(i)
+        else:
+            self._substep_launches(0, 0)
+
+    @property
+    def last_slot(self):
+        return self.n_slots - 1
+
+    # ------------------------------------------------------------------ kernels: the substep
+    @ti.kernel
+    def kernel_active_region(self, src: ti.i32) -> ti.types.vector(6, ti.i32):
+        """(lower corner, extent) of the block of nodes the stencils of all particles in slot src touch
+        (all envs), also left in active_lo, active_n for the clearing kernels."""
+        big = 1 << 30
+        self.active_lo[None] = ti.Vector([big, big, big])
+        self.active_n[None] = ti.Vector([-big, -big, -big])  # the upper corner, until the last loop
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            base = ti.cast(ti.floor((self.x[src, i_b, i_p] - self.lower) * self.inv_dx - 0.5), ti.i32)
+            for a in ti.static(range(3)):
+                ti.atomic_min(self.active_lo[None][a], base[a])
+                ti.atomic_max(self.active_n[None][a], base[a] + 3)
+        for _ in range(1):
+            for a in ti.static(range(3)):
+                lo = ti.max(self.active_lo[None][a], 0)
+                hi = ti.min(self.active_n[None][a], self.grid_res[a])
+                self.active_lo[None][a] = lo
+                self.active_n[None][a] = ti.max(hi - lo, 0)
+        lo, n = self.active_lo[None], self.active_n[None]
+        return ti.Vector([lo[0], lo[1], lo[2], n[0], n[1], n[2]])
+
+    @ti.kernel
+    def kernel_clear_grid(self):
+        lo, n = self.active_lo[None], self.active_n[None]
+        for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
+            I = lo + ti.Vector([i, j, k])
+            self.grid_m[i_b, I] = 0.0
+            self.grid_mv[i_b, I] = ti.Vector.zero(float, 3)
+
+    @ti.kernel
+    def kernel_clear_grid_grads(self):
+        lo, n = self.active_lo[None], self.active_n[None]
+        for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
+            I = lo + ti.Vector([i, j, k])
+            self.grid_m.grad[i_b, I] = 0.0
+            self.grid_mv.grad[i_b, I] = ti.Vector.zero(float, 3)
+            self.grid_v.grad[i_b, I] = ti.Vector.zero(float, 3)
+        for i_b, i_p in self.tau:
+            self.tau.grad[i_b, i_p] = ti.Matrix.zero(float, 3, 3)
+
+    @ti.func
+    def func_trial(self, i_b, i_p, src, h):
+        """(I + h C) and the trial deformation gradient (I + h C) F of a particle."""
+        A = ti.Matrix.identity(float, 3) + h * self.C[src, i_b, i_p]
+        return A, A @ self.F[src, i_b, i_p]
+
+    @ti.kernel
+    def kernel_constitutive_svd(self, src: ti.i32, dst: ti.i32, h: float):
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            mat = self.p_mat[i_p]
+            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:  # an SVD material
+                _, Ft = self.func_trial(i_b, i_p, src, h)
+                U, s, V = func_svd3(Ft)
+                hs, _Jh, _dh, t, _Jt, _dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
+                                                   self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], False)
+                Fn = U @ ti.Matrix([[hs[0], 0.0, 0.0], [0.0, hs[1], 0.0], [0.0, 0.0, hs[2]]]) @ V.transpose()
+                # elastic: F_new is F_trial itself, not its SVD reassembled (which would drift by round-off)
+                if mat == MAT_ELASTIC:
+                    self.F[dst, i_b, i_p] = Ft
+                else:
+                    self.F[dst, i_b, i_p] = Fn
+                self.tau[i_b, i_p] = U @ ti.Matrix([[t[0], 0.0, 0.0], [0.0, t[1], 0.0], [0.0, 0.0, t[2]]]) @ U.transpose()
+
+    @ti.kernel
+    def kernel_constitutive_svd_grad(self, src: ti.i32, dst: ti.i32, h: float):
+        """Adjoint of kernel_constitutive_svd (constitutive.func_svd_adjoint), into C, F and the
+        material parameters of slot src."""
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            mat = self.p_mat[i_p]
+            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:
+                A, Ft = self.func_trial(i_b, i_p, src, h)
+                U, s, V = func_svd3(Ft)
+                hs, Jh, dh, t, Jt, dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
+                                                       self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], True)
+                gFt, dG, dT = func_svd_adjoint(U, s, V, hs, Jh, t, Jt, self.F.grad[dst, i_b, i_p],
+                                               self.tau.grad[i_b, i_p])
+                self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
+                self.F.grad[src, i_b, i_p] += A.transpose() @ gFt
+                gp = dh.transpose() @ dG + dt.transpose() @ dT
+                self.mu.grad[i_b, i_p] += gp[0]
+                self.lam.grad[i_b, i_p] += gp[1]
+                self.yield_stress.grad[i_b, i_p] += gp[2]
+                self.alpha.grad[i_b, i_p] += gp[3]
+
+    @ti.kernel
+    def kernel_constitutive_ad(self, src: ti.i32, dst: ti.i32, h: float):
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            mat = self.p_mat[i_p]
+            if mat == MAT_NEOHOOKEAN or mat == MAT_LIQUID:
+                _, Ft = self.func_trial(i_b, i_p, src, h)
+                Fn, tau = func_ad_material(mat, Ft, self.C[src, i_b, i_p], h, self.mu[i_b, i_p],
+                                           self.lam[i_b, i_p], self.viscosity[i_b, i_p])
+                self.F[dst, i_b, i_p] = Fn
+                self.tau[i_b, i_p] = tau
+
+    @ti.kernel
+    def kernel_p2g(self, src: ti.i32, h: float):
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            func_p2g(self, i_b, i_p, src, h)
+
+    @ti.kernel
+    def kernel_grid_update(self, h: float, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32, n2: ti.i32):
+        """Grid velocities of the nodes in the block (l0, l1, l2) + [0, n0) x [0, n1) x [0, n2)."""
+        for i_b, i, j, k in ti.ndrange(self.n_envs, n0, n1, n2):
+            I = ti.Vector([l0 + i, l1 + j, l2 + k])
+            v_walls = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
+            if ti.static(not self.coupled):
+                self.grid_v[i_b, I] = v_walls
+            else:
+                self.grid_v[i_b, I] = self.coupler.func_rigid_boundary(self, i_b, I, v_walls, h)
+
+    @ti.kernel
+    def kernel_g2p(self, src: ti.i32, dst: ti.i32, h: float):
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            func_g2p(self, i_b, i_p, src, dst, h)
+
+    # ------------------------------------------------------------------ kernels: I/O and gradients
+    @ti.kernel
+    def kernel_set_state(self, slot: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                         F: ti.types.ndarray()):
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            for a in ti.static(range(3)):
+                self.x[slot, i_b, i_p][a] = x[i_b, i_p, a]
+                self.v[slot, i_b, i_p][a] = v[i_b, i_p, a]
+                for b in ti.static(range(3)):
+                    self.C[slot, i_b, i_p][a, b] = C[i_b, i_p, a, b]
+                    self.F[slot, i_b, i_p][a, b] = F[i_b, i_p, a, b]
+
+    @ti.kernel
+    def kernel_get_state(self, slot: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                         F: ti.types.ndarray()):
+        """Read the state in `slot` and make it the current state (slot 0)."""
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            for a in ti.static(range(3)):
+                x[i_b, i_p, a] = self.x[slot, i_b, i_p][a]
+                v[i_b, i_p, a] = self.v[slot, i_b, i_p][a]
+                for b in ti.static(range(3)):
+                    C[i_b, i_p, a, b] = self.C[slot, i_b, i_p][a, b]
+                    F[i_b, i_p, a, b] = self.F[slot, i_b, i_p][a, b]
+            self.x[0, i_b, i_p] = self.x[slot, i_b, i_p]
+            self.v[0, i_b, i_p] = self.v[slot, i_b, i_p]
+            self.C[0, i_b, i_p] = self.C[slot, i_b, i_p]
+            self.F[0, i_b, i_p] = self.F[slot, i_b, i_p]
+
+    @ti.kernel
+    def kernel_vjp(self, slot: ti.i32, gx: ti.types.ndarray(), gv: ti.types.ndarray(), gC: ti.types.ndarray(),
+                   gF: ti.types.ndarray(), loss: ti.template()):
+        """loss += <gradients torch hands the step's output state, that state in `slot`>."""
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            acc = 0.0
+            for a in ti.static(range(3)):
+                acc += gx[i_b, i_p, a] * self.x[slot, i_b, i_p][a] + gv[i_b, i_p, a] * self.v[slot, i_b, i_p][a]
+                for b in ti.static(range(3)):
+                    acc += gC[i_b, i_p, a, b] * self.C[slot, i_b, i_p][a, b] + gF[i_b, i_p, a, b] * self.F[slot, i_b, i_p][a, b]
+            loss[None] += acc
+
+    @ti.kernel
+    def kernel_get_state_grads(self, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                               F: ti.types.ndarray(), f: ti.types.ndarray()):
+        """Adjoints of the state in slot 0 and of the external forces."""
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            for a in ti.static(range(3)):
+                x[i_b, i_p, a] = self.x.grad[0, i_b, i_p][a]
+                v[i_b, i_p, a] = self.v.grad[0, i_b, i_p][a]
+                f[i_b, i_p, a] = self.f_ext.grad[i_b, i_p][a]
+                for b in ti.static(range(3)):
+                    C[i_b, i_p, a, b] = self.C.grad[0, i_b, i_p][a, b]
+                    F[i_b, i_p, a, b] = self.F.grad[0, i_b, i_p][a, b]
+
+    @ti.kernel
+    def kernel_set_params(self, p: ti.types.ndarray(), f: ti.types.ndarray(), g: ti.types.ndarray()):
+        """p (B, 5, P): mu, lam, yield stress, alpha, viscosity; f (B, P, 3) external forces; g (B, 3)."""
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            self.mu[i_b, i_p] = p[i_b, 0, i_p]
+            self.lam[i_b, i_p] = p[i_b, 1, i_p]
+            self.yield_stress[i_b, i_p] = p[i_b, 2, i_p]
+            self.alpha[i_b, i_p] = p[i_b, 3, i_p]
+            self.viscosity[i_b, i_p] = p[i_b, 4, i_p]
+            for a in ti.static(range(3)):
+                self.f_ext[i_b, i_p][a] = f[i_b, i_p, a]
+        for i_b in range(self.n_envs):
+            for a in ti.static(range(3)):
+                self.gravity[i_b][a] = g[i_b, a]
+
+    @ti.kernel
+    def kernel_get_param_grads(self, p: ti.types.ndarray(), g: ti.types.ndarray()):
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            p[i_b, 0, i_p] = self.mu.grad[i_b, i_p]
+            p[i_b, 1, i_p] = self.lam.grad[i_b, i_p]
+            p[i_b, 2, i_p] = self.yield_stress.grad[i_b, i_p]
+            p[i_b, 3, i_p] = self.alpha.grad[i_b, i_p]
+            p[i_b, 4, i_p] = self.viscosity.grad[i_b, i_p]
+        for i_b in range(self.n_envs):
+            for a in ti.static(range(3)):
+                g[i_b, a] = self.gravity.grad[i_b][a]
+
+    @ti.kernel
+    def kernel_clear_grads(self):
+        """Zero every adjoint field (before a step's backward replay). Constants, not x * 0: a NaN left
+        by an earlier failed backward must not survive."""
+        for x in ti.static(self.grad_fields):
+            for I in ti.grouped(x):
+                if ti.static(not hasattr(x, "n")):
+                    x.grad[I] = 0.0
+                elif ti.static(x.m == 1):
+                    x.grad[I] = ti.Vector.zero(float, x.n)
+                else:
+                    x.grad[I] = ti.Matrix.zero(float, x.n, x.m)
+
+    @ti.kernel
+    def kernel_count_nonfinite(self, slot: ti.i32) -> ti.i32:
+        self.nan_count[None] = 0
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            bad = 0
+            for a in ti.static(range(3)):
+                x = self.x[slot, i_b, i_p][a]
+                v = self.v[slot, i_b, i_p][a]
+                if ti.math.isnan(x) or ti.math.isinf(x) or ti.math.isnan(v) or ti.math.isinf(v):
+                    bad = 1
+            self.nan_count[None] += bad
+        return self.nan_count[None]

@@ -1,0 +1,93 @@
+"""3x3 singular value decomposition by cyclic Jacobi rotations on F^T F.
+
+Taichi's `ti.svd` (McAdams et al.'s approximate Givens iterations) costs about 2.5 us per matrix in
+float64 on this project's CPUs and reassembles F only to ~1e-10; MPM calls it once per particle and
+substep, forward and backward. Here: five sweeps of exact Jacobi rotations diagonalise A = F^T F
+(quadratic convergence: round-off level for 3x3), V holds its eigenvectors, s = sqrt(eig), and U is
+F V / s completed to a rotation. Convention as Taichi's: det U = det V = 1, s sorted descending, the
+last singular value negative when det F < 0. Not differentiated: the adjoint of the maps built on it is
+written out in constitutive.py.
+"""
+import taichi as ti
+
+SWEEPS = 5
+TINY = 1e-30
+
+
+@ti.func
+def func_jacobi_rotate(A, V, p: ti.template(), q: ti.template()):
+    """One Jacobi rotation zeroing A[p, q] of the symmetric A; returns (J^T A J, V J)."""
+    apq = A[p, q]
+    c = 1.0
+    s = 0.0
+    if ti.abs(apq) > TINY:
+        theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+        t = ti.select(theta >= 0.0, 1.0, -1.0) / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
+        c = 1.0 / ti.sqrt(t * t + 1.0)
+        s = t * c
+    J = ti.Matrix.identity(float, 3)
+    J[p, p] = c
+    J[q, q] = c
+    J[p, q] = s
+    J[q, p] = -s
+    return J.transpose() @ A @ J, V @ J
+
+
+@ti.func
+def func_swap_desc(e, V, i: ti.template(), j: ti.template()):
+    """Order eigenpairs i < j so that e[i] >= e[j]."""
+    e2 = e
+    V2 = V
+    if e[i] < e[j]:
+        e2[i] = e[j]
+        e2[j] = e[i]
+        for r in ti.static(range(3)):
+            V2[r, i] = V[r, j]
+            V2[r, j] = V[r, i]
+    return e2, V2
+
+
+@ti.func
+def func_any_perpendicular(u):
+    """A unit vector perpendicular to the unit vector u."""
+    a = ti.Vector([1.0, 0.0, 0.0])
+    if ti.abs(u[0]) > 0.7:
+        a = ti.Vector([0.0, 1.0, 0.0])
+    w = a - a.dot(u) * u
+    return w / w.norm()
+
+
+@ti.func
+def func_svd3(F):
+    """(U, s, V) with F = U diag(s) V^T."""
+    A = F.transpose() @ F
+    V = ti.Matrix.identity(float, 3)
+    for _ in ti.static(range(SWEEPS)):
+        A, V = func_jacobi_rotate(A, V, 0, 1)
+        A, V = func_jacobi_rotate(A, V, 0, 2)
+        A, V = func_jacobi_rotate(A, V, 1, 2)
+    e = ti.Vector([A[0, 0], A[1, 1], A[2, 2]])
+    e, V = func_swap_desc(e, V, 0, 1)
+    e, V = func_swap_desc(e, V, 0, 2)
+    e, V = func_swap_desc(e, V, 1, 2)
+    if V.determinant() < 0.0:
+        for r in ti.static(range(3)):
+            V[r, 2] = -V[r, 2]
+    v0 = ti.Vector([V[0, 0], V[1, 0], V[2, 0]])
+    v1 = ti.Vector([V[0, 1], V[1, 1], V[2, 1]])
+    v2 = ti.Vector([V[0, 2], V[1, 2], V[2, 2]])
+    f0 = F @ v0
+    f1 = F @ v1
+    n0 = f0.norm()
+    u0 = ti.Vector([1.0, 0.0, 0.0])
+    if n0 > TINY:
+        u0 = f0 / n0
+    w1 = f1 - f1.dot(u0) * u0
+    n1 = w1.norm()
+    u1 = func_any_perpendicular(u0)
+    if n1 > 1e-12 * ti.max(n0, TINY):
+        u1 = w1 / n1
+    u2 = u0.cross(u1)
+    s = ti.Vector([n0, u1.dot(f1), u2.dot(F @ v2)])
+    U = ti.Matrix.cols([u0, u1, u2])
+    return U, s, V
