@@ -10,6 +10,7 @@ import torch
 
 from . import materials as gmat
 from . import morphs as gm
+from . import surfaces as gs_surfaces
 from .errors import GenesisException
 from .options import RigidOptions, SimOptions
 
@@ -42,6 +43,7 @@ class Scene:
         if unknown:
             raise TypeError(f"gs.Scene got unexpected arguments {sorted(unknown)}")
         self.entities: List = []
+        self._cameras: List = []
         self._built = False
         self._rigid = None
         self.n_envs = 0
@@ -76,14 +78,28 @@ class Scene:
         material = material if material is not None else gmat.Rigid()
         if not isinstance(material, gmat.Rigid):
             raise TypeError(f"add_entity: material must be gs.materials.Rigid, got {type(material).__name__}")
+        if surface is not None and not isinstance(surface, gs_surfaces.Surface):
+            raise TypeError(f"add_entity: surface must be a gs.surfaces.* instance, got {type(surface).__name__}")
         if name is None:
             stem = os.path.splitext(os.path.basename(morph.file))[0] if isinstance(morph, gm.FileMorph) else type(morph).__name__.lower()
             name = f"{stem}_{len(self.entities)}"
         model = load_morph(morph, material, name)
         model.validate()
         ent = RigidEntity(self, len(self.entities), model, morph, material)
+        ent.surface = surface  # read by cameras (colour, vis_mode)
         self.entities.append(ent)
         return ent
+
+    def add_camera(self, res=(320, 320), pos=(0.5, 2.5, 3.5), lookat=(0.5, 0.5, 0.5), up=(0.0, 0.0, 1.0), fov=30,
+                   GUI=False, **kwargs):
+        """A headless camera (genesis_lite.vis.Camera) for render() and start/stop_recording(), before
+        or after build(). res = (width, height) px, pos / lookat / up in metres (world), fov the
+        vertical field of view in degrees; near, far (m) and env_idx as keywords."""
+        from .vis.camera import Camera
+
+        cam = Camera(self, len(self._cameras), res=res, pos=pos, lookat=lookat, up=up, fov=fov, GUI=GUI, **kwargs)
+        self._cameras.append(cam)
+        return cam
 
     def build(self, n_envs: int = 0, env_spacing=None, **kwargs):
         """Allocate the solvers' fields for `n_envs` parallel environments (0: unbatched) and compile."""
