@@ -12,7 +12,7 @@ import os
 import numpy as np
 import torch
 
-from . import materials, morphs, options
+from . import materials, morphs, options, surfaces
 from .errors import GenesisException
 from .options import integrator
 
@@ -88,4 +88,4 @@ from .grad.creation import from_torch, ones, rand, tensor, zeros  # noqa: E402
 from .scene import Scene  # noqa: E402
 
 __all__ = ["init", "Scene", "options", "morphs", "materials", "integrator", "cpu", "gpu", "device",
-           "tensor", "zeros", "ones", "rand", "from_torch", "grad", "GenesisException"]
+           "tensor", "zeros", "ones", "rand", "from_torch", "grad", "surfaces", "GenesisException"]

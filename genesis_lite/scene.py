@@ -11,6 +11,7 @@ import torch
 
 from . import materials as gmat
 from . import morphs as gm
+from . import surfaces as gs_surfaces
 from .errors import GenesisException
 from .options import MPMOptions, RigidOptions, SimOptions
 
@@ -53,6 +54,7 @@ class Scene:
         self.entities: List = []
         self.rigid_entities: List = []
         self.mpm_entities: List = []
+        self._cameras: List = []
         self._built = False
         self._rigid = None
         self._mpm = None
@@ -96,6 +98,8 @@ class Scene:
         if not isinstance(material, (gmat.Rigid, gmat.MPM.Base)):
             raise TypeError(f"add_entity: material must be gs.materials.Rigid or gs.materials.MPM.*, got "
                             f"{type(material).__name__}")
+        if surface is not None and not isinstance(surface, gs_surfaces.Surface):
+            raise TypeError(f"add_entity: surface must be a gs.surfaces.* instance, got {type(surface).__name__}")
         if name is None:
             stem = os.path.splitext(os.path.basename(morph.file))[0] if isinstance(morph, gm.FileMorph) else type(morph).__name__.lower()
             name = f"{stem}_{len(self.entities)}"
@@ -107,6 +111,7 @@ class Scene:
             ent = RigidEntity(self, len(self.entities), model, morph, material)
             ent._solver_idx = len(self.rigid_entities)
             self.rigid_entities.append(ent)
+        ent.surface = surface  # read by cameras (colour, vis_mode)
         self.entities.append(ent)
         return ent
 
@@ -118,6 +123,17 @@ class Scene:
         ent = MPMEntity(self, len(self.entities), morph, material, name, particles, vol)
         self.mpm_entities.append(ent)
         return ent
+
+    def add_camera(self, res=(320, 320), pos=(0.5, 2.5, 3.5), lookat=(0.5, 0.5, 0.5), up=(0.0, 0.0, 1.0), fov=30,
+                   GUI=False, **kwargs):
+        """A headless camera (genesis_lite.vis.Camera) for render() and start/stop_recording(), before
+        or after build(). res = (width, height) px, pos / lookat / up in metres (world), fov the
+        vertical field of view in degrees; near, far (m) and env_idx as keywords."""
+        from .vis.camera import Camera
+
+        cam = Camera(self, len(self._cameras), res=res, pos=pos, lookat=lookat, up=up, fov=fov, GUI=GUI, **kwargs)
+        self._cameras.append(cam)
+        return cam
 
     def build(self, n_envs: int = 0, env_spacing=None, **kwargs):
         """Allocate the solvers' fields for `n_envs` parallel environments (0: unbatched) and compile.

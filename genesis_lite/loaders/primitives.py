@@ -12,7 +12,7 @@ from typing import Dict, Tuple
 
 import numpy as np
 
-from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc
+from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, VisualDesc
 
 ROOT_JOINT_NAME = "root_joint"  # what Pinocchio calls the free-flyer it adds; entity-scoped
 
@@ -295,6 +295,9 @@ def load_mesh(morph, material, name) -> EntityModel:
         faces=np.array(hull.faces, dtype=np.int64),
     )
     model = _root_link(morph, name, hull.mass, hull.center_mass, hull.moment_inertia, [g])
+    # cameras draw the file's own surface, not the hull that stands in for it in the physics
+    scale = np.broadcast_to(np.asarray(morph.scale, dtype=float), (3,)).copy()
+    model.links[0].visuals.append(VisualDesc("mesh", file=path, filename=morph.file, scale=scale))
     model.source = path
     model.validate()
     return model

@@ -22,7 +22,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, MimicDesc
+from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, MimicDesc, VisualDesc
 
 from .primitives import (
     ROOT_JOINT_NAME,
@@ -46,7 +46,8 @@ def _err(path, msg):
 # Parsing
 # --------------------------------------------------------------------------------------------
 def _parse(path: str):
-    """Return (yourdfpy Robot, {(link, collision index): (radius, length)} for capsules)."""
+    """Return (yourdfpy Robot, {(link, collision index): (radius, length)} for capsules; visual
+    capsules are keyed ('visual', link, visual index))."""
     from lxml import etree
     import yourdfpy
 
@@ -116,8 +117,8 @@ def _take_capsules(root) -> Dict[Tuple[str, int], Tuple[float, float]]:
                 if g[0].tag != "capsule":
                     continue
                 c = g[0]
-                if kind == "collision":
-                    caps[(link.get("name"), idx)] = (float(c.get("radius", "nan")), float(c.get("length", "nan")))
+                key = (link.get("name"), idx) if kind == "collision" else ("visual", link.get("name"), idx)
+                caps[key] = (float(c.get("radius", "nan")), float(c.get("length", "nan")))
                 c.tag = "cylinder"
     return caps
 
@@ -220,6 +221,53 @@ def _collision_geoms(path, link, s, capsules) -> List[GeomDesc]:
         else:
             raise _err(path, f"{where}: empty <geometry>")
     return geoms
+
+
+def _visual_descs(path, link, s, capsules, materials) -> List[VisualDesc]:
+    """Visual shapes of a URDF link, in the link frame, scaled. Mesh files are located but not read
+    (cameras read them on first use); a visual that cannot be drawn is skipped with a warning, since
+    it changes nothing in the physics."""
+    out = []
+    for idx, vis in enumerate(link.visuals):
+        T = _origin(vis.origin, s)
+        pos, quat = T[:3, 3].copy(), mat_to_quat(T[:3, :3])
+        g = vis.geometry
+        rgba = None
+        mat = vis.material
+        if mat is not None:
+            color = mat.color if mat.color is not None else getattr(materials.get(mat.name), "color", None)
+            if color is not None and color.rgba is not None:
+                rgba = tuple(float(c) for c in np.asarray(color.rgba, dtype=float).reshape(-1)[:4])
+        try:
+            if g is None:
+                raise ValueError("no <geometry>")
+            if ("visual", link.name, idx) in capsules:
+                r, length = capsules[("visual", link.name, idx)]
+                v = VisualDesc("capsule", pos, quat, (r * s, length * s / 2.0))
+            elif g.box is not None:
+                v = VisualDesc("box", pos, quat, tuple(float(x) * s / 2.0 for x in np.asarray(g.box.size).reshape(3)))
+            elif g.sphere is not None:
+                v = VisualDesc("sphere", pos, quat, (float(g.sphere.radius) * s,))
+            elif g.cylinder is not None:
+                v = VisualDesc("cylinder", pos, quat,
+                               (float(g.cylinder.radius) * s, float(g.cylinder.length) * s / 2.0))
+            elif g.mesh is not None:
+                file = next((p for p in _mesh_candidates(g.mesh.filename, path) if os.path.isfile(p)), None)
+                mscale = np.broadcast_to(np.asarray(1.0 if g.mesh.scale is None else g.mesh.scale, dtype=float), (3,))
+                v = VisualDesc("mesh", pos, quat, (), file=file, filename=g.mesh.filename, scale=mscale * s)
+            else:
+                raise ValueError("empty <geometry>")
+            d = np.asarray(v.size, dtype=float)
+            # capsules and cylinders may have zero length (a sphere, a disc); everything else must be positive
+            lo = 0.0 if v.type in ("capsule", "cylinder") else 1e-300
+            if not (np.all(np.isfinite(d)) and np.all(d[:1] > 0) and np.all(d[1:] >= lo)):
+                raise ValueError(f"<{v.type}> has non-positive or missing dimensions {v.size}")
+        except (TypeError, ValueError) as e:
+            warnings.warn(f"URDF '{path}', link '{link.name}', visual {idx}: {e}; it will not be drawn", stacklevel=3)
+            continue
+        v.rgba = rgba
+        out.append(v)
+    return out
 
 
 def _link_inertia(path, link, s, geoms, rho):
@@ -330,6 +378,7 @@ def load_urdf(morph, material, name) -> EntityModel:
     ]
     parts: List[list] = [[]]
     moving = {}
+    materials = {m.name: m for m in robot.materials if m.name}
 
     # Iterative pre-order DFS over URDF links. Each entry: (urdf link, its joint (None for the root),
     # index of the desc the joint hangs from, joint frame pose in that desc). A desc is created when
@@ -351,6 +400,10 @@ def load_urdf(morph, material, name) -> EntityModel:
             Tg = T @ pose_matrix(g.pos, g.quat)
             g.pos, g.quat = Tg[:3, 3].copy(), mat_to_quat(Tg[:3, :3])
             descs[di].geoms.append(g)
+        for v in _visual_descs(path, link, s, capsules, materials):
+            Tv = T @ pose_matrix(v.pos, v.quat)
+            v.pos, v.quat = Tv[:3, 3].copy(), mat_to_quat(Tv[:3, :3])
+            descs[di].visuals.append(v)
 
         for cj in reversed(children[ln]):  # reversed: children pop in ascending joint-name order
             if cj.type == "fixed" and not merge:

@@ -51,6 +51,27 @@ class GeomDesc:
 
 
 @dataclass
+class VisualDesc:
+    """A shape drawn for a link but ignored by the physics (URDF <visual>, the full mesh of a
+    gs.morphs.Mesh). Mesh files are only located here, never read: cameras load them when they first
+    render, so build time does not pay for meshes nobody looks at.
+
+    type: 'box' | 'sphere' | 'cylinder' | 'capsule' | 'mesh'; pos, quat in the link frame; size as in
+    GeomDesc (m); for meshes `file` is the resolved path (None when the file was not found, and
+    `filename` keeps what the URDF said) and `scale` the per-axis scale; rgba in [0, 1] or None.
+    """
+
+    type: str
+    pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    quat: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    size: Tuple[float, ...] = ()
+    file: Optional[str] = None
+    filename: str = ""
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    rgba: Optional[Tuple[float, float, float, float]] = None
+
+
+@dataclass
 class MimicDesc:
     """q_follower = multiplier * q_leader + offset (URDF <mimic>)."""
 
@@ -79,6 +100,7 @@ class LinkDesc:
     com: np.ndarray = field(default_factory=lambda: np.zeros(3))
     inertia: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     geoms: List[GeomDesc] = field(default_factory=list)
+    visuals: List[VisualDesc] = field(default_factory=list)
 
 
 @dataclass
