@@ -85,15 +85,16 @@ def func_deviatoric_direction(e):
 
 
 @ti.func
-def func_principal(mat, s, mu, lam, ys, alpha, deriv: ti.template()):
+def func_principal(mat, s, mu, lam, ys, alpha, deriv: ti.template(), present: ti.template()):
     """For SVD materials: h (singular values of F_new) and t (principal Kirchhoff stresses) as
     functions of the trial singular values s; with `deriv` also their Jacobians Jh, Jt and their
     derivatives with respect to the parameters (mu, lam, ys, alpha) as the columns of 3x4 matrices
-    (zero otherwise: the forward pass does not pay for them)."""
+    (zero otherwise: the forward pass does not pay for them). Only the materials in `present` (the
+    scene's) are compiled."""
     h = s
     Jh = ti.Matrix.identity(float, 3)
     dh = ti.Matrix.zero(float, 3, 4)
-    if mat == MAT_PLASTIC:
+    if ti.static(MAT_PLASTIC in present) and mat == MAT_PLASTIC:
         sc = ti.max(s, PLASTIC_MIN_STRETCH)
         e = ti.log(sc)
         m, n, dm = func_deviatoric_direction(e)
@@ -111,7 +112,7 @@ def func_principal(mat, s, mu, lam, ys, alpha, deriv: ti.template()):
                 for i in ti.static(range(3)):
                     dh[i, 0] = -h[i] * c / mu * m[i]
                     dh[i, 2] = h[i] * m[i] / (2.0 * mu)
-    elif mat == MAT_SAND:
+    if ti.static(MAT_SAND in present) and mat == MAT_SAND:
         sc = ti.max(s, SAND_MIN_STRETCH)
         e = ti.log(sc)
         tr = e.sum()
@@ -141,9 +142,9 @@ def func_principal(mat, s, mu, lam, ys, alpha, deriv: ti.template()):
     Jt0 = ti.Matrix.zero(float, 3, 3)
     dmu = ti.Vector.zero(float, 3)
     dlam = ti.Vector.zero(float, 3)
-    if mat == MAT_SAND:
+    if ti.static(MAT_SAND in present) and mat == MAT_SAND:
         t, Jt0, dmu, dlam = func_hencky(h, mu, lam)
-    else:
+    if ti.static(MAT_ELASTIC in present or MAT_PLASTIC in present) and mat != MAT_SAND:
         t, Jt0, dmu, dlam = func_corotated(h, mu, lam)
     Jt = Jt0 @ Jh
     dt = Jt0 @ dh
@@ -191,13 +192,16 @@ def func_svd_adjoint(U, s, V, h, Jh, t, Jt, gF, gtau):
 
 
 @ti.func
-def func_ad_material(mat, F, C, dt, mu, lam, eta):
-    """(F_new, tau) of the materials differentiated by Taichi (NEOHOOKEAN, LIQUID) from F_trial."""
+def func_ad_material(mat, F, C, dt, mu, lam, eta, present: ti.template()):
+    """(F_new, tau) of the materials differentiated by Taichi (NEOHOOKEAN, LIQUID) from F_trial; only
+    those in `present` are compiled. Single-assignment form with a 0/1 blend: Taichi's reverse mode
+    wants no branches on data here (and crashed on a matrix local stored twice)."""
     J = F.determinant()
     I = ti.Matrix.identity(float, 3)
-    w = ti.cast(mat == MAT_NEOHOOKEAN, float)  # 0/1 blend: Taichi's reverse mode wants no branches here
     Jc = ti.max(J, 1e-6)
-    F_liq = I * ti.pow(Jc, 1.0 / 3.0)
-    tau_neo = mu * (F @ F.transpose() - I) + lam * ti.log(Jc) * I
-    tau_liq = lam * J * (J - 1.0) * I + eta * J * (C + C.transpose())
-    return w * F + (1.0 - w) * F_liq, w * tau_neo + (1.0 - w) * tau_liq
+    w = ti.cast(mat == MAT_NEOHOOKEAN, float) if ti.static(MAT_NEOHOOKEAN in present and MAT_LIQUID in present) \
+        else (1.0 if ti.static(MAT_NEOHOOKEAN in present) else 0.0)
+    F_new = w * F + (1.0 - w) * I * ti.pow(Jc, 1.0 / 3.0)
+    tau = w * (mu * (F @ F.transpose() - I) + lam * ti.log(Jc) * I) + (1.0 - w) * (
+        lam * J * (J - 1.0) * I + eta * J * (C + C.transpose()))
+    return F_new, tau

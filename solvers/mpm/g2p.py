@@ -10,23 +10,23 @@ from .p2g import func_stencil
 def func_g2p(s: ti.template(), i_b, i_p, src, dst, dt):
     x = s.x[src, i_b, i_p]
     base, fx, w = func_stencil(s, x)
+    # C = 4/dx sum_o w_o v_o (o - fx)^T = 4/dx (sum_o w_o v_o o^T - new_v fx^T), accumulated column by
+    # column over the nodes with o_a > 0 (o's entries are the constants 0, 1, 2); also because Taichi
+    # 1.7's reverse mode without advanced_optimization crashes on a matrix-valued local accumulated
+    # in a loop
     new_v = ti.Vector.zero(float, 3)
-    # C accumulated column by column: Taichi 1.7's reverse mode without advanced_optimization crashes
-    # on a matrix-valued local accumulated in a loop (a segfault in the adjoint kernel)
     c0 = ti.Vector.zero(float, 3)
     c1 = ti.Vector.zero(float, 3)
     c2 = ti.Vector.zero(float, 3)
-    for offset in ti.static(ti.grouped(ti.ndrange(3, 3, 3))):
-        dpos = ti.cast(offset, float) - fx
-        g_v = s.grid_v[i_b, base + offset]
-        weight = w[offset[0]][0] * w[offset[1]][1] * w[offset[2]][2]
-        new_v += weight * g_v
-        wg = (4.0 * s.inv_dx * weight) * g_v
-        c0 += wg * dpos[0]
-        c1 += wg * dpos[1]
-        c2 += wg * dpos[2]
-    # a particle never leaves the grid (the walls stop it before; this guards against blow-ups)
+    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+        wv = (w[i][0] * w[j][1] * w[k][2]) * s.grid_v[i_b, base + ti.Vector([i, j, k])]
+        new_v += wv
+        c0 += float(i) * wv
+        c1 += float(j) * wv
+        c2 += float(k) * wv
+    scale = 4.0 * s.inv_dx
     x_new = x + dt * new_v
     s.x[dst, i_b, i_p] = ti.Vector([ti.min(ti.max(x_new[a], s.x_min[a]), s.x_max[a]) for a in ti.static(range(3))])
     s.v[dst, i_b, i_p] = new_v
-    s.C[dst, i_b, i_p] = ti.Matrix.cols([c0, c1, c2])
+    s.C[dst, i_b, i_p] = ti.Matrix.cols([scale * (c0 - fx[0] * new_v), scale * (c1 - fx[1] * new_v),
+                                         scale * (c2 - fx[2] * new_v)])

@@ -57,7 +57,7 @@ class MPMSolver:
         self.h = dt / substeps
         self.requires_grad = requires_grad
         self.wall_friction = float(wall_friction)
-        self.mats = sorted(set(int(m) for m in mat))
+        self.mats = tuple(sorted(set(int(m) for m in mat)))
         self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
         self.has_ad = any(m in AD_MATERIALS for m in self.mats)
         self.coupler = coupler
@@ -227,7 +227,7 @@ class MPMSolver:
                 _, Ft = self.func_trial(i_b, i_p, src, h)
                 U, s, V = func_svd3(Ft)
                 hs, _Jh, _dh, t, _Jt, _dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
-                                                   self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], False)
+                                                   self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], False, self.mats)
                 Fn = U @ ti.Matrix([[hs[0], 0.0, 0.0], [0.0, hs[1], 0.0], [0.0, 0.0, hs[2]]]) @ V.transpose()
                 # elastic: F_new is F_trial itself, not its SVD reassembled (which would drift by round-off)
                 if mat == MAT_ELASTIC:
@@ -246,7 +246,7 @@ class MPMSolver:
                 A, Ft = self.func_trial(i_b, i_p, src, h)
                 U, s, V = func_svd3(Ft)
                 hs, Jh, dh, t, Jt, dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
-                                                       self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], True)
+                                                       self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], True, self.mats)
                 gFt, dG, dT = func_svd_adjoint(U, s, V, hs, Jh, t, Jt, self.F.grad[dst, i_b, i_p],
                                                self.tau.grad[i_b, i_p])
                 self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
@@ -264,7 +264,7 @@ class MPMSolver:
             if mat == MAT_NEOHOOKEAN or mat == MAT_LIQUID:
                 _, Ft = self.func_trial(i_b, i_p, src, h)
                 Fn, tau = func_ad_material(mat, Ft, self.C[src, i_b, i_p], h, self.mu[i_b, i_p],
-                                           self.lam[i_b, i_p], self.viscosity[i_b, i_p])
+                                           self.lam[i_b, i_p], self.viscosity[i_b, i_p], self.mats)
                 self.F[dst, i_b, i_p] = Fn
                 self.tau[i_b, i_p] = tau
 

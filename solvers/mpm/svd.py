@@ -16,21 +16,34 @@ TINY = 1e-30
 
 @ti.func
 def func_jacobi_rotate(A, V, p: ti.template(), q: ti.template()):
-    """One Jacobi rotation zeroing A[p, q] of the symmetric A; returns (J^T A J, V J)."""
+    """One Jacobi rotation zeroing A[p, q] of the symmetric A: returns (J^T A J, V J), touching only
+    the entries that change (rows and columns p, q) to keep the unrolled sweeps small."""
+    r = 3 - p - q
     apq = A[p, q]
     c = 1.0
     s = 0.0
+    t = 0.0
     if ti.abs(apq) > TINY:
         theta = (A[q, q] - A[p, p]) / (2.0 * apq)
         t = ti.select(theta >= 0.0, 1.0, -1.0) / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
         c = 1.0 / ti.sqrt(t * t + 1.0)
         s = t * c
-    J = ti.Matrix.identity(float, 3)
-    J[p, p] = c
-    J[q, q] = c
-    J[p, q] = s
-    J[q, p] = -s
-    return J.transpose() @ A @ J, V @ J
+    B = A
+    B[p, p] = A[p, p] - t * apq
+    B[q, q] = A[q, q] + t * apq
+    B[p, q] = 0.0
+    B[q, p] = 0.0
+    arp = c * A[r, p] - s * A[r, q]
+    arq = s * A[r, p] + c * A[r, q]
+    B[r, p] = arp
+    B[p, r] = arp
+    B[r, q] = arq
+    B[q, r] = arq
+    W = V
+    for i in ti.static(range(3)):
+        W[i, p] = c * V[i, p] - s * V[i, q]
+        W[i, q] = s * V[i, p] + c * V[i, q]
+    return B, W
 
 
 @ti.func
