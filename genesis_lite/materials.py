@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -9,16 +10,27 @@ import numpy as np
 @dataclass
 class Rigid:
     """rho: density (kg/m^3) used for links without a URDF <inertial> and for primitive shapes;
-    friction: Coulomb coefficient (dimensionless, >= 0)."""
+    friction: Coulomb coefficient (dimensionless, >= 0) against other rigid bodies. Coupling with MPM
+    materials (Genesis's names): needs_coup (the body is a boundary for MPM particles), coup_friction
+    (Coulomb coefficient against them), coup_softness (m: width of the band outside the surface over
+    which the boundary fades in; None: half an MPM grid cell)."""
 
     rho: float = 200.0
     friction: float = 1.0
+    needs_coup: bool = True
+    coup_friction: float = 0.1
+    coup_softness: Optional[float] = None
 
     def __post_init__(self):
         if not (np.isfinite(self.rho) and self.rho > 0):
             raise ValueError(f"gs.materials.Rigid(rho={self.rho!r}): density must be a positive number (kg/m^3)")
         if not (np.isfinite(self.friction) and self.friction >= 0):
             raise ValueError(f"gs.materials.Rigid(friction={self.friction!r}): friction must be a finite number >= 0")
+        if not (np.isfinite(self.coup_friction) and self.coup_friction >= 0):
+            raise ValueError(f"gs.materials.Rigid(coup_friction={self.coup_friction!r}): must be a finite number >= 0")
+        if self.coup_softness is not None and not (np.isfinite(self.coup_softness) and self.coup_softness > 0):
+            raise ValueError(f"gs.materials.Rigid(coup_softness={self.coup_softness!r}): must be None or a positive "
+                             "number (m)")
 
 
 def _check_positive(owner, name, v, unit):

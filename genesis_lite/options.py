@@ -151,6 +151,23 @@ class MPMOptions(_Options):
 
 
 @dataclass
+class CouplerOptions(_Options):
+    """Coupling between solvers (Genesis's name): rigid_mpm couples rigid bodies and MPM materials in
+    both directions (rigid collision geoms are moving boundaries on the MPM grid, and the impulses the
+    grid gives them come back as forces); mpm_reaction=False makes it one-way (the rigid bodies move
+    the material but do not feel it). Friction and softness are per rigid material
+    (gs.materials.Rigid coup_friction, coup_softness)."""
+
+    rigid_mpm: bool = True
+    mpm_reaction: bool = True
+
+    def _validate(self):
+        for name in ("rigid_mpm", "mpm_reaction"):
+            if not isinstance(getattr(self, name), bool):
+                self._err(name, getattr(self, name), "must be True or False")
+
+
+@dataclass
 class ViewerOptions(_Options):
     """Accepted for Genesis compatibility; genesis_lite is headless."""
 

@@ -40,7 +40,7 @@ class RigidSim:
     n_state = 2
     n_outputs = 1
 
-    def __init__(self, scene, models, n_envs, sim_options, rigid_options):
+    def __init__(self, scene, models, n_envs, sim_options, rigid_options, external_wrench=False):
         import genesis_lite as gs
 
         self.scene = scene
@@ -59,7 +59,7 @@ class RigidSim:
                                   rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
                                   rigid_options.joint_limit_damping,
                                   contact_options=rigid_options if rigid_options.enable_collision else None,
-                                  mimic=rigid_options.enable_mimic)
+                                  mimic=rigid_options.enable_mimic, external_wrench=external_wrench)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.sim = None  # the scene's Simulator, set when it takes this bridge

@@ -13,7 +13,7 @@ from . import materials as gmat
 from . import morphs as gm
 from . import surfaces as gs_surfaces
 from .errors import GenesisException
-from .options import MPMOptions, RigidOptions, SimOptions
+from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions
 
 logger = logging.getLogger("genesis_lite")
 
@@ -34,7 +34,8 @@ class Scene:
     gs.options; `requires_grad=True` in SimOptions makes every getter part of torch's graph."""
 
     def __init__(self, sim_options: Optional[SimOptions] = None, rigid_options: Optional[RigidOptions] = None,
-                 mpm_options: Optional[MPMOptions] = None, viewer_options=None, show_viewer: bool = False, **kwargs):
+                 mpm_options: Optional[MPMOptions] = None, coupler_options: Optional[CouplerOptions] = None,
+                 viewer_options=None, show_viewer: bool = False, **kwargs):
         import genesis_lite as gs
 
         gs._assert_initialized()
@@ -48,6 +49,9 @@ class Scene:
             raise TypeError(f"mpm_options must be gs.options.MPMOptions, got {type(mpm_options).__name__}")
         self._mpm_options_given = mpm_options is not None
         self.mpm_options = mpm_options if mpm_options is not None else MPMOptions()
+        if coupler_options is not None and not isinstance(coupler_options, CouplerOptions):
+            raise TypeError(f"coupler_options must be gs.options.CouplerOptions, got {type(coupler_options).__name__}")
+        self.coupler_options = coupler_options if coupler_options is not None else CouplerOptions()
         unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options"}
         if unknown:
             raise TypeError(f"gs.Scene got unexpected arguments {sorted(unknown)}")
@@ -58,6 +62,7 @@ class Scene:
         self._built = False
         self._rigid = None
         self._mpm = None
+        self._coupler = None
         self._simulator = None
         self.n_envs = 0
 
@@ -145,12 +150,8 @@ class Scene:
         if not (isinstance(n_envs, (int, np.integer)) and n_envs >= 0):
             raise ValueError(f"scene.build(n_envs={n_envs!r}): n_envs must be an integer >= 0")
         self.n_envs = int(n_envs)
+        coupled = bool(self.rigid_entities and self.mpm_entities and self.coupler_options.rigid_mpm)
         bridges = []
-        if self.mpm_entities:
-            bridges.append(self._build_mpm())
-        elif self._mpm_options_given:
-            raise GenesisException("scene: mpm_options were given but the scene has no MPM entity; add an entity made "
-                                   "of a gs.materials.MPM.* material, or drop mpm_options")
         if self.rigid_entities or not self.mpm_entities:
             from .rigid_sim import RigidSim
 
@@ -159,14 +160,46 @@ class Scene:
                 e._on_build(ls, qs, ds)
                 ls, qs, ds = ls + e.n_links, qs + e.n_qs, ds + e.n_dofs
             self._rigid = RigidSim(self, [e.model for e in self.rigid_entities], self.n_envs, self.sim_options,
-                                   self.rigid_options)
-            bridges.append(self._rigid)
-        if self.rigid_entities and self.mpm_entities:
-            logger.info("scene: rigid and MPM entities are simulated side by side but do not interact "
-                        "(rigid-MPM coupling is not enabled)")
+                                   self.rigid_options, external_wrench=coupled)
+        if self.mpm_entities:
+            bridges.append(self._build_mpm())
+            if coupled:
+                self._build_coupler()
+            elif self.rigid_entities:
+                logger.info("scene: rigid and MPM entities are simulated side by side but do not interact "
+                            "(CouplerOptions(rigid_mpm=False))")
+        elif self._mpm_options_given:
+            raise GenesisException("scene: mpm_options were given but the scene has no MPM entity; add an entity made "
+                                   "of a gs.materials.MPM.* material, or drop mpm_options")
+        if self._rigid is not None:
+            bridges.append(self._rigid)  # after MPM: each substep moves the MPM material, then the bodies
         self._simulator = Simulator(bridges, self.sim_options)
         self._built = True
         self._init_state = self.get_state()
+
+    def _build_coupler(self):
+        """Rigid collision geoms of entities with needs_coup become boundaries on the MPM grid."""
+        from solvers.coupling import RigidMPMCoupler
+        from solvers.rigid.collision import build_geoms
+
+        geoms = build_geoms([e.model for e in self.rigid_entities], int(self.rigid_options.max_mesh_contact_points))
+        keep = np.array([self.rigid_entities[int(i)].material.needs_coup for i in geoms.entity], dtype=bool)
+        for e in self.rigid_entities:
+            if e.material.needs_coup and e.n_geoms == 0:
+                logger.warning(f"scene: rigid entity '{e.name}' has no collision geometry, so MPM material passes "
+                               "through it (give its links <collision> shapes to couple it)")
+        idx = np.nonzero(keep)[0]
+        if len(idx) == 0:
+            logger.info("scene: no rigid entity has collision geometry to couple with the MPM material")
+            return
+        dx = self.mpm_options.dx
+        mats = [self.rigid_entities[int(geoms.entity[i])].material for i in idx]
+        softness = min(m.coup_softness if m.coup_softness is not None else 0.5 * dx for m in mats)
+        solver = self._mpm.solver
+        coupler = RigidMPMCoupler(self._rigid.solver, geoms, idx, [m.coup_friction for m in mats], softness,
+                                  self.coupler_options.mpm_reaction, solver.grid_res, solver.np_lower, dx, solver.dtype)
+        solver.attach_coupler(coupler)
+        self._coupler = coupler
 
     def _build_mpm(self):
         from .mpm_sim import MPMSim, check_time_step

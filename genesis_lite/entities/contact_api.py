@@ -174,3 +174,17 @@ class ContactMixin:
                     np.add.at(per_link, side[mine] - ls, sgn * F[:, mine].transpose(1, 0, 2))
         t = torch.as_tensor(out, dtype=sim.dtype, device=sim.device)
         return self._out(t[envs.cpu()])
+
+    def get_links_mpm_force(self, envs_idx=None):
+        """Force the MPM material exerted on each link of the entity (N, world frame), averaged over the
+        substeps of the last step, (n_links, 3) (batched: (n_envs, n_links, 3)); zeros when the scene
+        couples no MPM material to it; no gradient."""
+        sim = self._sim
+        envs = self._envs(envs_idx)
+        s = sim.solver
+        out = np.zeros((sim.B, self.n_links, 3))
+        if getattr(s, "external", False):
+            ls = self._link_start
+            out = s.ext_f.to_numpy().mean(0)[:, ls:ls + self.n_links]
+        t = torch.as_tensor(out, dtype=sim.dtype, device=sim.device)
+        return self._out(t[envs.cpu()])

@@ -10,6 +10,10 @@ class Tensor(torch.Tensor):
     def __torch_function__(cls, func, types, args=(), kwargs=None):
         return super().__torch_function__(func, types, args, kwargs or {})
 
+    def __format__(self, spec):
+        # torch formats 0-d tensors with a spec (f"{x:.3f}") only for the exact torch.Tensor type
+        return torch.Tensor.__format__(self.as_subclass(torch.Tensor), spec)
+
 
 def wrap(t: torch.Tensor) -> Tensor:
     return t.as_subclass(Tensor)

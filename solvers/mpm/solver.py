@@ -100,6 +100,12 @@ class MPMSolver:
         self.gravity.from_numpy(np.tile(np.asarray(gravity, nd), (self.n_envs, 1)))
         self.x0 = np.asarray(x0, nd)
 
+    def attach_coupler(self, coupler):
+        """Add the rigid boundaries of `coupler` (solvers/coupling.py) to the grid update; before the
+        first launch (kernels compile with or without it)."""
+        self.coupler = coupler
+        self.coupled = True
+
     def _make_units(self):
         """The Tape-recorded calls with their own adjoints (see the module docstring)."""
 
@@ -117,7 +123,7 @@ class MPMSolver:
 
         @ti.ad.grad_replaced
         def substep_unit(i):
-            self._substep_launches(i, i + 1)
+            self._substep_launches(i, i, i + 1)
 
         @ti.ad.grad_for(substep_unit)
         def substep_unit_grad(i):
@@ -126,7 +132,7 @@ class MPMSolver:
             self._region = tuple(int(r) for r in self.kernel_active_region(i))
             self.kernel_clear_grid_grads()
             with ti.ad.Tape(loss=torch.zeros((), dtype=torch.float64, requires_grad=True), clear_gradients=False):
-                self._substep_launches(i, i + 1, taped=True)
+                self._substep_launches(i, i, i + 1, taped=True)
 
         self.constitutive_svd = constitutive_svd
         self.clear_grid = clear_grid
@@ -137,8 +143,8 @@ class MPMSolver:
         self._region = tuple(int(r) for r in self.kernel_active_region(src))
         self.kernel_clear_grid()
 
-    def _substep_launches(self, src, dst, taped=False):
-        """One substep's launches. `taped`: they are being recorded on the nested Tape of the substep's
+    def _substep_launches(self, i, src, dst, taped=False):
+        """Substep i's launches, from particle slot src to dst. `taped`: they are being recorded on the nested Tape of the substep's
         adjoint, so the pieces with adjoints of their own go through their grad_replaced / no_grad
         wrappers. Otherwise they are plain launches: Taichi clears its 'inside a grad_replaced call'
         flag when such a wrapper returns, so one called inside the substep's own grad_replaced forward
@@ -156,8 +162,8 @@ class MPMSolver:
             self.kernel_constitutive_ad(src, dst, self.h)
         self.kernel_p2g(src, self.h)
         if self.coupler is not None:
-            self.coupler.before_grid(src)
-        self.kernel_grid_update(self.h, *self._region)
+            self.coupler.before_grid(i, self._region, taped)
+        self.kernel_grid_update(self.h, i, *self._region)
         self.kernel_g2p(src, dst, self.h)
 
     def substep(self, i: int, grad: bool):
@@ -166,7 +172,7 @@ class MPMSolver:
         if grad:
             self.substep_unit(i)
         else:
-            self._substep_launches(0, 0)
+            self._substep_launches(i, 0, 0)
 
     @property
     def last_slot(self):
@@ -274,15 +280,17 @@ class MPMSolver:
             func_p2g(self, i_b, i_p, src, h)
 
     @ti.kernel
-    def kernel_grid_update(self, h: float, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32, n2: ti.i32):
-        """Grid velocities of the nodes in the block (l0, l1, l2) + [0, n0) x [0, n1) x [0, n2)."""
+    def kernel_grid_update(self, h: float, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32,
+                           n2: ti.i32):
+        """Grid velocities of the nodes in the block (l0, l1, l2) + [0, n0) x [0, n1) x [0, n2) in
+        substep `sub`."""
         for i_b, i, j, k in ti.ndrange(self.n_envs, n0, n1, n2):
             I = ti.Vector([l0 + i, l1 + j, l2 + k])
             v_walls = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
             if ti.static(not self.coupled):
                 self.grid_v[i_b, I] = v_walls
             else:
-                self.grid_v[i_b, I] = self.coupler.func_rigid_boundary(self, i_b, I, v_walls, h)
+                self.grid_v[i_b, I] = self.coupler.func_rigid_boundary(self, i_b, I, v_walls, h, sub)
 
     @ti.kernel
     def kernel_g2p(self, src: ti.i32, dst: ti.i32, h: float):

@@ -46,7 +46,7 @@ class RigidSolver:
 
     def __init__(self, models: List[EntityModel], n_envs: int, dt: float, substeps: int, integrator: int,
                  gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float,
-                 contact_options=None, mimic=False):
+                 contact_options=None, mimic=False, external_wrench=False):
         self.models = models
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
@@ -73,6 +73,19 @@ class RigidSolver:
 
             self.contact = ContactSolver.create(self, models, contact_options)
         self.dynamics_stages = DYNAMICS + (self.contact.stages if self.contact is not None else ())
+        # external wrenches per substep (ext_f, ext_t: written by the rigid-MPM coupler)
+        self.external = bool(external_wrench)
+        if self.external:
+            from .external import EXTERNAL_STAGES
+
+            B, L, f, g = self.n_envs, max(self.n_links, 1), self.dtype, self.requires_grad
+            self.ext_f = ti.Vector.field(3, f, shape=(self.substeps, B, L), needs_grad=g)
+            self.ext_t = ti.Vector.field(3, f, shape=(self.substeps, B, L), needs_grad=g)
+            self.ext_sum_f = ti.Vector.field(3, f, shape=(B, L), needs_grad=g)
+            self.ext_sum_t = ti.Vector.field(3, f, shape=(B, L), needs_grad=g)
+            self.dynamics_stages = self.dynamics_stages + EXTERNAL_STAGES
+            if g:
+                self.grad_fields = self.grad_fields + [self.ext_f, self.ext_t, self.ext_sum_f, self.ext_sum_t]
         # contacts between two moving bodies couple dofs outside the tree sparsity: dense factorisation
         self.dense_solve = self.contact is not None and self.contact.dense
         if self.contact is not None and requires_grad:
@@ -200,6 +213,7 @@ class RigidSolver:
                     else:
                         ops.append((OP_INT, INT_RK_FINAL, e, base, base + k, base + 4, h))
             self.n_slots, self.n_evals = 4 * self.substeps + 1, 4 * self.substeps
+            self.evals_per_substep = 4
         else:
             for i in range(self.substeps):
                 first.append(len(ops))
@@ -207,6 +221,7 @@ class RigidSolver:
                 ops.append((OP_SOLVE, 0, i, i, i, 0, 0.0))
                 ops.append((OP_INT, INT_EULER, i, i, i, i + 1, h))
             self.n_slots, self.n_evals = self.substeps + 1, self.substeps
+            self.evals_per_substep = 1
         self.ops = ops
         self.substep_first_op = first + [len(ops)]
         self.substep_ops = [ops[first[i]:self.substep_first_op[i + 1]] for i in range(self.substeps)]

@@ -1,0 +1,145 @@
+"""Two-way rigid-MPM coupling on the MPM grid.
+
+Every collision geom of a coupled rigid entity is a moving boundary for the MPM grid. In each substep,
+after particle-to-grid, the rigid links' poses and velocities at the substep's start are computed
+(the rigid solver's kinematics), every grid node near the particles picks the geom it is deepest in
+(or nearest to, within `softness` outside), and the grid update projects the node's velocity relative
+to that geom's surface velocity:
+
+    v_rel = v - v_body(x),  v_n = v_rel . n  (n: the geom's outward normal at the node)
+    approaching (v_n < 0): the normal part is removed, the tangential part slides with Coulomb
+    friction mu (it loses mu |v_n| of speed, never reverses), blended in over a band of width
+    `softness` outside the surface (smoothstep of the signed distance: 1 inside, 0 beyond the band)
+
+The momentum the node loses, m (v - v_new), is the impulse the MPM material gives the body: divided by
+the substep it becomes a force at the node on the geom's link (and its torque about the world origin),
+summed into the rigid solver's external wrench of that substep (solvers/rigid/external.py), which the
+rigid solver applies in the same substep. Both directions are differentiable: the projection is part
+of the MPM grid update (Taichi's autodiff), the body's pose and velocity come from the rigid
+kinematics launched inside the MPM substep (so its adjoint reaches the rigid state), and the wrench
+enters the rigid dynamics like any generalised force.
+
+The choice of geom per node is discrete (no gradient); it is recomputed with the grid when the MPM
+substep's adjoint replays it.
+"""
+import numpy as np
+import taichi as ti
+
+from .rigid.collision import func_sdf_any, geom_rotations
+
+TINY = 1e-30
+
+
+@ti.data_oriented
+class RigidMPMCoupler:
+    """rigid: the RigidSolver (built with external_wrench=True); geoms: the GeomTable of its collision
+    geoms (solvers/rigid/collision.py build_geoms), of which those at `idx` are coupled; friction:
+    Coulomb coefficient per coupled geom;
+    softness (m): width of the band outside a surface over which its boundary fades in; reaction:
+    whether the rigid bodies feel the MPM material (two-way) or only move it (one-way)."""
+
+    def __init__(self, rigid, geoms, idx, friction, softness, reaction, grid_res, lower, dx, dtype):
+        self.rigid = rigid
+        idx = np.asarray(idx, dtype=np.int64)
+        self.n_geoms = len(idx)
+        self.softness = float(softness)
+        self.reaction = bool(reaction)
+        self.lower = ti.Vector([float(v) for v in lower])
+        self.dx = float(dx)
+        self.sdf_types = tuple(sorted({int(t) for t in geoms.type[idx]}))
+        G, B = max(len(idx), 1), rigid.n_envs
+        npf = np.float64 if dtype == ti.f64 else np.float32
+        self.geom_type, self.geom_link = ti.field(ti.i32, shape=G), ti.field(ti.i32, shape=G)
+        self.geom_pos = ti.Vector.field(3, dtype, shape=G)
+        self.geom_R = ti.Matrix.field(3, 3, dtype, shape=G)
+        self.geom_size = ti.Vector.field(3, dtype, shape=G)
+        self.geom_kdop = ti.field(dtype, shape=(G, geoms.kdop.shape[1]))
+        self.geom_friction = ti.field(dtype, shape=G)
+        self.node_geom = ti.field(ti.i32, shape=(B,) + tuple(grid_res))
+        quat = geoms.quat[idx]
+        self.geom_type.from_numpy(geoms.type[idx].astype(np.int32))
+        self.geom_link.from_numpy(geoms.link[idx].astype(np.int32))
+        self.geom_pos.from_numpy(geoms.pos[idx].astype(npf))
+        self.geom_R.from_numpy(geom_rotations(quat / np.linalg.norm(quat, axis=1, keepdims=True)).astype(npf))
+        self.geom_size.from_numpy(geoms.size[idx].astype(npf))
+        self.geom_kdop.from_numpy(np.ascontiguousarray(geoms.kdop[idx]).astype(npf))
+        self.geom_friction.from_numpy(np.asarray(friction, dtype=npf))
+        self._make_units()
+
+    def _make_units(self):
+        @ti.ad.no_grad
+        def select(sub, region):
+            self.kernel_select(sub, *region)
+
+        self.select = select
+
+    def before_grid(self, i, region, taped):
+        """Substep i, after particle-to-grid: the rigid links' poses and velocities at the substep's
+        start, the geom each node of `region` answers to, and a zeroed external wrench. `taped`: the
+        launches are being recorded on a Tape (the MPM substep's adjoint): the selection goes through
+        its no_grad wrapper there and is a plain launch otherwise (see MPMSolver._substep_launches)."""
+        r = self.rigid
+        r.scratch_overwritten()
+        r.kernel_kinematics(r.substep_slot[i])
+        if taped:
+            self.select(i, region)
+        else:
+            self.kernel_select(i, *region)
+
+    @ti.func
+    def func_geom_frame(self, i_b, g):
+        """World rotation and origin of geom g, and its link."""
+        l = self.geom_link[g]
+        Rl = self.rigid.link_R[i_b, l]
+        return Rl @ self.geom_R[g], self.rigid.link_pos[i_b, l] + Rl @ self.geom_pos[g], l
+
+    @ti.func
+    def func_sdf_world(self, i_b, g, x):
+        """Signed distance of the world point x to geom g and the outward unit normal there (world)."""
+        R, p, l = self.func_geom_frame(i_b, g)
+        q = R.transpose() @ (x - p)
+        phi, n = func_sdf_any(self, 0, self.geom_type[g], g, q, ti.Vector([0.0, 0.0, 1.0]), 0.0)
+        return phi, R @ n, l
+
+    @ti.kernel
+    def kernel_select(self, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32, n2: ti.i32):
+        for i_b, i, j, k in ti.ndrange(self.rigid.n_envs, n0, n1, n2):
+            I = ti.Vector([l0 + i, l1 + j, l2 + k])
+            x = self.lower + ti.cast(I, float) * self.dx
+            best = -1
+            best_phi = self.softness
+            for g in range(self.n_geoms):
+                phi, n, l = self.func_sdf_world(i_b, g, x)
+                if phi < best_phi:
+                    best = g
+                    best_phi = phi
+            self.node_geom[i_b, I] = best
+        for i_b, l in ti.ndrange(self.rigid.n_envs, max(self.rigid.n_links, 1)):
+            self.rigid.ext_f[sub, i_b, l] = ti.Vector.zero(float, 3)
+            self.rigid.ext_t[sub, i_b, l] = ti.Vector.zero(float, 3)
+
+    @ti.func
+    def func_rigid_boundary(self, mpm: ti.template(), i_b, I, v, h, sub):
+        """Grid velocity of node I after the rigid boundary it answers to (see the module docstring),
+        and the reaction wrench onto that boundary's link. Single-assignment form (Taichi's reverse
+        mode); a node with no geom passes through unchanged."""
+        g = self.node_geom[i_b, I]
+        has = ti.cast(g >= 0, float)
+        gg = ti.max(g, 0)
+        x = self.lower + ti.cast(I, float) * self.dx
+        phi, n, l = self.func_sdf_world(i_b, gg, x)
+        v_body = self.rigid.cvel_v[i_b, l] + self.rigid.cvel_w[i_b, l].cross(x)
+        v_rel = v - v_body
+        vn = v_rel.dot(n)
+        t = ti.min(ti.max(1.0 - phi / self.softness, 0.0), 1.0)
+        alpha = has * t * t * (3.0 - 2.0 * t)
+        approach = ti.cast(vn < 0.0, float)
+        vt = v_rel - vn * n
+        vt_norm = ti.sqrt(vt.dot(vt) + TINY)
+        vt_new = vt * ti.max(0.0, 1.0 + self.geom_friction[gg] * vn / vt_norm)
+        v_new = v + alpha * approach * (vt_new - v_rel)
+        if ti.static(self.reaction):
+            f = mpm.grid_m[i_b, I] / h * (v - v_new)
+            self.rigid.ext_f[sub, i_b, l] += f
+            self.rigid.ext_t[sub, i_b, l] += x.cross(f)
+        return v_new
