@@ -65,9 +65,12 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     ti_float = ti.f64 if str(precision) == "64" else ti.f32
     tc_float = torch.float64 if str(precision) == "64" else torch.float32
     np_float = np.float64 if str(precision) == "64" else np.float32
-    # Taichi's advanced IR optimisation makes the gradient kernels compile 4-5x slower (tens of
-    # seconds) for ~10 % faster steps; it stays available as gs.init(advanced_optimization=True).
-    kw = dict(arch=arch, default_fp=ti_float, default_ip=ti.i32, debug=debug, unrolling_limit=0, advanced_optimization=False,
+    # Taichi's advanced IR optimisation makes the gradient kernels compile 2-5x slower for ~10 %
+    # faster steps, so float64 goes without it. float32 cannot: without it, Taichi 1.7.4's reverse
+    # mode gives zero adjoints to every local accumulated in float32 (`acc += x`, and so `dot`, `norm`,
+    # `sum`) and crashes on some kernels (tests/test_precision.py checks float32 gradients against float64).
+    kw = dict(arch=arch, default_fp=ti_float, default_ip=ti.i32, debug=debug, unrolling_limit=0,
+              advanced_optimization=str(precision) == "32",
               log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
     kw.update(taichi_kwargs)
     ti.init(**kw)
