@@ -6,6 +6,8 @@ joint-limit springs (stiff by design).
 """
 import taichi as ti
 
+from .math3d import func_add
+
 CTRL_FORCE, CTRL_POSITION, CTRL_VELOCITY = 0, 1, 2
 FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh friction loss
 
@@ -49,5 +51,9 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         K = lim_K + s.implicit_on * kp * free_act
         D = lim_D + s.implicit_on * (kv * free_act + damp + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
         s.force[i_b, i_d] = tau - damp * v - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
-        s.mass_mat[i_b, i_d, i_d] += s.dof_armature[i_b, i_d] + h * D + h * h * K
+        diag = s.dof_armature[i_b, i_d] + h * D + h * h * K
+        if ti.static(s.requires_grad):
+            s.mass_mat[i_b, i_d, i_d] += diag
+        else:  # see math3d.func_add
+            s.mass_mat[i_b, i_d, i_d] = s.mass_mat[i_b, i_d, i_d] + diag
 

@@ -7,7 +7,7 @@ f_bar = M^-1 qacc_bar and M_bar = -f_bar qacc^T.
 """
 import taichi as ti
 
-from .math3d import func_inertia_mul
+from .math3d import func_add, func_inertia_mul
 
 
 @ti.func
@@ -24,9 +24,9 @@ def func_composite_inertia(s: ti.template(), i_b, e, src, h):
         i_l = s.n_links - 1 - k
         p = s.link_parent[i_l]
         if p >= 0:
-            s.crb_m[i_b, p] += s.crb_m[i_b, i_l]
-            s.crb_h[i_b, p] += s.crb_h[i_b, i_l]
-            s.crb_J[i_b, p] += s.crb_J[i_b, i_l]
+            func_add(s, s.crb_m, i_b, p, s.crb_m[i_b, i_l])
+            func_add(s, s.crb_h, i_b, p, s.crb_h[i_b, i_l])
+            func_add(s, s.crb_J, i_b, p, s.crb_J[i_b, i_l])
 
 
 @ti.func
@@ -55,7 +55,7 @@ def func_factor(s: ti.template(), i_b):
             a = s.mass_fac[i_b, k, i] / s.mass_fac[i_b, k, k]
             j = i
             while j >= 0:
-                s.mass_fac[i_b, i, j] -= a * s.mass_fac[i_b, k, j]
+                s.mass_fac[i_b, i, j] = s.mass_fac[i_b, i, j] - a * s.mass_fac[i_b, k, j]
                 j = s.dof_parent[j]
             s.mass_fac[i_b, k, i] = a
             i = s.dof_parent[i]
@@ -69,14 +69,14 @@ def func_solve(s: ti.template(), i_b, x: ti.template(), e):
         i = n - 1 - kk
         j = s.dof_parent[i]
         while j >= 0:
-            x[e, i_b, j] -= s.mass_fac[i_b, i, j] * x[e, i_b, i]
+            x[e, i_b, j] = x[e, i_b, j] - s.mass_fac[i_b, i, j] * x[e, i_b, i]
             j = s.dof_parent[j]
     for i in range(n):
-        x[e, i_b, i] /= s.mass_fac[i_b, i, i]
+        x[e, i_b, i] = x[e, i_b, i] / s.mass_fac[i_b, i, i]
     for i in range(n):
         j = s.dof_parent[i]
         while j >= 0:
-            x[e, i_b, i] -= s.mass_fac[i_b, i, j] * x[e, i_b, j]
+            x[e, i_b, i] = x[e, i_b, i] - s.mass_fac[i_b, i, j] * x[e, i_b, j]
             j = s.dof_parent[j]
 
 
@@ -95,7 +95,7 @@ def func_solve_grad(s: ti.template(), i_b, e):
         s.solve_tmp[0, i_b, i] = s.qacc.grad[e, i_b, i]
     func_solve(s, i_b, s.solve_tmp, 0)
     for i in range(s.n_dofs):
-        s.force.grad[i_b, i] += s.solve_tmp[0, i_b, i]
+        s.force.grad[i_b, i] = s.force.grad[i_b, i] + s.solve_tmp[0, i_b, i]
     for ij in range(s.n_dofs * s.n_dofs):
         i = ij // s.n_dofs
         j = ij % s.n_dofs
@@ -103,7 +103,7 @@ def func_solve_grad(s: ti.template(), i_b, e):
             g = s.solve_tmp[0, i_b, i] * s.qacc[e, i_b, j]
             if i != j:
                 g += s.solve_tmp[0, i_b, j] * s.qacc[e, i_b, i]
-            s.mass_mat.grad[i_b, i, j] -= g
+            s.mass_mat.grad[i_b, i, j] = s.mass_mat.grad[i_b, i, j] - g
 
 
 INERTIA = (func_link_inertia, func_composite_inertia, func_mass_matrix)

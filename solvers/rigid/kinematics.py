@@ -8,7 +8,7 @@ Reads at clamped indices feed only masked-out terms.
 """
 import taichi as ti
 
-from .math3d import func_axis_angle_quat, func_cross_motion, func_quat_mul, func_quat_to_R
+from .math3d import func_axis_angle_quat, func_cross_motion, func_quat_mul, func_quat_to_R, func_rotate_inertia
 
 JOINT_FIXED, JOINT_FREE, JOINT_REVOLUTE, JOINT_PRISMATIC = 0, 1, 2, 3
 
@@ -69,7 +69,7 @@ def func_world_inertia(s: ti.template(), i_b, e, src, h):
         m = s.link_mass[i_b, i_l]
         s.link_cpos[i_b, i_l] = c
         s.link_h[i_b, i_l] = m * c
-        s.link_J[i_b, i_l] = R @ s.link_inertia[i_b, i_l] @ R.transpose() + m * (
+        s.link_J[i_b, i_l] = func_rotate_inertia(R, s.link_inertia[i_b, i_l]) + m * (
             c.dot(c) * ti.Matrix.identity(s.dtype, 3) - c.outer_product(c))
 
 
