@@ -11,7 +11,9 @@ medians over the repeats and, for each quantity, the spread (min..max).
 1. Import floor: `import torch` and then `import taichi` alone (what genesis_lite cannot go below).
 2. Build: import genesis_lite, gs.init, a plane and example-robot-data's full Panda URDF (meshes),
    build(), first step(); then in the same process a second, different robot (UR5, full URDF) over a
-   plane, then the UR5 without a plane (no collision pairs), each add_entity + build + first step.
+   plane, then the Panda and the UR5 without a plane (no collision pairs), each add_entity + build +
+   first step. (A scene with collision pairs compiles its contact kernels anew; one without reuses
+   the kernels of the first scene of its capacity class: the UR5 row after the Panda row.)
 3. First backward: a fresh process builds the full Panda without collision, requires_grad, runs 50
    steps under control_dofs_force from a leaf tensor, loss = |hand position|^2, and times the
    forward (compile included) and loss.backward().
@@ -71,6 +73,7 @@ scene, (out["load"], out["build"], out["step"], _) = scene_of({panda!r}, True)
 out["first_step"] = time.perf_counter() - t0
 del scene
 _, (_, _, _, out["second_robot"]) = scene_of({ur5!r}, True)
+_, (_, _, _, out["first_noplane"]) = scene_of({panda!r}, False)
 _, (_, _, _, out["second_robot_noplane"]) = scene_of({ur5!r}, False)
 print(json.dumps(out))
 """
@@ -177,7 +180,8 @@ def main():
 
     print("2. build ...", flush=True)
     cold, warm, err = measure(BUILD_CODE.format(precision=args.precision, panda=panda, ur5=ur5), cold_n, warm_n, "build")
-    keys = ("import", "init", "load", "build", "step", "first_step", "second_robot", "second_robot_noplane", "process")
+    keys = ("import", "init", "load", "build", "step", "first_step", "second_robot", "first_noplane",
+            "second_robot_noplane", "process")
     data["build"] = {"cold": {k: summary(cold, k) for k in keys}, "warm": {k: summary(warm, k) for k in keys},
                      "errors": err}
 
@@ -197,6 +201,7 @@ def main():
     names = {"import": "import genesis_lite", "init": "gs.init", "load": "plane + Panda URDF (add_entity)",
              "build": "scene.build()", "step": "first scene.step()", "first_step": "import to end of first step",
              "second_robot": "UR5 + plane next in the same process (load+build+step)",
+             "first_noplane": "then Panda alone (no collision pairs)",
              "second_robot_noplane": "then UR5 alone (no collision pairs)", "process": "whole process"}
     goal_of = {"first_step": GOALS["first_step"], "second_robot": GOALS["second_robot"],
                "second_robot_noplane": GOALS["second_robot"]}

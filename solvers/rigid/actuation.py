@@ -13,6 +13,20 @@ FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh frict
 
 
 @ti.func
+def func_tanh_where(s: ti.template(), on, x):
+    """tanh(x) where `on`, else 0. Without gradients a branch skips the tanh (a libm call per dof and
+    evaluation) for the dofs without friction loss; with gradients the select form that Taichi's
+    reverse mode needs (a local assigned in a branch becomes an adstack)."""
+    if ti.static(s.requires_grad):
+        return ti.select(on, ti.tanh(x), 0.0)
+    else:
+        r = ti.cast(0.0, s.dtype)
+        if on:
+            r = ti.tanh(x)
+        return r
+
+
+@ti.func
 def func_generalized_force(s: ti.template(), i_b, e, src, h):
     """force = actuation + passive + joint limits - bias; adds the implicit terms to M's diagonal.
     h is the (sub)step length. Single-assignment form (see kinematics.py)."""
@@ -35,7 +49,7 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         tau = ti.min(ti.max(raw, lo), hi)
         s.dof_tau[i_b, i_d] = tau
         fl = s.dof_frictionloss[i_b, i_d]
-        th = ti.tanh(v / FRICTIONLOSS_VEL)
+        th = func_tanh_where(s, fl != 0.0, v / FRICTIONLOSS_VEL)
         damp = s.dof_damping[i_b, i_d]
         # joint-limit springs, one-sided; their damping acts only while moving further out
         lim_lo = s.dof_limit_lo[i_d]

@@ -52,7 +52,7 @@ DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_generalized_force,)
 # share a core
 MIN_ELEMS = 16
 # run-time sizes and options, indices into RigidCore.cfg_i / cfg_f
-I_ENVS, I_LINKS, I_DOFS, I_QS, I_QPOS_LEN, I_QVEL_LEN, I_LIMITS_ON, I_ELEMS, N_CFG_I = range(9)
+I_ENVS, I_LINKS, I_DOFS, I_QS, I_QPOS_LEN, I_QVEL_LEN, I_LIMITS_ON, I_ELEMS, I_ANC, N_CFG_I = range(10)
 F_LIMIT_K, F_LIMIT_D, F_IMPLICIT_ON, N_CFG_F = range(4)
 
 
@@ -152,12 +152,14 @@ class _Kernels:
     limit_k = _runtime(F_LIMIT_K, True)
     limit_d = _runtime(F_LIMIT_D, True)
     implicit_on = _runtime(F_IMPLICIT_ON, True)
+    n_anc = _runtime(I_ANC)  # pairs (i, j) with dof j an ancestor-or-self of dof i (anc_i, anc_j)
 
     # ------------------------------------------------------------------ build and reset
     @ti.kernel
     def kernel_load(self, cfg_i: ti.types.ndarray(), cfg_f: ti.types.ndarray(), link_i: ti.types.ndarray(),
                     link_f: ti.types.ndarray(), dof_i: ti.types.ndarray(), dof_f: ti.types.ndarray(),
-                    anc: ti.types.ndarray(), sched: ti.types.ndarray(), sched_h: ti.types.ndarray()):
+                    anc: ti.types.ndarray(), anc_pairs: ti.types.ndarray(), sched: ti.types.ndarray(),
+                    sched_h: ti.types.ndarray()):
         """A scene's model into the core: sizes and options, link and dof info, the dof tree and the step
         schedule. The per-env entries that a masked-out term may read before the scene writes them are
         zeroed, so that no value of an earlier scene (a NaN of a diverged one, say) reaches it: M outside
@@ -191,6 +193,9 @@ class _Kernels:
             self.dof_mimic_off[i] = dof_f[i, 3]
         for i, j in ti.ndrange(anc.shape[0], anc.shape[1]):
             self.dof_anc[i, j] = anc[i, j]
+        for t in range(anc_pairs.shape[0]):
+            self.anc_i[t] = anc_pairs[t, 0]
+            self.anc_j[t] = anc_pairs[t, 1]
         for k in range(sched.shape[0]):
             for c in ti.static(range(6)):
                 self.sched[k, c] = sched[k, c]
@@ -536,6 +541,27 @@ class _Kernels:
 NO_NAN = 2**31 - 1
 
 
+def _place_env_major(B, N, elem, mats, ones, slots):
+    """Place per-env fields so that each env's data is one contiguous block, the fields of one element
+    side by side: elem [B, N] fields, mats [B, N, N], ones [B], slots [(n, fields [n, B, N])] (indexed
+    slot first, laid out env first). A step reads an env's links and dofs across dozens of fields; a
+    field per array puts them dozens of streams apart, and the capacity's unused elements in the
+    middle of every stream. Here one env's step walks a few KiB, and unused elements are never read."""
+    if elem or mats or ones:
+        env = ti.root.dense(ti.i, B)
+        if ones:
+            env.place(*ones)
+        if elem:
+            env.dense(ti.j, N).place(*elem)
+        if mats:
+            env.dense(ti.axes(1, 2), (N, N)).place(*mats)
+    slots = [(n, xs) for n, xs in slots if xs]
+    if slots:
+        env = ti.root.dense(ti.j, B)
+        for n, xs in slots:
+            env.dense(ti.axes(0, 2), (n, N)).place(*xs)
+
+
 @ti.data_oriented
 class RigidCore(_Kernels):
     """The fields of one capacity class (dtype, gradients, env capacity, element capacity, state slots,
@@ -567,31 +593,49 @@ class RigidCore(_Kernels):
         self.link_jaxis = ti.Vector.field(3, f, shape=N)
         self.dof_link, self.dof_q, self.dof_parent = I(N), I(N), I(N)
         self.dof_anc = I((N, N))
+        self.anc_i, self.anc_j = I(N * N), I(N * N)
         self.dof_limit_lo, self.dof_limit_hi = F(N, False), F(N, False)
         self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
+        # per-env fields: declared without a shape and placed env-major (_place_env_major)
+        s3 = lambda grad=g: ti.field(f, needs_grad=grad)  # noqa: E731
+        v3 = lambda: ti.Vector.field(3, f, needs_grad=g)  # noqa: E731
+        m3 = lambda: ti.Matrix.field(3, 3, f, needs_grad=g)  # noqa: E731
         # parameters
-        self.link_mass, self.link_com, self.link_inertia = F((B, N)), V3((B, N)), M3((B, N))
-        self.dof_damping, self.dof_armature, self.dof_frictionloss = F((B, N)), F((B, N)), F((B, N))
-        self.dof_kp, self.dof_kv = F((B, N)), F((B, N))
-        self.dof_force_lo, self.dof_force_hi = F((B, N), False), F((B, N), False)
-        self.gravity = V3(B)
+        self.link_mass, self.link_com, self.link_inertia = s3(), v3(), m3()
+        self.dof_damping, self.dof_armature, self.dof_frictionloss = s3(), s3(), s3()
+        self.dof_kp, self.dof_kv = s3(), s3()
+        self.dof_force_lo, self.dof_force_hi = s3(False), s3(False)
+        self.gravity = v3()
         # controls
-        self.ctrl_force, self.ctrl_pos, self.ctrl_vel = F((B, N)), F((B, N)), F((B, N))
-        self.ctrl_mode = I((B, N))
+        self.ctrl_force, self.ctrl_pos, self.ctrl_vel = s3(), s3(), s3()
+        self.ctrl_mode = ti.field(ti.i32)
         # state
-        self.qpos, self.qvel = F((S, B, N)), F((S, B, N))
-        self.qacc, self.veff = F((E, B, N)), F((E, B, N))
+        self.qpos, self.qvel = s3(), s3()
+        self.qacc, self.veff = s3(), s3()
         # per-evaluation scratch
-        self.link_pos, self.link_quat, self.link_R = V3((B, N)), V4((B, N)), M3((B, N))
-        self.link_cpos, self.link_h, self.link_J = V3((B, N)), V3((B, N)), M3((B, N))
-        self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v = V3((B, N)), V3((B, N)), V3((B, N)), V3((B, N))
-        self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v = V3((B, N)), V3((B, N)), V3((B, N)), V3((B, N))
-        self.crb_m, self.crb_h, self.crb_J = F((B, N)), V3((B, N)), M3((B, N))
-        self.cfrc_n, self.cfrc_f = V3((B, N)), V3((B, N))
-        self.mass_mat, self.bias, self.force = F((B, N, N)), F((B, N)), F((B, N))
-        self.mass_fac = F((B, N, N), False)
-        self.dof_tau = F((B, N), False)
-        self.solve_tmp = F((1, B, N), False)
+        self.link_pos, self.link_quat, self.link_R = v3(), ti.Vector.field(4, f, needs_grad=g), m3()
+        self.link_cpos, self.link_h, self.link_J = v3(), v3(), m3()
+        self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v = v3(), v3(), v3(), v3()
+        self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v = v3(), v3(), v3(), v3()
+        self.crb_m, self.crb_h, self.crb_J = s3(), v3(), m3()
+        self.cfrc_n, self.cfrc_f = v3(), v3()
+        self.dof_n, self.dof_f = v3(), v3()
+        self.mass_mat, self.bias, self.force = s3(), s3(), s3()
+        self.mass_fac = s3(False)
+        self.dof_tau = s3(False)
+        self.solve_tmp = s3(False)
+        elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
+                self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_force_lo, self.dof_force_hi, self.ctrl_force,
+                self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos, self.link_quat, self.link_R,
+                self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v,
+                self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n,
+                self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force, self.dof_tau]
+        mats, ones = [self.mass_mat, self.mass_fac], [self.gravity]
+        slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.veff]), (1, [self.solve_tmp])]
+        _place_env_major(B, N, elem, mats, ones, slots)
+        if g:
+            grads = lambda xs: [x.grad for x in xs if x.grad is not None]  # noqa: E731
+            _place_env_major(B, N, grads(elem), grads(mats), grads(ones), [(n, grads(xs)) for n, xs in slots])
         self.nan_step = ti.field(ti.i32, shape=())  # first step whose state was not finite (fused path)
         self.vjp_loss = F((), True) if g else None
         # schedule
@@ -605,8 +649,8 @@ class RigidCore(_Kernels):
                   self.ctrl_vel]
         scratch = [self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J,
                    self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w,
-                   self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.mass_mat,
-                   self.bias, self.force]
+                   self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f,
+                   self.mass_mat, self.bias, self.force]
         self.zero_plan = _ZeroPlan([self.mass_mat, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v], [], N)
         self.grad_fields0 = [x.grad for x in params + scratch] if g else []
         self.grad_fields1 = [x.grad for x in state] if g else []
@@ -859,6 +903,8 @@ class RigidSolver:
                 anc[i, j] = 1
                 j = dof_parent[j]
         self.np_dof_anc = anc
+        pairs = [(i, j) for i in range(nd) for j in range(i + 1) if anc[i, j]]
+        self.np_anc_pairs = np.array(pairs, dtype=np.int32).reshape(-1, 2)
 
     def _schedule(self):
         """The ops of one step, (op, kind, e, base, src, dst, h), and where each substep's begin in
@@ -898,6 +944,7 @@ class RigidSolver:
         cfg[I_ENVS], cfg[I_LINKS], cfg[I_DOFS], cfg[I_QS] = self.n_envs, self.n_links, self.n_dofs, self.n_qs
         cfg[I_QPOS_LEN], cfg[I_QVEL_LEN], cfg[I_LIMITS_ON] = self.qpos_len, self.qvel_len, int(self.limits_on)
         cfg[I_ELEMS] = max(self.n_links, self.n_dofs, self.n_qs, 1)
+        cfg[I_ANC] = len(self.np_anc_pairs)
         cfg[N_CFG_I + F_LIMIT_K] = float(self.limit_k)
         cfg[N_CFG_I + F_LIMIT_D] = float(self.limit_d)
         cfg[N_CFG_I + F_IMPLICIT_ON] = float(self.implicit_on)
@@ -939,7 +986,8 @@ class RigidSolver:
         sched = np.ascontiguousarray(np.array([op[:6] for op in self.ops], dtype=np.int32))
         sched_h = np.array([op[6] for op in self.ops], dtype=self.np_dtype)
         self.core.kernel_load(cfg_i, cfg_f, np.ascontiguousarray(link_i), np.ascontiguousarray(link_f),
-                              np.ascontiguousarray(dof_i), np.ascontiguousarray(dof_f), self.np_dof_anc, sched, sched_h)
+                              np.ascontiguousarray(dof_i), np.ascontiguousarray(dof_f), self.np_dof_anc,
+                              np.ascontiguousarray(pad(self.np_anc_pairs, 1)), sched, sched_h)
         p = self.initial_params(gravity)
         self.set_params(np.concatenate([p[k].reshape(self.n_envs, -1) for k, _ in self.param_layout()], -1))
         self.reset_state()
