@@ -27,6 +27,14 @@ def func_quat_to_R(q):
 
 
 @ti.func
+def func_quat_rotate(q, v):
+    """v rotated by the unit quaternion q (= func_quat_to_R(q) @ v, without forming R)."""
+    u = ti.Vector([q[1], q[2], q[3]])
+    t = 2.0 * u.cross(v)
+    return v + q[0] * t + u.cross(t)
+
+
+@ti.func
 def func_axis_angle_quat(axis, angle):
     h = 0.5 * angle
     s = ti.sin(h)
