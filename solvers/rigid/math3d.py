@@ -56,18 +56,22 @@ def func_rotvec_quat(w, dt):
 
 @ti.func
 def func_rotate_inertia(R, I):
-    """R I R^T written out entry by entry. The same product as `R @ I @ R.transpose()`, whose adjoint
-    Taichi compiles about three times slower (seconds for the dynamics' gradient kernel)."""
-    return ti.Matrix([[_rir(R, I, 0, 0), _rir(R, I, 0, 1), _rir(R, I, 0, 2)],
-                      [_rir(R, I, 1, 0), _rir(R, I, 1, 1), _rir(R, I, 1, 2)],
-                      [_rir(R, I, 2, 0), _rir(R, I, 2, 1), _rir(R, I, 2, 2)]])
+    """R I R^T, as (R I) R^T entry by entry, summed in the order of Taichi's `R @ I @ R.transpose()` (the
+    same numbers). Taichi's matmul accumulates into a local matrix entry by entry (each entry stored
+    three times), and its adjoint compiles about three times slower: seconds for the dynamics' gradient
+    kernel."""
+    RI = ti.Matrix([[_rowcol(R, a, I, b) for b in ti.static(range(3))] for a in ti.static(range(3))])
+    return ti.Matrix([[_rowrow(RI, a, R, b) for b in ti.static(range(3))] for a in ti.static(range(3))])
 
 
 @ti.func
-def _rir(R, I, a: ti.template(), b: ti.template()):
-    return (R[a, 0] * (I[0, 0] * R[b, 0] + I[0, 1] * R[b, 1] + I[0, 2] * R[b, 2])
-            + R[a, 1] * (I[1, 0] * R[b, 0] + I[1, 1] * R[b, 1] + I[1, 2] * R[b, 2])
-            + R[a, 2] * (I[2, 0] * R[b, 0] + I[2, 1] * R[b, 1] + I[2, 2] * R[b, 2]))
+def _rowcol(A, a: ti.template(), B, b: ti.template()):
+    return A[a, 0] * B[0, b] + A[a, 1] * B[1, b] + A[a, 2] * B[2, b]
+
+
+@ti.func
+def _rowrow(A, a: ti.template(), B, b: ti.template()):
+    return A[a, 0] * B[b, 0] + A[a, 1] * B[b, 1] + A[a, 2] * B[b, 2]
 
 
 @ti.func
