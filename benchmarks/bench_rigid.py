@@ -8,7 +8,8 @@ joint limits on, starting from the "ready" pose. Rates are medians of 5 repeats:
 - 1 env: steps/s of a Python loop of `scene.step()` / `mujoco.mj_step`;
 - 1024 envs: env-steps/s of `build(n_envs=1024)` + 100 `scene.step()` / `mujoco.rollout.rollout`
   (1024 initial states, 100 steps, 2 threads);
-- real Genesis (`genesis-world`, CPU) when a separate venv at /tmp/gvenv (or $GENESIS_PYTHON) has it.
+- real Genesis (`genesis-world`, CPU) when a separate venv has it ($GENESIS_PYTHON, else /work/genesis_venv
+  or /tmp/gvenv).
 Build time: `import genesis_lite`, `gs.init`, a scene with the full Panda URDF (meshes) and a plane,
 `build()`, first `step()`, in a fresh process, with an empty Taichi kernel cache and with a warm one.
 Each genesis_lite measurement runs in its own process, so a failure there still leaves MuJoCo's rows.
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -28,11 +28,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # genesis_lite without an install
-from common import (DT, PANDA_HOME, Timer, median_rate, mujoco_model, panda_urdf, plot_rates,  # noqa: E402
-                    print_table, run_python, write_stripped_panda)
+from common import (DT, PANDA_HOME, Timer, genesis_python, median_rate, mujoco_model, panda_urdf,  # noqa: E402
+                    plot_rates, print_table, run_python, write_stripped_panda)
 
 HERE = Path(__file__).resolve().parent
-GENESIS_PYTHON = os.environ.get("GENESIS_PYTHON", "/tmp/gvenv/bin/python")
+GENESIS_PYTHON = genesis_python()
 
 
 # --- MuJoCo ----------------------------------------------------------------------------------------
