@@ -317,8 +317,9 @@ def headline(a, data) -> list[dict]:
                    and r.get("rate")), None)
         rows.append({"goal": "MPM: >= 1.5x real Genesis (elastic cube, 8,000 particles, f32)",
                      "measured": "no MPM solver in genesis_lite yet",
-                     "peer": (f"Genesis {mp.get('version')}: {g8['rate'] / 1e6:.2f} M particle-substeps/s, "
-                              f"backward/forward {g8.get('bwd_over_fwd', float('nan')):.2f}" if g8 else mp.get("error", "-")),
+                     "peer": (f"Genesis {mp.get('version')}: {g8['rate'] / 1e6:.2f} M particle-substeps/s"
+                              + (f", backward/forward {g8['bwd_over_fwd']:.2f}" if g8.get("bwd_over_fwd") else "")
+                              if g8 else mp.get("error", "-")),
                      "target": f">= {GOAL_MPM_GENESIS:g}x", "met": "NOT MET (not measurable yet)"})
     eq = data.get("equal_error")
     if eq:
@@ -409,6 +410,7 @@ def main(argv=None):
     a.grad_parts = a.grad_parts.split(",") if a.grad_parts else None
     a.integrators = a.integrators.split(",") if a.integrators else None
     a.unused_parts = a.unused_parts.split(",") if a.unused_parts else None
+    a.out_dir = a.out_dir.resolve()
     a.out_dir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -421,6 +423,8 @@ def main(argv=None):
     fns = {"speed": section_speed, "workprecision": section_workprecision, "grad": section_grad,
            "stress": section_stress, "unused": section_unused, "mpm": section_mpm}
     tmp = Path(tempfile.mkdtemp(prefix="bench_all_"))
+    cwd = os.getcwd()
+    os.chdir(tmp)  # MuJoCo writes MUJOCO_LOG.TXT into the working directory when a run diverges
     try:
         for s in progress(order, desc="sections"):
             log(f"\n=== {s} ===")
@@ -434,6 +438,7 @@ def main(argv=None):
                 texts.append((s, [f"**This section failed**: {type(e).__name__}: {e}"]))
             data.setdefault("section_s", {})[s] = time.time() - ts
     finally:
+        os.chdir(cwd)
         shutil.rmtree(tmp, ignore_errors=True)
     if "headline" in a.sections:
         data["headline"] = headline(a, data)

@@ -181,10 +181,10 @@ def _check_stress(data):
 
 def test_run_all_smoke(tmp_path):
     """One row of each kind: work-precision (double pendulum, RK4, 1 env, genesis_lite + MuJoCo), two stress rows
-    (the 20 m/s impact and the gradient norm), the MPM import check, and the headline built from them."""
+    (stiff contact and the gradient norm), the MPM import check, and the headline built from them."""
     text, data = _run_all(tmp_path, "--quick", "--sections", "workprecision,stress,unused,headline",
                           "--scenes", "pendulum,mpm", "--integrators", "RK4", "--envs", "0",
-                          "--stress-rows", "impact,grad", "--unused-parts", "mpm", "--no-genesis", "--no-bisect",
+                          "--stress-rows", "stiff,grad", "--unused-parts", "mpm", "--no-genesis", "--no-bisect",
                           timeout=900)
     for heading in ("## Machine", "## Headline", "## Work-precision", "## Stability under stress",
                     "## The cost of what a scene does not use"):
