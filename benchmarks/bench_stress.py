@@ -50,7 +50,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(1, str(HERE.parent))  # genesis_lite without an install
-from common import Timer, print_table, progress, run_python  # noqa: E402
+from common import print_table, progress, run_python  # noqa: E402
 import scenes as S  # noqa: E402
 
 ENERGY_TOL = 0.05
@@ -68,7 +68,6 @@ GRAD_EXPLODED = 1e4  # a gradient norm above this, with inputs and outputs of or
 STIFF_K, STIFF_C = 1e8, 4e4
 ENERGY_EVERY = 100  # steps between energy samples
 ENERGY_BISECT_T = 20.0  # s of simulated time per bisection step of the energy rows
-RATIOS = (10, 100, 1000)
 
 
 # --- the scenes, genesis_lite side (child process) ------------------------------------------------------------

@@ -12,7 +12,6 @@ Conventions shared by every engine:
 """
 from __future__ import annotations
 
-import os
 import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -190,8 +189,3 @@ def mujoco_initial_states(m, qpos, qvel, n_envs: int):
 def mujoco_state_slices(m):
     """Slices of qpos and qvel inside a full-physics state vector ([time, qpos, qvel, act, ...])."""
     return slice(1, 1 + m.nq), slice(1 + m.nq, 1 + m.nq + m.nv)
-
-
-def urdf_path_env(name: str, default: Path) -> Path:
-    """A URDF path overridable by an environment variable (tests point the harness at small files)."""
-    return Path(os.environ.get(name, str(default)))
