@@ -21,7 +21,8 @@ forward = reset .. loss, backward = loss.backward(). Controls are fixed small ra
    second and third process on the same cache directory.
 3. memory (VmRSS / VmHWM of the process, one fresh process per configuration) against the horizon, with
    and without checkpointing, and requires_grad=False.
-4. real Genesis (genesis-world, in its venv at /tmp/gvenv or $GENESIS_PYTHON): the same 1-env rollout.
+4. real Genesis (genesis-world, in its venv: $GENESIS_PYTHON, else /work/genesis_venv or /tmp/gvenv): the same
+   1-env rollout.
 Every measurement runs in its own child process (one gs.init per process; a failure there leaves the
 other rows). Children other than part 2's end with ti.reset() so Taichi writes its offline kernel cache
 and later children skip compilation (see the note printed with part 2).
@@ -42,10 +43,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # genesis_lite without an install
-from common import DT, PANDA_HOME, Timer, print_table, pyplot, run_python, save_figure, write_stripped_panda  # noqa: E402
+from common import (DT, PANDA_HOME, Timer, genesis_python, print_table, pyplot, run_python, save_figure,  # noqa: E402
+                    write_stripped_panda)
 
 HERE = Path(__file__).resolve().parent
-GENESIS_PYTHON = os.environ.get("GENESIS_PYTHON", "/tmp/gvenv/bin/python")
+GENESIS_PYTHON = genesis_python()
 GOAL_RATIO, GOAL_RATIO_CKPT, GOAL_FIRST_S = 2.5, 3.5, 5.0
 GENESIS_RATIO_REF, GENESIS_FIRST_REF = 6.5, 18.0  # real Genesis, as measured for issue #3
 CTRL_SCALE = 1.0  # N m: the random control torques' standard deviation

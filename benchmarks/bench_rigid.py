@@ -11,7 +11,8 @@ joint limits on, starting from the "ready" pose. Rates are medians of 5 repeats:
   run, so the genesis_lite child also runs MuJoCo's rollout itself, alternating run for run: the
   "paired ratio" is the median of those per-pair ratios (the "ratio" column divides medians taken
   minutes apart);
-- real Genesis (`genesis-world`, CPU) when a separate venv at /tmp/gvenv (or $GENESIS_PYTHON) has it.
+- real Genesis (`genesis-world`, CPU) when a separate venv has it ($GENESIS_PYTHON, else /work/genesis_venv
+  or /tmp/gvenv).
 Build time: `import genesis_lite`, `gs.init`, a scene with the full Panda URDF (meshes) and a plane,
 `build()`, first `step()`, in a fresh process, with an empty Taichi kernel cache and with a warm one.
 Each genesis_lite measurement runs in its own process, so a failure there still leaves MuJoCo's rows.
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import statistics
 import sys
@@ -32,11 +32,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # genesis_lite without an install
-from common import (DT, PANDA_HOME, Timer, median_rate, mujoco_model, panda_urdf, plot_rates,  # noqa: E402
-                    print_table, run_python, write_stripped_panda)
+from common import (DT, PANDA_HOME, Timer, genesis_python, median_rate, mujoco_model, panda_urdf,  # noqa: E402
+                    plot_rates, print_table, run_python, write_stripped_panda)
 
 HERE = Path(__file__).resolve().parent
-GENESIS_PYTHON = os.environ.get("GENESIS_PYTHON", "/tmp/gvenv/bin/python")
+GENESIS_PYTHON = genesis_python()
 
 
 # --- MuJoCo ----------------------------------------------------------------------------------------

@@ -22,6 +22,8 @@ import numpy as np
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DT = 0.01  # s
+# Where real Genesis (genesis-world) lives: its own venv, never the project's (it brings its own Taichi fork).
+GENESIS_VENV_DEFAULTS = ("/work/genesis_venv/bin/python", "/tmp/gvenv/bin/python")
 # Panda's "ready" pose (7 arm joints, 2 fingers): inside every joint's limits.
 PANDA_HOME = np.array([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785, 0.04, 0.04])
 
@@ -178,3 +180,55 @@ def plot_rates(rows: list[dict], path: Path, title: str) -> None:
     ax.set_xlabel("steps/s (env-steps/s), log scale")
     ax.set_title(title)
     save_figure(fig, path)
+
+
+def genesis_python() -> str:
+    """The interpreter of real Genesis's venv: $GENESIS_PYTHON, else the first default that exists (else the
+    first default, which callers test with Path.exists() and then skip the peer, saying so)."""
+    env = os.environ.get("GENESIS_PYTHON")
+    if env:
+        return env
+    for p in GENESIS_VENV_DEFAULTS:
+        if Path(p).exists():
+            return p
+    return GENESIS_VENV_DEFAULTS[0]
+
+
+def progress(iterable=None, total=None, desc=None, disable=False):
+    """tqdm progress bar on stderr, or the bare iterable when tqdm is not installed (benchmarks still run)."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return iterable if iterable is not None else range(total or 0)
+    return tqdm(iterable, total=total, desc=desc, disable=disable, file=sys.stderr, dynamic_ncols=True,
+                mininterval=1.0)
+
+
+def machine_info() -> dict:
+    """What the numbers were measured on: CPU model, cores, memory, load, OS and library versions."""
+    import platform
+
+    info = {"cores": os.cpu_count(), "python": platform.python_version(), "os": platform.platform()}
+    try:
+        with open("/proc/cpuinfo") as f:
+            models = [ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")]
+        info["cpu"] = models[0] if models else platform.processor()
+    except OSError:
+        info["cpu"] = platform.processor()
+    try:
+        with open("/proc/meminfo") as f:
+            info["mem_gib"] = int(f.readline().split()[1]) / 2**20
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        info["load"] = os.getloadavg()
+    except OSError:
+        pass
+    for mod in ("numpy", "torch", "taichi", "mujoco", "pinocchio", "scipy"):
+        try:
+            m = __import__(mod)
+            v = getattr(m, "__version__", None)
+            info[mod] = ".".join(str(x) for x in v) if isinstance(v, tuple) else str(v)  # taichi's is a tuple
+        except Exception:
+            info[mod] = None
+    return info

@@ -1,0 +1,747 @@
+"""Work-precision: run time against error for each integrator of genesis_lite, MuJoCo and real Genesis.
+
+    python benchmarks/bench_workprecision.py [--quick] [--scenes pendulum,panda] [--envs 1024] [--no-genesis]
+
+For every scene (the registry SCENES; a row is pluggable: an entry whose engine is missing says why and is
+skipped), every engine and every integrator (gs.integrator.Euler / implicitfast / RK4, MuJoCo's Euler /
+implicitfast / RK4, Genesis's Euler / implicitfast), the harness sweeps the time step dt and the substeps,
+runs the scene for t_end seconds of simulated time and records
+- the error: max abs difference of the scene's observables (joint angles, positions) at its sample times
+  from a tight reference the table names (an analytic solution, Pinocchio + DOP853, or the same engine in
+  float64 at a far smaller dt, with that reference's own change when its dt is halved);
+- the wall time of the stepping loop (build, compile, resets and reads of the observables excluded): the
+  median of `repeats` runs. genesis_lite: a Python loop of scene.step(); MuJoCo: mujoco.rollout (C loop;
+  1 thread for 1 env, 2 threads for the batch); Genesis: a Python loop of scene.step().
+With n_envs > 1 every environment starts from the same state; the error is the max over environments.
+
+Each genesis_lite sweep runs in a child process (one gs.init per process); Genesis runs in its own venv
+(peer_genesis_wp.py). run_all.py calls `run()` and writes the tables and plots.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(1, str(HERE.parent))  # genesis_lite without an install
+from common import Timer, genesis_python, print_table, progress, pyplot, run_python, save_figure  # noqa: E402
+import scenes as S  # noqa: E402
+
+INTEGRATORS = ("Euler", "implicitfast", "RK4")
+GENESIS_INTEGRATORS = ("Euler", "implicitfast")  # Genesis 1.4.5 has no RK4
+MJ_CHUNK = 200  # steps per mujoco.rollout call: bounds the state output array (n_envs x chunk x nstate)
+DIVERGED = 1e3  # an error above this (rad or m) is a blown-up run, whatever its floats say
+ERR_CAP = 0.1  # equal-error comparisons only at errors <= 0.1 (rad or m): larger ones are no useful accuracy
+PANDA_T = 0.5  # s: the free swing folds the arm with up to 25 rad/s by then (40 rad/s at 1 s: chaotic)
+
+
+# --- the sweep ---------------------------------------------------------------------------------------------
+
+
+def sweep(engine: str, batched: bool, quick: bool) -> list[tuple[str, float, int]]:
+    """(integrator, dt, substeps) points. Full: dt halves from 0.02 s (to 0.625 ms for first-order methods in
+    1 env, 1.25 ms batched, 2.5 ms for RK4, whose error is far smaller), plus dt = 0.02 s with 4 and 16
+    substeps (the same substep as dt = 5 and 1.25 ms, for the price of fewer Python-level steps).
+    Genesis: Euler and implicitfast only; its build is slow, so a shorter dt range. Quick: dt = 0.02 and 0.005 s."""
+    pts = []
+    integs = GENESIS_INTEGRATORS if engine == "genesis" else INTEGRATORS
+    for integ in integs:
+        if quick:
+            dts, subs = [0.02, 0.005], []
+        elif engine == "genesis":
+            dts, subs = [0.01, 0.005, 0.0025, 0.00125], []
+        else:
+            n = 4 if integ == "RK4" else (5 if batched else 6)
+            dts = [0.02 / 2**k for k in range(n)]
+            subs = [] if engine == "mujoco" else ([4] if integ == "RK4" else [4, 16])
+        pts += [(integ, dt, 1) for dt in dts] + [(integ, 0.02, s) for s in subs]
+    return pts
+
+
+# --- scenes ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Reference:
+    kind: str  # "analytic", "pinocchio" or "fine"
+    label: str
+    obs: Optional[list] = None  # the reference observables, or None for kind "fine" (each engine runs its own)
+    fine: Optional[tuple] = None  # (integrator, dt) of the fine float64 run
+    check: Optional[tuple] = None  # (integrator, dt) of a second fine run: its difference bounds the reference's error
+
+
+@dataclass
+class WPScene:
+    """One row of the work-precision study. files(tmp) writes what every engine reads and returns a dict of
+    paths; reference(files) gives the tight reference; gl_build / mj_build set the scene up per engine."""
+
+    key: str
+    title: str
+    t_end: float  # s
+    sample_times: tuple  # s, multiples of every dt of the sweep
+    error_label: str
+    files: Callable
+    reference: Callable
+    gl_build: Optional[Callable] = None  # (gs, files, integrator, dt, substeps, n_envs) -> (scene, reset, observe)
+    # (files, integrator, dt) -> (model, qpos0, qvel0, observe(states), controls held or None)
+    mj_build: Optional[Callable] = None
+    genesis: bool = False  # peer_genesis_wp.py knows the scene
+    available: Callable = field(default=lambda: None)  # -> None, or the reason the row cannot run yet
+    note: str = ""
+
+
+def _gl_tile(x, n_envs, dtype):
+    import torch
+
+    t = torch.as_tensor(np.asarray(x, dtype=float), dtype=dtype)
+    return t.unsqueeze(0).repeat(n_envs, 1) if n_envs else t
+
+
+def _gl_opts(gs, integrator, dt, substeps, collision, limits=True):
+    return dict(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, gravity=(0.0, 0.0, -S.G)),
+                rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator),
+                                                      enable_collision=collision, enable_joint_limit=limits))
+
+
+def _gl_build_arm(urdf_key, q0, v0):
+    """genesis_lite builder of a fixed-base arm without collisions or joint limits, started at (q0, v0)."""
+
+    def build(gs, files, integrator, dt, substeps, n_envs):
+        scene = gs.Scene(**_gl_opts(gs, integrator, dt, substeps, collision=False, limits=False))
+        robot = scene.add_entity(gs.morphs.URDF(file=str(files[urdf_key]), fixed=True))
+        scene.build(n_envs=n_envs)
+        n = robot.n_dofs
+        robot.set_dofs_damping(np.zeros(n))
+        robot.set_dofs_armature(np.zeros(n))
+        robot.set_dofs_frictionloss(np.zeros(n))
+        robot.set_dofs_position(_gl_tile(q0, n_envs, gs.tc_float))
+        robot.set_dofs_velocity(_gl_tile(v0, n_envs, gs.tc_float))
+        state = scene.get_state()
+
+        def reset():
+            scene.reset(state)
+
+        def observe():
+            return robot.get_dofs_position().detach().cpu().numpy().reshape(max(n_envs, 1), -1)
+
+        return scene, reset, observe
+
+    return build
+
+
+def _mj_build_arm(urdf_key, q0, v0):
+    def build(files, integrator, dt):
+        m = S.mujoco_from_urdf(files[urdf_key], limits=False, contacts=False)
+        S.set_mujoco_integrator(m, integrator, dt)
+        qs, _ = S.mujoco_state_slices(m)
+        return m, np.asarray(q0, float), np.asarray(v0, float), lambda st: st[:, qs], None
+
+    return build
+
+
+def _pinocchio_reference(urdf_key, q0, v0, t_end):
+    """q(t_end) of DOP853 (rtol = atol = 1e-12) on Pinocchio's forward dynamics (crba + rnea) of the URDF."""
+
+    def ref(files):
+        import pinocchio as pin
+        from scipy.integrate import solve_ivp
+
+        model = pin.buildModelFromUrdf(str(files[urdf_key]))
+        model.gravity = pin.Motion(np.array([0.0, 0.0, -S.G]), np.zeros(3))
+        data = model.createData()
+        n = model.nv
+        assert model.nq == n, "the reference assumes 1-dof joints"
+
+        def rhs(t, y):
+            q, v = y[:n], y[n:]
+            M = pin.crba(model, data, q)
+            M = np.triu(M) + np.triu(M, 1).T
+            b = pin.rnea(model, data, q, v, np.zeros(n))
+            return np.concatenate([v, np.linalg.solve(M, -b)])
+
+        sol = solve_ivp(rhs, (0.0, t_end), np.concatenate([q0, v0]), method="DOP853", rtol=1e-12, atol=1e-12)
+        assert sol.success, sol.message
+        loose = solve_ivp(rhs, (0.0, t_end), np.concatenate([q0, v0]), method="DOP853", rtol=1e-10, atol=1e-10)
+        names = [model.names[j] for j in range(1, model.njoints)]
+        return Reference("pinocchio", "Pinocchio 3 crba/rnea + scipy DOP853, rtol = atol = 1e-12 "
+                         f"(differs from rtol 1e-10 by {np.abs(loose.y[:n, -1] - sol.y[:n, -1]).max():.1e} rad)",
+                         obs=sol.y[:n, -1].tolist()), names
+
+    return ref
+
+
+# double pendulum ---------------------------------------------------------------------------------------------
+
+
+def _pendulum_files(tmp):
+    return {"urdf": S.PENDULUM_URDF}
+
+
+def _pendulum_ref(files):
+    r, names = _pinocchio_reference("urdf", S.PENDULUM_Q0, S.PENDULUM_V0, 1.0)(files)
+    assert names == ["joint1", "joint2"]
+    return r
+
+
+# Panda ---------------------------------------------------------------------------------------------------------
+
+
+def _panda_files(tmp):
+    return {"urdf": S.write_panda_arm(tmp)}
+
+
+def _panda_ref(files):
+    r, names = _pinocchio_reference("urdf", S.PANDA_ARM_HOME, np.zeros(7), PANDA_T)(files)
+    assert names == [f"panda_joint{i}" for i in range(1, 8)], names
+    return r
+
+
+# box sliding to rest --------------------------------------------------------------------------------------------
+
+BOX_SAMPLES = (0.2, 1.0)  # s: mid-slide, and at rest (the box stops at v0 / (mu g) = 0.41 s)
+
+
+def _box_files(tmp):
+    return {"urdf": S.write_box_urdf(tmp)}
+
+
+def _box_ref(files):
+    return Reference("analytic", f"analytic Coulomb sliding x(t) = v0 t - mu g t^2 / 2 until v = 0 (v0 = {S.BOX_V0} m/s, "
+                     f"mu = {S.BOX_MU}), at t = {BOX_SAMPLES} s", obs=S.box_slide_analytic(BOX_SAMPLES).tolist())
+
+
+def _gl_build_box(gs, files, integrator, dt, substeps, n_envs):
+    scene = gs.Scene(**_gl_opts(gs, integrator, dt, substeps, collision=True))
+    mat = gs.materials.Rigid(friction=S.BOX_MU)
+    scene.add_entity(gs.morphs.Plane(), material=mat)
+    box = scene.add_entity(gs.morphs.URDF(file=str(files["urdf"]), fixed=False, pos=(0.0, 0.0, S.BOX_SIZE / 2)),
+                           material=mat)
+    scene.build(n_envs=n_envs)
+    box.set_dofs_velocity(_gl_tile([S.BOX_V0, 0, 0, 0, 0, 0], n_envs, gs.tc_float))
+    state = scene.get_state()
+
+    def reset():
+        scene.reset(state)
+
+    def observe():
+        return box.get_pos().detach().cpu().numpy().reshape(max(n_envs, 1), 3)[:, :1]
+
+    return scene, reset, observe
+
+
+def _mj_build_box(files, integrator, dt):
+    m = S.mujoco_from_urdf(files["urdf"], free=True, floor_mu=S.BOX_MU)
+    S.set_mujoco_integrator(m, integrator, dt)
+    qs, _ = S.mujoco_state_slices(m)
+    q0 = np.array([0.0, 0.0, S.BOX_SIZE / 2, 1.0, 0.0, 0.0, 0.0])
+    v0 = np.array([S.BOX_V0, 0, 0, 0, 0, 0])
+    return m, q0, v0, lambda st: st[:, qs][:, :1], None
+
+
+# quadruped dropped on the ground --------------------------------------------------------------------------------
+
+QUAD_REF = ("RK4", 1e-4)
+QUAD_REF_CHECK = ("RK4", 2e-4)
+
+
+def _quad_files(tmp):
+    return {"urdf": S.write_anymal(tmp)}
+
+
+def _quad_ref(files):
+    return Reference("fine", f"the same engine, float64, {QUAD_REF[0]} at dt = {QUAD_REF[1]:g} s "
+                     f"(its difference from dt = {QUAD_REF_CHECK[1]:g} s is shown as the reference's error)",
+                     fine=QUAD_REF, check=QUAD_REF_CHECK)
+
+
+def _gl_build_quad(gs, files, integrator, dt, substeps, n_envs):
+    from bench_contact import BASE_Z, KP, KV, standing_pose
+
+    scene = gs.Scene(**_gl_opts(gs, integrator, dt, substeps, collision=True))
+    scene.add_entity(gs.morphs.Plane())
+    robot = scene.add_entity(gs.morphs.URDF(file=str(files["urdf"]), fixed=False, pos=(0.0, 0.0, BASE_Z)))
+    scene.build(n_envs=n_envs)
+    names = [j.name for j in robot.joints if j.n_dofs == 1]
+    dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]
+    q0 = standing_pose(names)
+    robot.set_dofs_kp(np.full(len(dofs), KP), dofs)
+    robot.set_dofs_kv(np.full(len(dofs), KV), dofs)
+    robot.set_dofs_position(_gl_tile(q0, n_envs, gs.tc_float), dofs)
+    state = scene.get_state()
+    target = _gl_tile(q0, n_envs, gs.tc_float)
+
+    def reset():
+        scene.reset(state)
+        robot.control_dofs_position(target, dofs)  # reset() clears controls
+
+    def observe():
+        return robot.get_pos().detach().cpu().numpy().reshape(max(n_envs, 1), 3)
+
+    return scene, reset, observe
+
+
+def _mj_build_quad(files, integrator, dt):
+    from bench_contact import BASE_Z, mujoco_quadruped, standing_pose
+
+    m, names = mujoco_quadruped(files["urdf"])  # the same URDF and floor; position actuators kp, kv
+    S.set_mujoco_integrator(m, integrator, dt)
+    qs, _ = S.mujoco_state_slices(m)
+    q0 = np.zeros(m.nq)
+    q0[:7] = [0.0, 0.0, BASE_Z, 1.0, 0.0, 0.0, 0.0]
+    q0[7:] = standing_pose(names)
+    return m, q0, np.zeros(m.nv), lambda st: st[:, qs][:, :3], standing_pose(names)  # targets held throughout
+
+
+# elastic MPM block (pluggable: appears when genesis_lite's MPM solver lands) -------------------------------------
+
+
+def _mpm_available():
+    import solvers  # the package genesis_lite runs on here (an editable install elsewhere must not answer for it)
+
+    if not (Path(solvers.__file__).parent / "mpm").is_dir():
+        return "genesis_lite has no MPM solver yet (solvers/mpm is missing): row pending"
+    return ("the MPM solver exists (solvers/mpm) but this row has no genesis_lite builder yet: add gl_build to "
+            "SCENES['mpm']: row pending")
+
+
+SCENES: dict[str, WPScene] = {
+    "pendulum": WPScene(
+        "pendulum", "double pendulum (assets/urdf/double_pendulum.urdf), q0 = (0.9, -0.6) rad, v0 = (0, 0.8) rad/s",
+        1.0, (1.0,), "max abs(q - q_ref) at t = 1 s (rad)", _pendulum_files, _pendulum_ref,
+        _gl_build_arm("urdf", S.PENDULUM_Q0, S.PENDULUM_V0), _mj_build_arm("urdf", S.PENDULUM_Q0, S.PENDULUM_V0),
+        genesis=True),
+    "panda": WPScene(
+        "panda", "Panda arm swinging freely from the ready pose under gravity (7 dofs, fingers welded, no limits)",
+        PANDA_T, (PANDA_T,), f"max abs(q - q_ref) at t = {PANDA_T} s (rad)", _panda_files, _panda_ref,
+        _gl_build_arm("urdf", S.PANDA_ARM_HOME, np.zeros(7)), _mj_build_arm("urdf", S.PANDA_ARM_HOME, np.zeros(7)),
+        genesis=True),
+    "box": WPScene(
+        "box", f"box sliding to rest ({S.BOX_SIZE} m cube, {S.BOX_MASS} kg, v0 = {S.BOX_V0} m/s, mu = {S.BOX_MU})",
+        1.0, BOX_SAMPLES, "max abs(x - x_ref) at t = 0.2 and 1 s (m)", _box_files, _box_ref, _gl_build_box,
+        _mj_build_box, genesis=True),
+    "quadruped": WPScene(
+        "quadruped", "ANYmal B dropped on the ground from 0.62 m, PD holding the standing pose (kp 100, kv 5)",
+        1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref, _gl_build_quad,
+        _mj_build_quad, genesis=True),
+    "mpm": WPScene(
+        "mpm", "elastic MPM block under gravity", 1.0, (1.0,), "particle positions (m)", lambda tmp: {},
+        lambda files: Reference("fine", "the same engine at a far smaller dt"), available=_mpm_available),
+}
+
+
+def _error(obs, ref, key):
+    """Max over environments of the scene's error measure; inf when the run diverged."""
+    obs = np.asarray(obs, dtype=float)
+    ref = np.asarray(ref, dtype=float).reshape(1, -1)
+    if not np.all(np.isfinite(obs)):
+        return math.inf
+    d = obs - ref
+    if key == "quadruped":
+        return float(np.linalg.norm(d, axis=1).max())
+    return float(np.abs(d).max())
+
+
+def _samples(scene: WPScene, dt):
+    """Steps between consecutive sample times (an exact multiple of dt is required)."""
+    out, prev = [], 0
+    for t in scene.sample_times:
+        n = t / dt
+        if abs(n - round(n)) > 1e-6:
+            raise ValueError(f"{scene.key}: sample time {t} s is not a multiple of dt = {dt} s")
+        out.append(int(round(n)) - prev)
+        prev = int(round(n))
+    return out
+
+
+# --- genesis_lite worker (child process) ---------------------------------------------------------------------
+
+
+def worker_gl(scene_key, files, points, n_envs, repeats) -> dict:
+    """Run each (integrator, dt, substeps) point of one scene: observables and stepping wall times."""
+    import genesis_lite as gs
+
+    gs.init(backend=gs.cpu, precision="64")
+    wps = SCENES[scene_key]
+    files = {k: Path(v) for k, v in files.items()}
+    out = []
+    for integ, dt, sub in points:
+        rec = {"integrator": integ, "dt": dt, "substeps": sub}
+        try:
+            with Timer() as tb:
+                scene, reset, observe = wps.gl_build(gs, files, integ, dt, sub, n_envs)
+                reset()
+                scene.step()  # compiles (or loads) the step kernels
+            rec["build_s"] = tb.seconds
+            chunks = _samples(wps, dt)
+            # warm-up past the periodic NaN check (every 16 steps) and the getters, which compile on first use
+            reset()
+            for _ in range(min(48, sum(chunks))):
+                scene.step()
+            observe()
+            walls, obs = [], None
+            for _ in range(repeats):
+                reset()
+                wall, got = 0.0, []
+                for n in chunks:
+                    t0 = time.perf_counter()
+                    for _ in range(n):
+                        scene.step()
+                    wall += time.perf_counter() - t0
+                    got.append(observe())
+                walls.append(wall)
+                obs = np.concatenate(got, axis=1)
+            rec.update(wall=statistics.median(walls), walls=walls, obs=obs.tolist(), steps=sum(chunks))
+        except Exception as e:  # a diverged run (SimulationNaNError) is a result, not a crash of the sweep
+            rec.update(wall=None, obs=None, failed=f"{type(e).__name__}: {str(e).splitlines()[0][:160]}")
+        out.append(rec)
+        del rec
+    return {"points": out}
+
+
+def _worker_main(argv):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--worker", required=True, choices=["gl"])
+    ap.add_argument("--args", required=True)
+    a = ap.parse_args(argv)
+    print(json.dumps(worker_gl(**json.loads(a.args))), flush=True)
+
+
+def run_gl(scene_key, files, points, n_envs, repeats, timeout=3600):
+    return run_python([str(Path(__file__).resolve()), "--worker", "gl", "--args",
+                       json.dumps({"scene_key": scene_key, "files": {k: str(v) for k, v in files.items()},
+                                   "points": points, "n_envs": n_envs, "repeats": repeats})], timeout=timeout)
+
+
+# --- MuJoCo (in this process) ------------------------------------------------------------------------------------
+
+
+def run_mj(wps: WPScene, files, points, n_envs, repeats) -> dict:
+    import mujoco
+    from mujoco import rollout
+
+    out = []
+    threads = 1 if n_envs <= 1 else min(2, os.cpu_count() or 1)
+    for integ, dt, sub in points:
+        rec = {"integrator": integ, "dt": dt, "substeps": sub}
+        try:
+            m, q0, v0, observe, ctrl0 = wps.mj_build(files, integ, dt)
+            B = max(n_envs, 1)
+            init = S.mujoco_initial_states(m, q0, v0, B)
+            ctrl = None if ctrl0 is None else np.tile(np.asarray(ctrl0, float), (B, 1, 1))
+            datas = [mujoco.MjData(m) for _ in range(threads)]
+            chunks = _samples(wps, dt)
+            bufs = {}
+
+            def once():
+                state, wall, got = init.copy(), 0.0, []
+                for n in chunks:
+                    left = n
+                    while left:
+                        k = min(left, MJ_CHUNK)
+                        buf = bufs.setdefault(k, np.empty((B, k, init.shape[1])))
+                        t0 = time.perf_counter()
+                        rollout.rollout(m, datas, state, ctrl, nstep=k, state=buf, persistent_pool=True)
+                        wall += time.perf_counter() - t0
+                        state = buf[:, -1].copy()
+                        left -= k
+                    got.append(observe(state))
+                return wall, np.concatenate(got, axis=1)
+
+            once()  # warm-up: creates the thread pool
+            warned = _mj_bad(datas)
+            runs = [once() for _ in range(repeats)]
+            rec.update(wall=statistics.median(r[0] for r in runs), walls=[r[0] for r in runs],
+                       obs=runs[-1][1].tolist(), steps=sum(chunks))
+            if warned or _mj_bad(datas):
+                # MuJoCo resets a state whose acceleration blows up and carries on: the run diverged
+                rec["failed"] = "MuJoCo warned of NaN / huge qacc (it resets such states and carries on)"
+        except Exception as e:
+            rec.update(wall=None, obs=None, failed=f"{type(e).__name__}: {str(e).splitlines()[0][:160]}")
+        finally:
+            rollout.shutdown_persistent_pool()
+        out.append(rec)
+    return {"points": out, "version": mujoco.__version__, "threads": threads}
+
+
+def _mj_bad(datas) -> int:
+    """How many times MuJoCo flagged a bad qpos / qvel / qacc in these MjData (cumulative counters)."""
+    import mujoco
+
+    w = mujoco.mjtWarning
+    return sum(int(d.warning[int(k)].number) for d in datas for k in (w.mjWARN_BADQACC, w.mjWARN_BADQPOS,
+                                                                       w.mjWARN_BADQVEL))
+
+
+# --- real Genesis (its own venv) ---------------------------------------------------------------------------------
+
+
+def run_genesis(scene_key, files, points, n_envs, repeats, timeout=3600):
+    py = genesis_python()
+    if not Path(py).exists():
+        return None, f"real Genesis not installed ({py} not found; set GENESIS_PYTHON)"
+    return run_python([str(HERE / "peer_genesis_wp.py"), "--args",
+                       json.dumps({"scene_key": scene_key, "files": {k: str(v) for k, v in files.items()},
+                                   "points": points, "n_envs": n_envs, "repeats": repeats,
+                                   "sample_times": list(SCENES[scene_key].sample_times)})],
+                      python=py, timeout=timeout)
+
+
+# --- the study ----------------------------------------------------------------------------------------------------
+
+
+def _fine_reference(engine, wps, files, ref: Reference):
+    """(obs, self-difference, note) of an engine's own fine float64 run (and its check run)."""
+    pts = [(ref.fine[0], ref.fine[1], 1), (ref.check[0], ref.check[1], 1)]
+    if engine == "genesis_lite":
+        res, err = run_gl(wps.key, files, pts, 0, 1)
+    elif engine == "mujoco":
+        res, err = run_mj(wps, files, pts, 0, 1), None
+    else:
+        gpts = [("implicitfast", ref.fine[1], 1), ("implicitfast", ref.check[1], 1)]  # no RK4 in Genesis
+        res, err = run_genesis(wps.key, files, gpts, 0, 1)
+    if res is None:
+        return None, None, err
+    a, b = res["points"]
+    if a.get("obs") is None or b.get("obs") is None:
+        return None, None, a.get("failed") or b.get("failed")
+    fa = np.asarray(a["obs"])[0]
+    return fa.tolist(), _error(b["obs"], fa, wps.key), None
+
+
+QUICK_BATCHED = ("panda",)  # --quick runs the batch on these scenes only
+
+
+def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=print, integrators=None) -> dict:
+    """The whole study: {scene: {"reference": ..., "envs": {n: {engine: [points with error]}}}}. Real Genesis
+    runs 1 env only (its CPU backend with 1,024 envs would take the better part of an hour per scene here), and not
+    in --quick (its first scene compiles for minutes); --quick runs the batch on QUICK_BATCHED only."""
+    results = {}
+    def counts(key):
+        return [n for n in env_counts if n <= 1 or not quick or key in QUICK_BATCHED]
+
+    bar = progress(total=sum(len(counts(k)) for k in scene_keys), desc="work-precision")
+    for key in scene_keys:
+        wps = SCENES[key]
+        entry = {"title": wps.title, "error_label": wps.error_label, "envs": {}, "notes": []}
+        results[key] = entry
+        why = wps.available()
+        if why:
+            entry["skipped"] = why
+            bar.update(len(counts(key)))
+            continue
+        files = wps.files(tmp)
+        ref = wps.reference(files)
+        entry["reference"] = ref.label
+        refs = {}
+        engines = ["genesis_lite", "mujoco"] + (["genesis"] if with_genesis and wps.genesis and not quick else [])
+        for engine in engines:
+            if ref.kind == "fine":
+                obs, self_err, err = _fine_reference(engine, wps, files, ref)
+                refs[engine] = obs
+                entry.setdefault("ref_self_error", {})[engine] = self_err
+                if err:
+                    entry["notes"].append(f"{engine}: no reference ({err})")
+                elif engine == "genesis":
+                    entry["notes"].append(f"Genesis has no RK4: its reference is its implicitfast at dt = "
+                                          f"{ref.fine[1]:g} s (and {ref.check[1]:g} s for the reference's error)")
+            else:
+                refs[engine] = ref.obs
+        for n_envs in counts(key):
+            per = {}
+            for engine in engines:
+                if engine == "genesis" and n_envs > 1:
+                    continue
+                pts = [p for p in sweep(engine, n_envs > 1, quick) if not integrators or p[0] in integrators]
+                if engine == "genesis_lite":
+                    res, err = run_gl(key, files, pts, n_envs, repeats)
+                elif engine == "mujoco":
+                    res, err = run_mj(wps, files, pts, n_envs, repeats), None
+                else:
+                    res, err = run_genesis(key, files, pts, n_envs, repeats)
+                if res is None:
+                    per[engine] = {"error": err, "points": []}
+                    log(f"  {key} {n_envs} envs {engine}: FAILED: {err}")
+                    continue
+                for p in res["points"]:
+                    p["error"] = None if p.get("obs") is None or refs[engine] is None else _error(p["obs"], refs[engine], key)
+                    p["diverged"] = bool(p.get("failed")) or p["error"] is None or p["error"] > DIVERGED
+                    p.pop("obs", None)
+                per[engine] = {k: v for k, v in res.items() if k != "points"}
+                per[engine]["points"] = res["points"]
+            entry["envs"][str(max(n_envs, 1))] = per
+            bar.update(1)
+    bar.close()
+    return results
+
+
+# --- summaries ----------------------------------------------------------------------------------------------------
+
+
+def front(points):
+    """(errors, times) of the Pareto front: for each error level reached, the least wall time reaching it."""
+    ok = sorted((p["wall"], p["error"]) for p in points if not p.get("diverged") and p.get("wall") is not None)
+    out, best = [], math.inf
+    for t, e in ok:
+        if e < best:
+            out.append((e, t))
+            best = e
+    return out
+
+
+def time_at(fr, e):
+    """Least wall time among front points whose error is <= e (inf when none reaches e)."""
+    ts = [t for err, t in fr if err <= e]
+    return min(ts) if ts else math.inf
+
+
+def equal_error_ratio(points_a, points_b, n=25):
+    """Run-time ratio a / b at equal error: on a log grid of error levels both fronts reach (from the larger of
+    their best errors to the smaller of their worst), time_at(a, e) / time_at(b, e). Returns (max, median,
+    (e_lo, e_hi)) or None when the ranges do not overlap."""
+    fa, fb = front(points_a), front(points_b)
+    if not fa or not fb:
+        return None
+    lo = max(min(e for e, _ in fa), min(e for e, _ in fb))
+    hi = min(max(e for e, _ in fa), max(e for e, _ in fb), ERR_CAP)
+    if not lo <= hi:
+        return None
+    grid = np.geomspace(lo, hi, n) if hi > lo else np.array([lo])
+    r = [time_at(fa, e) / time_at(fb, e) for e in grid]
+    return max(r), float(np.median(r)), (lo, hi)
+
+
+def tables(results) -> list[str]:
+    """Markdown: per scene a summary (best error and the time of each engine's front), and all points."""
+    out = []
+    for key, entry in results.items():
+        lines = [f"#### {key}: {entry['title']}"]
+        if entry.get("skipped"):
+            lines.append(f"Skipped: {entry['skipped']}.")
+            out.append("\n".join(lines))
+            continue
+        lines.append(f"Error: {entry['error_label']}. Reference: {entry.get('reference')}.")
+        if entry.get("ref_self_error"):
+            lines.append("Reference's own error (fine run vs the same at twice its dt): " + ", ".join(
+                f"{k} {v:.1e}" if v is not None else f"{k} -" for k, v in entry["ref_self_error"].items()) + ".")
+        for note in entry.get("notes", []):
+            lines.append(f"Note: {note}.")
+        rows = []
+        for n, per in entry["envs"].items():
+            for engine, res in per.items():
+                for integ in INTEGRATORS:
+                    pts = [p for p in res.get("points", []) if p["integrator"] == integ]
+                    if not pts:
+                        continue
+                    fr = front(pts)
+                    div = [p for p in pts if p.get("diverged")]
+                    rows.append({"envs": int(n), "engine": engine, "integrator": integ, "points": len(pts),
+                                 "best_err": fr[-1][0] if fr else None, "best_t": fr[-1][1] if fr else None,
+                                 "t_1e3": _fmt_t(time_at(fr, 1e-3)), "t_1e6": _fmt_t(time_at(fr, 1e-6)),
+                                 "failed": ", ".join(f"dt={p['dt']:g}x{p['substeps']}" for p in div) or "-"})
+                if res.get("error"):
+                    rows.append({"envs": int(n), "engine": engine, "failed": res["error"]})
+        lines.append(print_table(rows, [
+            ("envs", "envs", "d"), ("engine", "engine", ""), ("integrator", "integrator", ""), ("points", "runs", "d"),
+            ("best_err", "smallest error", ".2e"), ("best_t", "its wall s", ".3g"),
+            ("t_1e3", "wall s to error <= 1e-3", ""), ("t_1e6", "wall s to error <= 1e-6", ""),
+            ("failed", "diverged / failed runs", "")]))
+        pts_rows = []
+        for n, per in entry["envs"].items():
+            for engine, res in per.items():
+                for p in res.get("points", []):
+                    pts_rows.append({"envs": int(n), "engine": engine, **p,
+                                     "error_s": p.get("error") if p.get("error") is not None else "-",
+                                     "div": "yes" if p.get("diverged") else "",
+                                     "note": p.get("failed", "")})
+        lines.append("\n<details><summary>every run</summary>\n")
+        lines.append(print_table(pts_rows, [
+            ("envs", "envs", "d"), ("engine", "engine", ""), ("integrator", "integrator", ""), ("dt", "dt s", "g"),
+            ("substeps", "substeps", "d"), ("steps", "steps", "d"), ("error_s", "error", ".3e"),
+            ("div", "diverged", ""), ("wall", "wall s (median)", ".4f"), ("build_s", "build+compile s", ".2f"),
+            ("note", "note", "")]))
+        lines.append("\n</details>")
+        out.append("\n".join(lines))
+    return out
+
+
+def _fmt_t(t):
+    return "not reached" if not math.isfinite(t) else f"{t:.3g}"
+
+
+STYLE = {"genesis_lite": ("-", "o"), "mujoco": ("--", "s"), "genesis": (":", "^")}
+COLOR = {"Euler": "tab:blue", "implicitfast": "tab:orange", "RK4": "tab:green"}
+
+
+def plot(results, n_envs: str, path: Path, title: str) -> bool:
+    """One log-log panel per scene: error against wall time, a line per engine and integrator (substep runs
+    as hollow markers). Returns False when there is nothing to plot or no matplotlib."""
+    plt = pyplot()
+    keys = [k for k, e in results.items() if not e.get("skipped") and n_envs in e["envs"]]
+    if plt is None or not keys:
+        return False
+    cols = min(2, len(keys))
+    rows = (len(keys) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(6.2 * cols, 4.6 * rows), squeeze=False)
+    for ax, key in zip(axes.flat, keys):
+        for engine, res in results[key]["envs"][n_envs].items():
+            ls, mk = STYLE[engine]
+            for integ in INTEGRATORS:
+                pts = [p for p in res.get("points", []) if p["integrator"] == integ and p.get("wall")
+                       and not p.get("diverged") and p["error"] > 0]
+                if not pts:
+                    continue
+                plain = sorted((p for p in pts if p["substeps"] == 1), key=lambda p: -p["dt"])  # a convergence curve
+                sub = [p for p in pts if p["substeps"] > 1]
+                if plain:
+                    ax.plot([p["wall"] for p in plain], [p["error"] for p in plain], ls=ls, marker=mk, ms=5,
+                            color=COLOR[integ], label=f"{engine} {integ}")
+                if sub:
+                    ax.plot([p["wall"] for p in sub], [p["error"] for p in sub], ls="none", marker=mk, ms=7,
+                            mfc="none", color=COLOR[integ])
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("wall time of the run (s)")
+        ax.set_ylabel("error")
+        ax.set_title(f"{key}: {results[key]['error_label']}", fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(keys):]:
+        ax.axis("off")
+    fig.suptitle(title + "  (hollow markers: dt = 0.02 s with substeps)", fontsize=10)
+    save_figure(fig, path)
+    return True
+
+
+def main():
+    if "--worker" in sys.argv:
+        return _worker_main(sys.argv[1:])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--envs", type=int, default=1024)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--no-genesis", action="store_true")
+    ap.add_argument("--json", type=Path, default=None)
+    a = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="bench_wp_") as tmp:
+        res = run(a.scenes.split(","), [0, a.envs], a.quick, a.repeats, not a.no_genesis, Path(tmp))
+    for t in tables(res):
+        print(t)
+    if a.json:
+        a.json.write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()

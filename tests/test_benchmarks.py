@@ -1,0 +1,234 @@
+"""The benchmark harness (benchmarks/run_all.py, issue #9): its bookkeeping, its references, and a run.
+
+- Pure logic, no simulation: the work-precision front and the equal-error ratio on points whose answer is known
+  by construction, the bisection of the largest time step, the sweep's sample times, the stress verdicts on
+  made-up figures (a NaN or a tunnelling sphere must FAIL).
+- References no one here wrote: the analytic sliding box; MuJoCo and Pinocchio reading the same Panda file
+  (MuJoCo's RK4 at a small dt lands on Pinocchio + DOP853), which is what makes the MuJoCo rows comparable.
+- A smoke run of run_all.py with one row of each kind (work-precision, stress, gradient norm, unused-feature
+  cost, headline), checking that results.md holds the tables and that every pass / fail cell agrees with
+  the criterion applied here to the raw figures in results.json.
+- The whole `run_all.py --quick` (slow).
+"""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import bench_stress as bs  # noqa: E402
+import bench_workprecision as wp  # noqa: E402
+import scenes as S  # noqa: E402
+
+
+def _pt(wall, error, diverged=False):
+    return {"integrator": "Euler", "dt": 0.01, "substeps": 1, "wall": wall, "error": error, "diverged": diverged}
+
+
+# --- work-precision bookkeeping -------------------------------------------------------------------------------
+
+
+def test_front_keeps_only_points_that_buy_accuracy():
+    pts = [_pt(1.0, 1e-2), _pt(2.0, 1e-2), _pt(3.0, 1e-4), _pt(0.5, 1e3, diverged=True), _pt(4.0, 1e-3)]
+    assert wp.front(pts) == [(1e-2, 1.0), (1e-4, 3.0)]
+    assert wp.time_at(wp.front(pts), 1e-3) == 3.0
+    assert wp.time_at(wp.front(pts), 1e-5) == math.inf
+
+
+def test_equal_error_ratio_on_a_known_pair():
+    # b needs twice a's time for every error level, over a common range 1e-4 .. 1e-2
+    a = [_pt(1.0, 1e-2), _pt(2.0, 1e-3), _pt(4.0, 1e-4), _pt(8.0, 1e-6)]
+    b = [_pt(2.0, 1e-2), _pt(4.0, 1e-3), _pt(8.0, 1e-4), _pt(0.1, 5.0)]
+    mx, med, (lo, hi) = wp.equal_error_ratio(a, b)
+    assert (lo, hi) == (1e-4, 1e-2)
+    assert mx == pytest.approx(0.5) and med == pytest.approx(0.5)
+    mx, _, _ = wp.equal_error_ratio(b, a)
+    assert mx == pytest.approx(2.0)
+    # no common range: one engine never gets below 1e-1 (the cap of useful accuracy)
+    assert wp.equal_error_ratio(a, [_pt(1.0, 0.5)]) is None
+
+
+def test_sample_times_must_be_whole_steps():
+    assert wp._samples(wp.SCENES["box"], 0.005) == [40, 160]
+    with pytest.raises(ValueError, match="not a multiple"):
+        wp._samples(wp.SCENES["box"], 0.003)
+    for engine in ("genesis_lite", "mujoco", "genesis"):
+        for batched in (False, True):
+            for quick in (False, True):
+                for integ, dt, sub in wp.sweep(engine, batched, quick):
+                    for key in ("pendulum", "panda", "box", "quadruped"):
+                        wp._samples(wp.SCENES[key], dt)  # raises if a sample time falls between steps
+
+
+def test_error_measure_flags_nan_and_takes_the_worst_env():
+    assert wp._error([[0.0, 1.0], [0.0, 1.5]], [0.0, 1.0], "pendulum") == pytest.approx(0.5)
+    assert wp._error([[np.nan, 1.0]], [0.0, 1.0], "pendulum") == math.inf
+    assert wp._error([[3.0, 4.0, 0.0]], [0.0, 0.0, 0.0], "quadruped") == pytest.approx(5.0)
+
+
+def test_mpm_row_is_pluggable_and_says_why_it_is_pending():
+    why = wp.SCENES["mpm"].available()
+    assert why and "MPM" in why
+
+
+# --- references -------------------------------------------------------------------------------------------------
+
+
+def test_box_analytic_reference():
+    t_stop = S.BOX_V0 / (S.BOX_MU * S.G)
+    assert S.box_slide_analytic(t_stop) == pytest.approx(S.BOX_V0**2 / (2 * S.BOX_MU * S.G))
+    assert S.box_slide_analytic(10.0) == pytest.approx(S.box_slide_analytic(t_stop))  # stays at rest
+    assert S.box_slide_analytic(0.1) == pytest.approx(S.BOX_V0 * 0.1 - 0.5 * S.BOX_MU * S.G * 0.01)
+
+
+def test_mujoco_and_pinocchio_read_the_same_panda_file(tmp_path):
+    pytest.importorskip("mujoco")
+    pytest.importorskip("pinocchio")
+    files = wp._panda_files(tmp_path)
+    ref = wp._panda_ref(files)
+    m, q0, v0, observe, ctrl = wp._mj_build_arm("urdf", S.PANDA_ARM_HOME, np.zeros(7))(files, "RK4", 0.0025)
+    assert m.nq == m.nv == 7 and ctrl is None
+    assert not m.jnt_limited.any()
+    res = wp.run_mj(wp.SCENES["panda"], files, [("RK4", 0.0025, 1)], 0, 1)
+    err = wp._error(np.asarray(res["points"][0]["obs"]), ref.obs, "panda")
+    # RK4's global error at this dt is ~1e-6 rad (bench_workprecision's full sweep): a wrong joint order, mass or
+    # axis would be off by far more
+    assert err < 1e-4
+
+
+# --- stress verdicts ----------------------------------------------------------------------------------------------
+
+
+def test_bisect_finds_the_threshold():
+    dt, note = bs.bisect(lambda dt: dt <= 0.0123, 1e-4, 0.1, 12)
+    assert 0.0123 / 1.01 < dt <= 0.0123
+    assert bs.bisect(lambda dt: True, 1e-4, 0.1, 5)[0] == 0.1
+    assert bs.bisect(lambda dt: False, 1e-4, 0.1, 5)[0] is None
+
+
+def test_verdicts_fail_what_they_should():
+    rest = [0.1] * 3
+    assert not bs._impact_verdict([float("nan")] * 3, [1.0] * 3, rest, 0.01)["pass"]
+    assert not bs._impact_verdict([-0.15, 0.05, 0.05], [5.0] * 3, rest, 0.01)["pass"]  # wholly below ground
+    assert not bs._impact_verdict([0.05] * 3, [5.0] * 3, [0.1, -0.5, 0.1], 0.01)["pass"]  # ended up below: through
+    assert not bs._impact_verdict([0.05] * 3, [25.0, 1.0, 1.0], rest, 0.01)["pass"]  # gained energy
+    assert bs._impact_verdict([-0.05, 0.05, 0.05], [10.0] * 3, rest, 0.01)["pass"]
+    assert not bs._chain_verdict(-10.0, -9.0, -20.0, 0.0)["pass"]  # energy rose 10 %
+    assert not bs._chain_verdict(-10.0, -10.0, -20.0, 1.0)["pass"]  # still moving
+    assert bs._chain_verdict(-10.0, -10.0, -20.0, 0.001)["pass"]
+    a = 0.2
+    assert not bs._ratio_verdict(np.array([0, 0, 0.1]), np.array([0.05, 0, 0.3]), 0.0, a)["pass"]  # slid off
+    assert bs._ratio_verdict(np.array([0, 0, 0.0999]), np.array([0, 0, 0.2995]), 0.001, a)["pass"]
+    assert not bs._stiff_verdict(0.1, 0.5, 0.09, -1e9)["pass"]  # still moving
+    assert bs._stiff_verdict(0.09999, 0.001, 0.0999, -1e9)["pass"]
+
+
+# --- a run of the harness -------------------------------------------------------------------------------------
+
+
+def _run_all(tmp_path, *args, timeout):
+    cmd = [sys.executable, str(BENCH / "run_all.py"), "--out-dir", str(tmp_path), *args]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    assert p.returncode == 0, p.stderr[-3000:]
+    text = (tmp_path / "results.md").read_text()
+    data = json.loads((tmp_path / "results.json").read_text())
+    return text, data
+
+
+def _check_stress(data):
+    """Every stress verdict equals its criterion applied here to the raw figures."""
+    rows = data["stress"]["table"]
+    assert rows
+    for r in rows:
+        if r["key"] == "mpm":
+            assert r["gl_pass"] == "pending"
+            continue
+        for side in ("gl", "mj"):
+            m = r.get(f"{side}_metrics") or {}
+            if not m.get("finite", False):
+                assert r[f"{side}_pass"] == "FAIL", r
+                continue
+            if r["key"] == "impact":
+                ok = m["zmin"] > -0.1 and m["zend_err"] < 0.01 and m["rebound"] <= m["v_hit"]
+            elif r["key"] == "energy":
+                ok = m["max_drift"] <= bs.ENERGY_TOL
+            elif r["key"] == "chain":
+                ok = m["gain"] <= 0.01 and m["vmax"] < bs.CHAIN_REST_SPEED
+            elif r["key"] == "stiff":
+                ok = m["speed"] < bs.REST_SPEED and m["pen_mm"] < 1.0 and m["zmax_after"] < 0.2
+            else:
+                ok = m["speed"] < bs.REST_SPEED and m["drift"] < 0.01 and max(m["sink_l"], m["sink_h"]) < 0.01
+            assert r[f"{side}_pass"] == ("PASS" if ok else "FAIL"), r
+    for g in data["stress"].get("grad") or []:
+        exploded = g["norm"] > bs.GRAD_EXPLODED
+        warned = g["n_warnings"] > 0
+        assert g["exploded"] == ("yes" if exploded else "no")
+        assert g["verdict"].startswith("PASS" if exploded == warned else "FAIL"), g
+        # the derivative is that of the simulation: central differences agree where they are meaningful
+        if g["T"] <= 100:
+            assert g["fd_rel"] < 1e-4, g
+            assert g["mj_rel"] < 1e-3, g
+
+
+def test_run_all_smoke(tmp_path):
+    """One row of each kind: work-precision (double pendulum, RK4, 1 env, genesis_lite + MuJoCo), two stress rows
+    (stiff contact and the gradient norm), the MPM import check, and the headline built from them."""
+    text, data = _run_all(tmp_path, "--quick", "--sections", "workprecision,stress,unused,headline",
+                          "--scenes", "pendulum,mpm", "--integrators", "RK4", "--envs", "0",
+                          "--stress-rows", "stiff,grad", "--unused-parts", "mpm", "--no-genesis", "--no-bisect",
+                          timeout=900)
+    for heading in ("## Machine", "## Headline", "## Work-precision", "## Stability under stress",
+                    "## The cost of what a scene does not use"):
+        assert heading in text
+    # work-precision: both engines' RK4 runs with an error against the named reference
+    pend = data["workprecision"]["pendulum"]
+    assert "DOP853" in pend["reference"] and "DOP853" in text
+    for engine in ("genesis_lite", "mujoco"):
+        pts = pend["envs"]["1"][engine]["points"]
+        assert pts and all(p["integrator"] == "RK4" and p["wall"] > 0 for p in pts)
+        # RK4 at dt = 0.005 s on this pendulum: ~1e-8 rad against DOP853 (bench_integrators' convergence table)
+        assert min(p["error"] for p in pts) < 1e-6
+    assert "MPM" in data["workprecision"]["mpm"]["skipped"]
+    assert "row pending" in text
+    # the same integrator, dt and model: genesis_lite and MuJoCo agree on the state, so on the error
+    e_gl = sorted(p["error"] for p in pend["envs"]["1"]["genesis_lite"]["points"])
+    e_mj = sorted(p["error"] for p in pend["envs"]["1"]["mujoco"]["points"])
+    assert np.allclose(e_gl, e_mj, rtol=1e-3, atol=1e-12)
+    _check_stress(data)
+    mpm = data["unused"]["mpm"]
+    assert len(mpm) == 2 and all("error" not in r for r in mpm)
+    assert not any(r["imported_after_build"] for r in mpm)
+    assert "rigid scene leaves MPM unimported" in text
+    # the headline's equal-error row: met / NOT MET agrees with its ratio
+    eq = [r for r in data["headline"] if r["goal"].startswith("at equal error")]
+    assert len(eq) == 1
+    assert eq[0]["met"] == ("met" if eq[0]["ratio"] <= 1.0 else "NOT MET")
+
+
+@pytest.mark.slow
+def test_run_all_quick(tmp_path):
+    """The whole --quick run: every section and table, plots beside results.md."""
+    text, data = _run_all(tmp_path, "--quick", "--no-genesis", timeout=3600)
+    for heading in ("## Headline", "## Stepping speed and build time", "## Work-precision", "## Gradient cost",
+                    "## Stability under stress", "## The cost of what a scene does not use", "## MPM peer"):
+        assert heading in text
+    _check_stress(data)
+    goals = {r["goal"].split(":")[0] for r in data["headline"]}
+    assert any(g.startswith("Panda, 1024 envs") for g in goals)
+    assert any(g.startswith("build") for g in goals)
+    assert any(g.startswith("backward") for g in goals)
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return
+    assert (tmp_path / "workprecision_1env.png").stat().st_size > 10_000
+    assert (tmp_path / "workprecision_1024env.png").stat().st_size > 10_000
