@@ -179,6 +179,7 @@ def _check_stress(data):
             assert g["mj_rel"] < 1e-3, g
 
 
+@pytest.mark.slow
 def test_run_all_smoke(tmp_path):
     """One row of each kind: work-precision (double pendulum, RK4, 1 env, genesis_lite + MuJoCo), two stress rows
     (stiff contact and the gradient norm), the MPM import check, and the headline built from them."""

@@ -97,6 +97,7 @@ def test_second_robot_compiles_nothing(compiled):
         torch.testing.assert_close(x, y, rtol=0, atol=0)
 
 
+@pytest.mark.slow
 def test_second_robot_with_gradients_compiles_nothing(compiled):
     """The gradient path too: forward, backward and parameter gradients of a second robot reuse the
     first one's kernels, and its gradients equal those of a fresh core."""

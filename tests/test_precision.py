@@ -70,6 +70,7 @@ def _compare(code, rtol):
         assert np.linalg.norm(g64[k]) > 0 and err < rtol, (k, g32[k], g64[k])
 
 
+@pytest.mark.slow
 def test_float32_rigid_gradients_match_float64():
     _compare(RIGID, 1e-4)
 

@@ -1,7 +1,7 @@
 """Stage 3, bias forces: Coriolis, centrifugal and gravity by recursive Newton-Euler (qacc = 0)."""
 import taichi as ti
 
-from .kinematics import func_link_joint_velocity
+from .kinematics import func_link_joint_velocity, func_parent_slot
 from .math3d import func_add, func_cross_force, func_inertia_mul
 
 
@@ -12,7 +12,7 @@ def func_link_forces(s: ti.template(), i_b, e, src, h):
     for i_l in range(s.n_links):
         p = s.link_parent[i_l]
         has_p = p >= 0
-        pp = ti.max(p, 0)
+        pp = func_parent_slot(s, p)
         d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
         aw = ti.select(has_p, s.cacc_w[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)) + s.cdofd_w[i_b, d0] * qd
         av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd + free * vb.cross(wb)

@@ -42,8 +42,13 @@ def func_dof_update(s: ti.template(), i_b, kind, e, base, src, h, j):
             + 2.0 * s.qacc[ti.max(e - 1, 0), i_b, j] + s.qacc[e, i_b, j]) / 6.0
     final = kind == INT_RK_FINAL
     v_new = s.qvel[base, i_b, j] + h * ti.select(final, a_rk, s.qacc[e, i_b, j])
-    v_rk = (s.qvel[base, i_b, j] + 2.0 * s.qvel[ti.min(base + 1, last), i_b, j]
-            + 2.0 * s.qvel[ti.min(base + 2, last), i_b, j] + s.qvel[ti.min(base + 3, last), i_b, j]) / 6.0
+    # the RK stage slots base+1..3, read only by INT_RK_FINAL; the other kinds read slot base there
+    # (for Euler base+1 is dst, which this kernel writes: a masked read of it would still break
+    # Taichi's global data access rule)
+    r1 = ti.select(final, ti.min(base + 1, last), base)
+    r2 = ti.select(final, ti.min(base + 2, last), base)
+    r3 = ti.select(final, ti.min(base + 3, last), base)
+    v_rk = (s.qvel[base, i_b, j] + 2.0 * s.qvel[r1, i_b, j] + 2.0 * s.qvel[r2, i_b, j] + s.qvel[r3, i_b, j]) / 6.0
     v_move = ti.select(final, v_rk, ti.select(kind == INT_RK_STAGE, s.qvel[src, i_b, j], v_new))
     return v_new, v_move
 

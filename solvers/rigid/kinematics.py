@@ -4,7 +4,8 @@ Differentiated stages here and in the other stage modules are written in single-
 every local is assigned once and joint-type cases are blended with ti.select or 0/1 masks instead
 of if/else assignments. Taichi's reverse mode turns any local stored twice inside a loop into an
 "adstack", which made the gradient kernels take minutes to compile; in this form they take seconds.
-Reads at clamped indices feed only masked-out terms.
+Reads at clamped indices feed only masked-out terms. A root link's (masked-out) parent reads go to
+the world slot (func_parent_slot), not to a link this stage writes later.
 """
 import taichi as ti
 
@@ -80,6 +81,16 @@ def func_joint_pose(s: ti.template(), i_b, src, jt, qs, axis, jpos, jquat):
 
 
 @ti.func
+def func_parent_slot(s: ti.template(), p):
+    """Where link data of parent p is read: p itself, or for a root (p = -1) the core's last link slot,
+    which no scene's link occupies (the element capacity exceeds n_links) and nothing writes. Reading
+    slot 0 instead would read, for link 0, the entry the loop is about to overwrite: a masked-out read,
+    but one that breaks the global data access rule of Taichi's reverse mode (ti.ad.Tape(validation=
+    True) rejects it)."""
+    return ti.select(p >= 0, p, s.cap_elems - 1)
+
+
+@ti.func
 def func_forward_kinematics(s: ti.template(), i_b, e, src, h):
     """Link origin positions and orientations (quat and R) from qpos[src]."""
     for i_l in range(s.n_links):
@@ -87,7 +98,7 @@ def func_forward_kinematics(s: ti.template(), i_b, e, src, h):
         jt = s.link_jtype[i_l]
         qs = s.link_q_start[i_l]
         has_p = p >= 0
-        pp = ti.max(p, 0)
+        pp = func_parent_slot(s, p)
         ppos = ti.select(has_p, s.link_pos[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype))
         pquat = ti.select(has_p, s.link_quat[i_b, pp], ti.Vector([1.0, 0.0, 0.0, 0.0], dt=s.dtype))
         jquat = func_quat_mul(pquat, s.link_jquat[i_l])
@@ -138,7 +149,7 @@ def func_velocity(s: ti.template(), i_b, e, src, h):
     for i_l in range(s.n_links):
         p = s.link_parent[i_l]
         has_p = p >= 0
-        pp = ti.max(p, 0)
+        pp = func_parent_slot(s, p)
         zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
         d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
         w = ti.select(has_p, s.cvel_w[i_b, pp], zero)

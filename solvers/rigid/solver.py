@@ -777,7 +777,8 @@ class RigidSolver:
         self.limit_d = limit_d
         self._layout(models, bool(mimic))
         self._schedule()
-        key = (dtype, bool(requires_grad), _cap_envs(n_envs), _cap_elems(max(self.n_links, self.n_dofs, self.n_qs)),
+        # n_links + 1: a root link reads its parent from a slot no link occupies (kinematics.func_parent_slot)
+        key = (dtype, bool(requires_grad), _cap_envs(n_envs), _cap_elems(max(self.n_links + 1, self.n_dofs, self.n_qs)),
                self.n_slots, self.n_evals, len(self.ops))
         self.core, self.reused_core = POOL.acquire(key)
         weakref.finalize(self, POOL.release, self.core)
