@@ -219,12 +219,14 @@ def section_stress(a, tmp, data, log):
     out = bs.run(rows, a.quick, not a.no_bisect, log=log)
     data["stress"] = out
     t = bs.tables(out)
-    text = ["Each scene at dt = 0.01 s (genesis_lite defaults: implicitfast, contact stiffness 1e6 N/m; MuJoCo the "
-            "same bodies and floor with implicitfast and its default soft contacts, elliptic cones). "
+    text = ["Each rigid scene at dt = 0.01 s (genesis_lite defaults: implicitfast, contact stiffness 1e6 N/m; MuJoCo "
+            "the same bodies and floor with implicitfast and its default soft contacts, elliptic cones); the MPM block "
+            f"at dt = 2e-3 s with {bs.MPM_SUBSTEPS} substeps, its largest dt bisected between {bs.MPM_BISECT[0]:g} and "
+            f"{bs.MPM_BISECT[1]:g} s with the same substeps and the build's CFL check bypassed, beside the CFL estimate. "
             + ("Largest dt survived: not bisected (--no-bisect). " if a.no_bisect else
                f"Largest dt survived: {2 if a.quick else bs.BISECT[2]} bisection steps in log dt between "
                f"{bs.BISECT[0]:g} and {bs.BISECT[1]:g} s on the same pass criterion (energy rows: up to 0.2 s, over "
-               f"{bs.ENERGY_BISECT_T:g} s)" + (f", in --quick for the {', '.join(bs.QUICK_BISECT_ROWS)} row only. "
+               f"{bs.ENERGY_BISECT_T:g} s)" + (f", in --quick for the {', '.join(bs.QUICK_BISECT_ROWS)} rows only. "
                                                if a.quick else ". "))
             + ("Energy drift: 10,000 steps in --quick (100,000 in the full run)." if a.quick else ""), t[0]]
     if len(t) > 1:
