@@ -320,7 +320,7 @@ def _mj_build_quad(files, integrator, dt):
 # its substeps) is printed with the table and bounds what the finest points can show.
 
 MPM_T = 0.05  # s
-MPM_SAMPLES = (0.025, 0.05)  # s
+MPM_SAMPLES = (0.02, 0.05)  # s: whole steps of 2 and 5 ms
 MPM_STRETCH = 40.0  # 1/s: v = MPM_STRETCH * (dx, dy, -dz) about the centre (edge speeds 2 m/s, strains ~7 %)
 MPM_SPIN = (3.0, -2.0, 5.0)  # rad/s
 MPM_CENTRE = (0.25, 0.25, 0.3)  # m
