@@ -516,9 +516,10 @@ def part_mpm(urdf, quick, tables, data, particles=None, memory=None):
             title=f"6. MPM memory kept for backward against horizon (f64, one state = x, v, C, F = "
                   f"{mem_rows[0]['state_KiB']:.0f} KiB; loss = sum of particle heights, d loss / d initial velocity; "
                   "a single rollout per row in one process: the first rows' times include compiling)"))
-        if max(horizons) < 10000:
-            tables.append(f"MPM horizons above {max(horizons):,} steps are not run here: 10,000 steps of this cube "
-                          "would take hours of forward and backward on this machine.")
+        if max(horizons) < 10000 and mem_parts >= 10000:
+            tables.append(f"MPM horizons above {max(horizons):,} steps are not run: 10,000 steps of this "
+                          f"{mem_rows[0]['n_particles']:,}-particle cube would take hours of forward and backward on "
+                          "this machine ('KiB held per step': the memory held divided by the horizon).")
 
 
 def main():

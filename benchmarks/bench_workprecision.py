@@ -703,7 +703,7 @@ def tables(results) -> list[str]:
             continue
         lines.append(f"Error: {entry['error_label']}. Reference: {entry.get('reference')}.")
         if entry.get("ref_self_error"):
-            lines.append("Reference's own error (fine run vs the same at twice its dt): " + ", ".join(
+            lines.append("Reference's own error (fine run vs the same at twice its step or substep): " + ", ".join(
                 f"{k} {v:.1e}" if v is not None else f"{k} -" for k, v in entry["ref_self_error"].items()) + ".")
         for note in entry.get("notes", []):
             lines.append(f"Note: {note}.")
@@ -787,6 +787,9 @@ def plot(results, n_envs: str, path: Path, title: str) -> bool:
                 if sub:
                     ax.plot([p["wall"] for p in sub], [p["error"] for p in sub], ls="none", marker=mk, ms=7,
                             mfc="none", color=COLOR[integ])
+        for engine, e in (results[key].get("ref_self_error") or {}).items():
+            if e and math.isfinite(e) and e > 0:  # below this line the reference cannot tell errors apart
+                ax.axhline(e, color="grey", ls=STYLE[engine][0], lw=0.8, label=f"{engine} reference's own error")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("wall time of the run (s)")
