@@ -461,7 +461,7 @@ def main(argv=None):
     ap.add_argument("--unused-parts", default=None, help="bench_unused parts: mpm,grad,collision (default: all)")
     ap.add_argument("--grad-parts", default=None, help="bench_grad parts: ratio,first,memory,genesis,mpm (default: all)")
     ap.add_argument("--mpm-memory", default=None, help="MPM memory rows: horizons then the cube's particles, e.g. "
-                    "100,1000,10000 (default: 100,1000 steps of 10,000 particles; --quick 100 of 1,000)")
+                    "100,1000,1000 (default: 100,1000 steps of 1,000 particles; --quick 100 steps)")
     ap.add_argument("--mpm-particles", default=None, help="MPM section's cube sizes, e.g. 8000,27000 (default: "
                     f"{MPM_PARTICLES}, --quick {MPM_PARTICLES_QUICK})")
     ap.add_argument("--envs", type=int, default=1024, help="batched environments (0: 1 env only)")
