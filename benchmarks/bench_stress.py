@@ -457,11 +457,14 @@ def worker_gl(key, quick, bisect_on, iters) -> dict:
         res = _safe(_gl_mpm, gs, 2e-3, t_end)
         cfl_dt, c = _mpm_cfl_dt(gs)
         res["cfl_dt"], res["wave_speed"] = cfl_dt, c
-        try:  # does the build refuse a step just above the CFL estimate?
+        from genesis_lite.errors import GenesisException
+
+        try:  # does the build refuse a step just above the CFL estimate? (one step is run if it does not)
             _gl_mpm(gs, cfl_dt * 1.05, t_end=cfl_dt * 1.05)
             res["refused"] = None
-        except Exception as e:
-            res["refused"] = f"{type(e).__name__}: {str(e).splitlines()[0][:100]}"
+        except GenesisException as e:
+            res["refused"] = f"{type(e).__name__}: {str(e).splitlines()[0][:100]}" if "too long" in str(e) else None
+            res["refused_other"] = None if res["refused"] else str(e)[:200]
         if bisect_on:
             dtmax, note = bisect(lambda dt: _safe(_gl_mpm, gs, dt, t_end, bypass_cfl=True)["pass"], MPM_BISECT[0],
                                  MPM_BISECT[1], iters)
