@@ -315,9 +315,10 @@ def _mj_build_quad(files, integrator, dt):
 # (explicit symplectic Euler on the grid; gs.integrator is the rigid solver's), so the sweep is over the step and
 # the substeps, labelled "Euler"; the error is that of time stepping alone: the reference runs the same particles
 # on the same grid with far shorter substeps. Measured while writing this row (t = 0.02 s, against 256 substeps of
-# dt = 2 ms): the spin alone converges at first order (error / 3.6 per substep / 4), the elastic ringing at about
-# order 0.5 in this range (error / 1.6-2 per substep / 4), so the reference's own error (its difference from half
-# its substeps) is printed with the table and bounds what the finest points can show.
+# dt = 2 ms, substeps 4 .. 128): the spin alone converges at first order (error / 3.6 per substep / 4), the elastic
+# ringing at order 0.3-0.5 in this range (error / 1.5-2 per substep / 4), so the reference's own error (its
+# difference from half its substeps) is printed with the table and drawn on the plot: it bounds what the finest
+# points can show.
 
 MPM_T = 0.05  # s
 MPM_SAMPLES = (0.02, 0.05)  # s: whole steps of 2 and 5 ms
