@@ -314,11 +314,13 @@ def _mj_build_quad(files, integrator, dt):
 # (breathing period ~10 ms) while it falls and turns, touching no wall by t = 0.05 s. MLS-MPM has one time scheme
 # (explicit symplectic Euler on the grid; gs.integrator is the rigid solver's), so the sweep is over the step and
 # the substeps, labelled "Euler"; the error is that of time stepping alone: the reference runs the same particles
-# on the same grid with far shorter substeps. Measured while writing this row (t = 0.02 s, against 256 substeps of
-# dt = 2 ms, substeps 4 .. 128): the spin alone converges at first order (error / 3.6 per substep / 4), the elastic
-# ringing at order 0.3-0.5 in this range (error / 1.5-2 per substep / 4), so the reference's own error (its
-# difference from half its substeps) is printed with the table and drawn on the plot: it bounds what the finest
-# points can show.
+# on the same grid with far shorter substeps. What the row shows (measured while writing it): the spin alone
+# converges at first order (error / 3.6 per substep / 4), but the elastic ringing does not converge as the substep
+# shrinks at this fixed grid: the change from halving the substep grows (0.1 mm from 3 to 5 substeps of 2 ms, 0.8
+# mm from 40 to 80, 1.0 mm from 320 to 640), because each particle-grid transfer damps the ringing and more
+# substeps make more transfers (the swing of the cube's x extent over 50-100 ms, stretch alone: 6.7 mm with 4
+# substeps, 4.7 with 32, 3.5 with 256). The reference's own error (its difference from half its substeps) is
+# printed with the table and drawn on the plot.
 
 MPM_T = 0.05  # s
 MPM_SAMPLES = (0.02, 0.05)  # s: whole steps of 2 and 5 ms
