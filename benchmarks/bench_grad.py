@@ -467,6 +467,64 @@ def part_genesis(urdf, quick, tables, data):
         title="4. Peer: real Genesis, Panda 1 env, 100 steps, f64, CPU (its kernel cache as left by earlier runs)"))
 
 
+MPM_GRAD_STEPS = 20
+# (horizons, particles of the memory rows): each step is 10 substeps; the two 1,000-step rows of bench_mpm.py's
+# 10,000-particle cube would take ~45 min here (extrapolated from 1,000 particles x 20 steps, f64: 0.5 s forward,
+# 2.2 s backward), so the horizon sweep uses a 1,000-particle cube
+MPM_MEMORY = {"quick": ([100], 1000), "full": ([100, 1000], 1000)}
+
+
+def part_mpm(urdf, quick, tables, data, particles=None, memory=None):
+    """genesis_lite's MPM: backward / forward of a 20-step rollout (f64, the elastic cube of bench_mpm.py, loss = sum
+    of squared particle positions, d loss / d initial positions) and the memory kept for backward against the horizon
+    with and without checkpointing (torch's saved tensors and the checkpoint buffer), by bench_mpm.py's worker in one
+    child process. particles: the cube of the ratio row (default 8,000); memory: (horizons, particles)."""
+    particles = particles or 8000
+    horizons, mem_parts = memory or MPM_MEMORY["quick" if quick else "full"]
+    print(f"[5] MPM backward/forward ({particles:,} particles) and memory ({mem_parts:,} particles, "
+          f"{horizons} steps) ...", flush=True)
+    with Timer() as t:
+        res, err = run_python([str(HERE / "bench_mpm.py"), "--worker", "64", str(particles), "5", "2" if quick else "5",
+                               str(MPM_GRAD_STEPS), ",".join(str(h) for h in horizons),
+                               "--memory-particles", str(mem_parts)], timeout=7200)
+    ratio_rows, mem_rows = [], []
+    if res is None:
+        ratio_rows.append({"what": "genesis_lite MPM", "note": err})
+    for r in (res or {}).get("rows", []):
+        ratio_rows.append({"what": "genesis_lite MPM, f64", "n_particles": r["n_particles"], "steps": r["grad_steps"],
+                           "fwd_ms": 1e3 * r["fwd_s"], "bwd_ms": 1e3 * r["bwd_s"], "ratio": r["bwd_over_fwd"],
+                           "goal": f"<= {GOAL_RATIO}", "met": "yes" if r["bwd_over_fwd"] <= GOAL_RATIO else "NO",
+                           "first_bwd_s": r["grad_first_bwd_s"],
+                           "note": f"medians of {max(2, (2 if quick else 5) // 2)} after a warm-up rollout"})
+    for m in (res or {}).get("memory", []):
+        state_mib = m["state_KiB"] / 1024
+        mem_rows.append({**m, "ckpt": _ckpt_name(m["checkpoint_every"]), "bwd_over_fwd": m["bwd_s"] / m["fwd_s"],
+                         "held_MiB": m["saved_MiB"] + m["checkpoints_MiB"],
+                         "kib_per_step": 1024 * (m["saved_MiB"] + m["checkpoints_MiB"]) / m["horizon"],
+                         "states": (m["saved_MiB"] + m["checkpoints_MiB"]) / state_mib})
+    data["mpm"] = {"ratio": ratio_rows, "memory": mem_rows, "process_s": t.seconds}
+    tables.append(print_table(ratio_rows, [
+        ("what", "solver", ""), ("n_particles", "particles", ",d"), ("steps", "steps (x 10 substeps)", "d"),
+        ("fwd_ms", "forward ms", ".0f"), ("bwd_ms", "backward ms", ".0f"), ("ratio", "backward/forward", ".2f"),
+        ("goal", "goal", ""), ("met", "met", ""), ("first_bwd_s", "1st backward s (in process)", ".1f"),
+        ("note", "note", "")],
+        title="5. MPM backward / forward: elastic cube (bench_mpm.py), 64^3 grid, dt = 2e-3 s, 10 substeps, f64, "
+              "loss = sum of squared particle positions, d loss / d initial positions"))
+    if mem_rows:
+        tables.append(print_table(mem_rows, [
+            ("horizon", "steps", ",d"), ("ckpt", "checkpoint_every", ""), ("n_particles", "particles", ",d"),
+            ("saved_MiB", "saved by torch MiB", ".1f"), ("checkpoints_MiB", "checkpoints MiB", ".1f"),
+            ("states", "particle states held", ".1f"), ("replayed", "steps replayed in backward", ",d"),
+            ("kib_per_step", "KiB held per step", ",.0f"), ("fwd_s", "forward s", ".1f"), ("bwd_s", "backward s", ".1f")],
+            title=f"6. MPM memory kept for backward against horizon (f64, one state = x, v, C, F = "
+                  f"{mem_rows[0]['state_KiB']:.0f} KiB; loss = sum of particle heights, d loss / d initial velocity; "
+                  "a single rollout per row in one process: the first rows' times include compiling)"))
+        if max(horizons) < 10000:
+            tables.append(f"MPM horizons above {max(horizons):,} steps (of 10 substeps each) are not run, to keep the "
+                          "benchmark within the hour on this machine ('KiB held per step': the memory held divided by "
+                          "the horizon).")
+
+
 def main():
     if "--worker" in sys.argv:
         return _worker_main(sys.argv[1:])

@@ -36,7 +36,7 @@ def edge_for(n):
 
 
 # ------------------------------------------------------------------------------------------ one process
-def worker(precision, particles, steps, repeats, grad_steps, memory):
+def worker(precision, particles, steps, repeats, grad_steps, memory, memory_particles=10000):
     sys.path.insert(0, str(REPO))
     import numpy as np
     import taichi as ti
@@ -81,6 +81,11 @@ def worker(precision, particles, steps, repeats, grad_steps, memory):
         row = {"target": target, "precision": precision, "n_particles": cube.n_particles, "build_s": build_s,
                "first_run_s": first, "rate": cube.n_particles * SUBSTEPS * steps / statistics.median(secs),
                "step_ms": 1e3 * statistics.median(secs) / steps}
+        rows.append(row)
+        if not grad_steps:  # speed only (run_all.py --quick leaves the gradient to its grad section)
+            print(f"genesis_lite MPM f{precision} {row['n_particles']:,} particles: {row['rate'] / 1e6:.2f} M "
+                  f"particle-substeps/s, build {build_s:.1f} s", file=sys.stderr, flush=True)
+            continue
         gscene, gcube, gbuild = build(edge, True)
 
         def grad_once():
@@ -102,14 +107,13 @@ def worker(precision, particles, steps, repeats, grad_steps, memory):
         row.update({"grad_build_s": gbuild, "grad_first_fwd_s": first_g[0], "grad_first_bwd_s": first_g[1],
                     "fwd_s": statistics.median(r[0] for r in runs), "bwd_s": statistics.median(r[1] for r in runs),
                     "bwd_over_fwd": statistics.median(r[1] / r[0] for r in runs), "grad_steps": grad_steps})
-        rows.append(row)
         print(f"genesis_lite MPM f{precision} {row['n_particles']:,} particles: {row['rate'] / 1e6:.2f} M "
               f"particle-substeps/s, build {build_s:.1f} s, backward/forward {row['bwd_over_fwd']:.2f}",
               file=sys.stderr, flush=True)
     mem = []
     for horizon in memory:
         for ck in (None, 10):
-            scene, cube, _ = build(edge_for(10000), True, ck)
+            scene, cube, _ = build(edge_for(memory_particles), True, ck)
             v = torch.zeros(3, dtype=gs.tc_float, requires_grad=True)
             saved = {}
 
@@ -153,12 +157,14 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="8,000 particles, fewer repeats, 100-step memory rows")
     ap.add_argument("--out", default=str(HERE / "results" / "mpm.md"))
-    ap.add_argument("--worker", nargs=6, metavar=("PREC", "PARTICLES", "STEPS", "REPEATS", "GRAD_STEPS", "MEMORY"))
+    ap.add_argument("--worker", nargs=6, metavar=("PREC", "PARTICLES", "STEPS", "REPEATS", "GRAD_STEPS", "MEMORY"),
+                    help="one process's rows; PARTICLES and MEMORY may be empty, GRAD_STEPS 0 skips the gradient")
+    ap.add_argument("--memory-particles", type=int, default=10000, help="cube of the memory rows (worker)")
     args = ap.parse_args()
     if args.worker:
         p, parts, steps, reps, gsteps, memory = args.worker
-        return worker(p, [int(x) for x in parts.split(",")], int(steps), int(reps), int(gsteps),
-                      [int(x) for x in memory.split(",") if x])
+        return worker(p, [int(x) for x in parts.split(",") if x], int(steps), int(reps), int(gsteps),
+                      [int(x) for x in memory.split(",") if x], args.memory_particles)
     parts = "8000" if args.quick else "8000,27000"
     steps, reps = ("20", "3") if args.quick else ("50", "5")
     gpy = os.environ.get("GENESIS_PYTHON", "/work/genesis_venv/bin/python")

@@ -22,11 +22,17 @@ bodies, floor, masses, integrator and dt with its own default soft contacts, ell
 - chain: the 30-link chain (assets/urdf/chain30.urdf, free base 1 kg, links 0.1 kg) falling 0.2 m onto the
   ground, 2 s. Pass: finite, total energy never above its start by more than 1 %, at rest in the end
   (max link speed < 5 cm/s).
-- mpm: an elastic MPM block under large deformation (pending: no MPM solver in genesis_lite yet).
+- mpm: an elastic MPM cube (0.12 m, 1,728 particles, E = 3e5 Pa, nu = 0.2) resting on the floor, its top thrown
+  down at 27 m/s (v_z linear in height): squeezed to ~30 % of its height, then left alone for 1 s (--quick: 0.5 s),
+  dt = 2e-3 s with 10 substeps. Pass: finite, every particle in the domain, the grid's mass equal to the particles'
+  (relative 1e-12: mass is conserved exactly up to round-off), the mean volume (mean det F) over the last 0.1 s within
+  3 % of the rest volume. Largest dt: bisected with 10 substeps between 2e-3 and 0.03 s with genesis_lite's
+  build-time CFL check bypassed in that child, beside the CFL estimate (0.9 dx / c per substep) and whether the
+  build refuses a dt 5 % above it. MuJoCo has no MPM.
 Largest dt survived: bisection (in log dt, 6 steps between 1e-3 and 0.1 s; energy rows between 1e-3 and 0.2 s over
 20 s of simulated time, sampled every 10 steps) of the scene's pass criterion over the same simulated time,
-substeps 1. A bracket end that already fails (or passes) is reported as such. --quick bisects the stiff-contact row
-only, with 2 steps. Each row runs in its own child process.
+substeps 1 (the MPM row: its own bracket, above). A bracket end that already fails (or passes) is reported as such.
+--quick bisects the stiff-contact and MPM rows only, with 2 steps. Each row runs in its own child process.
 Gradient norm: the double pendulum with requires_grad, semi-implicit Euler, dt = 0.01 s, from the tumbling
 (chaotic) state q0 = (1.8, 2.4) rad at rest; loss = sum of the joint angles at step T; norm of d loss / d q0 for
 T = 50 ... 1,600 steps; beside it the same derivative by
@@ -57,7 +63,7 @@ ENERGY_TOL = 0.05
 REST_SPEED = 0.01  # m/s
 CHAIN_REST_SPEED = 0.05  # m/s
 BISECT = (1e-3, 0.1, 6)  # s, s, iterations (the bracket is known to a factor 100^(1/64) = 1.07)
-QUICK_BISECT_ROWS = ("stiff",)  # --quick bisects this row only, with 2 steps
+QUICK_BISECT_ROWS = ("stiff", "mpm")  # --quick bisects these rows only, with 2 steps
 GRAD_HORIZONS = (50, 100, 200, 400, 800, 1600)
 GRAD_HORIZONS_QUICK = (50, 200, 800)
 # a high-energy start: the pendulum tumbles chaotically (at (0.9, -0.6) rad it swings regularly and the
@@ -248,6 +254,88 @@ def _chain_verdict(e0, emax, e1, vmax):
             f"max link speed at the end {vmax:.1e} m/s"}
 
 
+# elastic MPM block under large deformation ------------------------------------------------------------------------
+# A 0.12 m elastic cube (1,728 particles on the 0.01 m lattice, 64 cells per metre on [0, 0.6]^3; E = 3e5 Pa,
+# nu = 0.2, rho = 1000 kg/m^3, corotated: the bench's material) resting on the floor, its top thrown down at
+# MPM_V (v_z growing linearly from 0 at the bottom): it is squeezed to about 30 % of its height within ~10 ms, then
+# left alone under gravity for the rest of the run (it springs back, leaves the floor, lands and rings down).
+MPM_V = 27.0  # m/s at the top: squeezes it to 31 % of its height (measured: 24 m/s gives 42 %, 30 m/s 19 %, 36 m/s
+# flattens it for good)
+MPM_EDGE = 0.12  # m
+MPM_DX = 1.0 / 64
+MPM_T = 1.0  # s (--quick: 0.5 s)
+MPM_VOLUME_TOL = 0.03  # the mean volume over the last 0.1 s within 3 % of the rest volume (gravity: ~0.1 %)
+MPM_MASS_TOL = 1e-12  # relative: the grid's mass equals the particles' (float64 round-off)
+MPM_BISECT = (2e-3, 0.03, 6)  # s: dt with 10 substeps (substeps of 0.2 .. 3 ms; the CFL check allows 0.77 ms)
+MPM_SUBSTEPS = 10
+
+
+def _mpm_cfl_dt(gs, substeps=MPM_SUBSTEPS):
+    """The largest dt genesis_lite's build accepts for this block (mpm_sim.check_time_step: a substep of at most
+    0.9 dx / c, c the material's pressure wave speed)."""
+    c = gs.materials.MPM.Elastic(E=3e5, nu=0.2, rho=1000.0).wave_speed()
+    return 0.9 * MPM_DX / c * substeps, c
+
+
+def _gl_mpm(gs, dt, t_end=MPM_T, bypass_cfl=False):
+    import torch
+
+    import genesis_lite.mpm_sim as ms
+
+    check = ms.check_time_step
+    if bypass_cfl:  # to find the true stability limit beyond the build-time check (this child process only)
+        ms.check_time_step = lambda *a, **k: None
+    try:
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, substeps=MPM_SUBSTEPS),
+                         mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.6, 0.6, 0.6),
+                                                           grid_density=1.0 / MPM_DX))
+        z_floor = 3 * MPM_DX
+        block = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.3, z_floor + 0.002 + MPM_EDGE / 2), size=(MPM_EDGE,) * 3),
+                                 material=gs.materials.MPM.Elastic(E=3e5, nu=0.2, rho=1000.0))
+        scene.build()
+    finally:
+        ms.check_time_step = check
+    x = block.get_particles_pos()
+    zb, h0 = float(x[:, 2].min()), float(x[:, 2].max() - x[:, 2].min())
+    v = torch.zeros_like(x)
+    v[:, 2] = -MPM_V * (x[:, 2] - zb) / h0
+    block.set_particles_vel(v)
+    n = int(round(t_end / dt))
+    window = max(1, int(round(0.1 / dt)))
+    st = {"hmin": math.inf, "vols": [], "jmin": math.inf}
+
+    def probe(i):
+        x = block.get_particles_pos()
+        st["hmin"] = min(st["hmin"], float(x[:, 2].max() - x[:, 2].min()) / h0)
+        J = torch.linalg.det(block.get_particles_F())
+        st["jmin"] = min(st["jmin"], float(J.min()))
+        if i > n - window:
+            st["vols"].append(float(J.mean()))  # equal particle volumes: mean J = volume / rest volume
+
+    _run_steps(scene, n, 1, probe)
+    x = block.get_particles_pos().numpy()
+    s = scene.mpm_solver
+    (l0, l1, l2), (n0, n1, n2) = s.active_lo[None], s.active_n[None]
+    grid_mass = float(s.grid_m.to_numpy()[0, l0:l0 + n0, l1:l1 + n1, l2:l2 + n2].sum())
+    total = float(block._masses().sum())
+    inside = bool(np.all(x >= 0.0) and np.all(x <= 0.6))
+    return _mpm_verdict(np.all(np.isfinite(x)), st["hmin"], st["jmin"], float(np.mean(st["vols"])),
+                        float(np.max(np.abs(np.asarray(st["vols"]) - 1.0))), grid_mass, total, inside)
+
+
+def _mpm_verdict(finite, hmin, jmin, vol_mean, vol_dev, grid_mass, total, inside):
+    finite = bool(finite and all(math.isfinite(v) for v in (hmin, jmin, vol_mean, vol_dev, grid_mass)))
+    if not finite:
+        return {"pass": False, "metrics": {"finite": False}, "figure": "diverged (NaN)"}
+    mass_err = abs(grid_mass - total) / total
+    ok = inside and mass_err <= MPM_MASS_TOL and abs(vol_mean - 1.0) <= MPM_VOLUME_TOL
+    return {"pass": bool(ok), "metrics": {"finite": True, "hmin": hmin, "jmin": jmin, "vol_mean": vol_mean,
+                                          "vol_dev": vol_dev, "mass_err": mass_err, "inside": inside},
+            "figure": f"squeezed to {hmin:.0%} of its height (min det F {jmin:.2f}); volume over the last 0.1 s "
+                      f"{vol_mean:.4f} x rest (swing {vol_dev:.1e}); grid mass - particle mass {mass_err:.1e} "
+                      "(relative)" + ("" if inside else "; particles left the domain")}
+
+
 def _safe(fn, *a, **kw):
     """A run that raises (genesis_lite raises on NaN) fails its criterion with the reason as its figure."""
     try:
@@ -364,6 +452,26 @@ def worker_gl(key, quick, bisect_on, iters) -> dict:
                 res[integ]["dt_max"], res[integ]["dt_note"] = dtmax, note + f", over {ENERGY_BISECT_T:g} s"
     elif key == "grad":
         res = {"rows": _gl_grad(gs, GRAD_HORIZONS_QUICK if quick else GRAD_HORIZONS)}
+    elif key == "mpm":
+        t_end = MPM_T / 2 if quick else MPM_T
+        res = _safe(_gl_mpm, gs, 2e-3, t_end)
+        cfl_dt, c = _mpm_cfl_dt(gs)
+        res["cfl_dt"], res["wave_speed"] = cfl_dt, c
+        from genesis_lite.errors import GenesisException
+
+        try:  # does the build refuse a step just above the CFL estimate? (one step is run if it does not)
+            _gl_mpm(gs, cfl_dt * 1.05, t_end=cfl_dt * 1.05)
+            res["refused"] = None
+        except GenesisException as e:
+            res["refused"] = f"{type(e).__name__}: {str(e).splitlines()[0][:100]}" if "too long" in str(e) else None
+            res["refused_other"] = None if res["refused"] else str(e)[:200]
+        if bisect_on:
+            dtmax, note = bisect(lambda dt: _safe(_gl_mpm, gs, dt, t_end, bypass_cfl=True)["pass"], MPM_BISECT[0],
+                                 MPM_BISECT[1], iters)
+            res["dt_max"] = dtmax
+            res["dt_note"] = (f"{note} with {MPM_SUBSTEPS} substeps, build-time CFL check bypassed; CFL estimate "
+                              f"{cfl_dt:.3g} (c = {c:.1f} m/s), "
+                              + ("which the build refuses above" if res["refused"] else "NOT enforced at build"))
     else:
         fn = GL_ROWS[key]
         res = _safe(fn, gs, 0.01)
@@ -569,7 +677,8 @@ ROW_TITLES = {
     "ratio1000": "mass ratio 1:1,000, box stack",
     "impact": "20 m/s impact of a sphere on the ground",
     "chain": "30-link chain falling onto the ground",
-    "mpm": "MPM block under large deformation",
+    "mpm": f"elastic MPM block squeezed to ~30 % of its height (top thrown down at {MPM_V:g} m/s), released; "
+           f"dt = 2e-3 s, {MPM_SUBSTEPS} substeps",
 }
 CRITERIA = {
     "energy": f"max abs(E - E0)/abs(E0) <= {ENERGY_TOL:.0%}",
@@ -580,6 +689,8 @@ CRITERIA = {
     "chain": "energy never > E0 + 1 %, at rest (< 5 cm/s) after 2 s",
 }
 CRITERIA["ratio100"] = CRITERIA["ratio1000"] = CRITERIA["ratio10"]
+CRITERIA["mpm"] = (f"finite, no particle out of the domain, grid mass = particle mass (rel. <= {MPM_MASS_TOL:.0e}), "
+                   f"mean volume over the last 0.1 s within {MPM_VOLUME_TOL:.0%} of rest")
 ALL_ROWS = ("energy", "stiff", "ratio10", "ratio100", "ratio1000", "impact", "chain", "mpm", "grad")
 
 
@@ -588,10 +699,11 @@ def run(rows, quick, bisect_on, log=print) -> dict:
     --quick bisects QUICK_BISECT_ROWS only, with 2 steps; the full run every row with BISECT's steps."""
     rows = [r for r in rows if r in ALL_ROWS]
     res, errs = {}, {}
-    for key in progress([r for r in rows if r != "mpm"], desc="stress"):
+    for key in progress(rows, desc="stress"):
         on = bisect_on and (not quick or key in QUICK_BISECT_ROWS)
         r, err = run_python([str(Path(__file__).resolve()), "--worker", json.dumps(
-            {"key": key, "quick": quick, "bisect_on": on, "iters": 2 if quick else BISECT[2]})], timeout=7200)
+            {"key": key, "quick": quick, "bisect_on": on,
+             "iters": 2 if quick else (MPM_BISECT if key == "mpm" else BISECT)[2]})], timeout=7200)
         if r is None:
             log(f"  stress {key}: genesis_lite child FAILED: {err}")
             errs[key] = err
@@ -604,8 +716,15 @@ def run(rows, quick, bisect_on, log=print) -> dict:
         if key == "grad":
             continue
         if key == "mpm":
-            table.append({"key": "mpm", "row": ROW_TITLES["mpm"], "criterion": "-", "gl_pass": "pending",
-                          "gl": "no MPM solver in genesis_lite yet (solvers/mpm missing)", "mj": "MuJoCo has no MPM"})
+            g = res.get("mpm", {"pass": False, "figure": errs.get("mpm", "not run")})
+            dt_note = g.get("dt_note")
+            if dt_note is None and g.get("cfl_dt"):
+                dt_note = (f"not bisected; CFL estimate {g['cfl_dt']:.3g} s with {MPM_SUBSTEPS} substeps, "
+                           + ("refused above it at build" if g.get("refused") else "NOT enforced at build"))
+            table.append({"key": "mpm", "row": ROW_TITLES["mpm"], "criterion": CRITERIA["mpm"], "gl_pass": _pf(g),
+                          "gl": g["figure"], "gl_dt": dt_note, "mj_pass": "-", "mj": "MuJoCo has no MPM",
+                          "gl_metrics": g.get("metrics"), "gl_s": res.get("mpm_s"), "cfl_dt": g.get("cfl_dt"),
+                          "dt_max": g.get("dt_max"), "refused": g.get("refused")})
             continue
         if key == "energy":
             for integ in ("Euler", "implicitfast", "RK4"):

@@ -100,6 +100,9 @@ class WPScene:
     genesis: bool = False  # peer_genesis_wp.py knows the scene
     available: Callable = field(default=lambda: None)  # -> None, or the reason the row cannot run yet
     note: str = ""
+    sweep: Optional[Callable] = None  # (engine, batched, quick) -> points; None: the module's sweep() of integrators
+    batched: bool = True  # False: 1 env only (the batched run would cost too much for what it adds)
+    quick_reference: Optional[Callable] = None  # --quick's (cheaper) reference, named in its table
 
 
 def _gl_tile(x, n_envs, dtype):
@@ -304,16 +307,75 @@ def _mj_build_quad(files, integrator, dt):
     return m, q0, np.zeros(m.nv), lambda st: st[:, qs][:, :3], standing_pose(names)  # targets held throughout
 
 
-# elastic MPM block (pluggable: appears when genesis_lite's MPM solver lands) -------------------------------------
+# elastic MPM block -------------------------------------------------------------------------------------------------
+# A 0.1 m elastic cube (1,000 particles on the 0.01 m lattice, 64 cells per metre on [0, 0.5]^3), the bench's
+# material (E = 3e5 Pa, nu = 0.2, rho = 1000 kg/m^3: waves at 18 m/s, so the CFL check of genesis_lite allows
+# substeps up to 0.9 dx / c = 0.77 ms), thrown with a stretching and spinning velocity field under gravity: it rings
+# (breathing period ~10 ms) while it falls and turns, touching no wall by t = 0.05 s. MLS-MPM has one time scheme
+# (explicit symplectic Euler on the grid; gs.integrator is the rigid solver's), so the sweep is over the step and
+# the substeps, labelled "Euler"; the error is that of time stepping alone: the reference runs the same particles
+# on the same grid with far shorter substeps. What the row shows (measured while writing it): the spin alone
+# converges at first order (error / 3.6 per substep / 4), but the elastic ringing does not converge as the substep
+# shrinks at this fixed grid: the change from halving the substep grows (0.1 mm from 3 to 5 substeps of 2 ms, 0.8
+# mm from 40 to 80, 1.0 mm from 320 to 640), because each particle-grid transfer damps the ringing and more
+# substeps make more transfers (the swing of the cube's x extent over 50-100 ms, stretch alone: 6.7 mm with 4
+# substeps, 4.7 with 32, 3.5 with 256). The reference's own error (its difference from half its substeps) is
+# printed with the table and drawn on the plot.
+
+MPM_T = 0.05  # s
+MPM_SAMPLES = (0.02, 0.05)  # s: whole steps of 2 and 5 ms
+MPM_STRETCH = 40.0  # 1/s: v = MPM_STRETCH * (dx, dy, -dz) about the centre (edge speeds 2 m/s, strains ~7 %)
+MPM_SPIN = (3.0, -2.0, 5.0)  # rad/s
+MPM_CENTRE = (0.25, 0.25, 0.3)  # m
+MPM_REF = ("Euler", 2e-3, 640)  # (scheme, dt, substeps): substep 3.1 us
+MPM_REF_CHECK = ("Euler", 2e-3, 320)
+MPM_REF_QUICK, MPM_REF_CHECK_QUICK = ("Euler", 2e-3, 32), ("Euler", 2e-3, 16)  # --quick: a cheap, loose one
 
 
-def _mpm_available():
-    import solvers  # the package genesis_lite runs on here (an editable install elsewhere must not answer for it)
+def _mpm_sweep(engine, batched, quick):
+    """(scheme, dt, substeps): substeps from just inside the CFL limit (0.67 ms at dt = 2 ms with 3 substeps) down
+    to 25 us, at dt = 2 ms and at dt = 5 ms (the same substeps reached with fewer Python-level steps)."""
+    if quick:
+        return [("Euler", 2e-3, 4), ("Euler", 2e-3, 8)]
+    return ([("Euler", 2e-3, n) for n in (3, 5, 10, 20, 40, 80)] +
+            [("Euler", 5e-3, n) for n in (8, 32, 128)])
 
-    if not (Path(solvers.__file__).parent / "mpm").is_dir():
-        return "genesis_lite has no MPM solver yet (solvers/mpm is missing): row pending"
-    return ("the MPM solver exists (solvers/mpm) but this row has no genesis_lite builder yet: add gl_build to "
-            "SCENES['mpm']: row pending")
+
+def _mpm_files(tmp):
+    return {}
+
+
+def _mpm_ref(files, quick=False):
+    fine, check = (MPM_REF_QUICK, MPM_REF_CHECK_QUICK) if quick else (MPM_REF, MPM_REF_CHECK)
+    return Reference("fine", f"genesis_lite, float64, the same particles and grid with dt = {fine[1]:g} s and "
+                     f"{fine[2]} substeps (a substep of {fine[1] / fine[2] * 1e6:.1f} us; its difference from "
+                     f"{check[2]} substeps is shown as the reference's error)" + (" (--quick's reference)" if quick else ""),
+                     fine=fine, check=check)
+
+
+def _gl_build_mpm(gs, files, integrator, dt, substeps, n_envs):
+    import torch
+
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, gravity=(0.0, 0.0, -S.G)),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5),
+                                                       grid_density=64))
+    cube = scene.add_entity(gs.morphs.Box(pos=MPM_CENTRE, size=(0.1, 0.1, 0.1)),
+                            material=gs.materials.MPM.Elastic(E=3e5, nu=0.2, rho=1000.0))
+    scene.build(n_envs=n_envs)
+    x = cube.get_particles_pos()
+    d = x - torch.as_tensor(MPM_CENTRE, dtype=x.dtype)
+    w = torch.as_tensor(MPM_SPIN, dtype=x.dtype).expand_as(d)
+    v = MPM_STRETCH * d * torch.as_tensor([1.0, 1.0, -1.0], dtype=x.dtype) + torch.cross(w, d, dim=-1)
+    cube.set_particles_vel(v)
+    state = scene.get_state()
+
+    def reset():
+        scene.reset(state)
+
+    def observe():
+        return cube.get_particles_pos().detach().cpu().numpy().reshape(max(n_envs, 1), -1)
+
+    return scene, reset, observe
 
 
 SCENES: dict[str, WPScene] = {
@@ -336,8 +398,14 @@ SCENES: dict[str, WPScene] = {
         1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref, _gl_build_quad,
         _mj_build_quad, genesis=True),
     "mpm": WPScene(
-        "mpm", "elastic MPM block under gravity", 1.0, (1.0,), "particle positions (m)", lambda tmp: {},
-        lambda files: Reference("fine", "the same engine at a far smaller dt"), available=_mpm_available),
+        "mpm", f"elastic MPM cube (0.1 m, 1,000 particles, E = 3e5 Pa, nu = 0.2; 64 cells/m) set stretching "
+        f"({MPM_STRETCH:g} 1/s) and spinning under gravity; MLS-MPM's explicit scheme, dt x substeps swept",
+        MPM_T, MPM_SAMPLES, f"max abs(x - x_ref) over particles at t = {MPM_SAMPLES} s (m)", _mpm_files, _mpm_ref,
+        _gl_build_mpm, None, sweep=_mpm_sweep, batched=False, quick_reference=lambda files: _mpm_ref(files, True),
+        note="genesis_lite only (MuJoCo has no MPM; real Genesis's MPM is timed in the MPM section). At this fixed "
+             "grid the ringing does not converge as the substep shrinks: each particle-grid transfer damps it, so more "
+             "substeps damp it more (measured: the x-extent swing over 50-100 ms is 6.7 mm with 4 substeps of 2 ms, "
+             "3.5 mm with 256; see bench_workprecision.py)"),
 }
 
 
@@ -503,7 +571,7 @@ def run_genesis(scene_key, files, points, n_envs, repeats, timeout=3600):
 
 def _fine_reference(engine, wps, files, ref: Reference):
     """(obs, self-difference, note) of an engine's own fine float64 run (and its check run)."""
-    pts = [(ref.fine[0], ref.fine[1], 1), (ref.check[0], ref.check[1], 1)]
+    pts = [(*ref.fine, 1)[:3], (*ref.check, 1)[:3]]  # (integrator, dt[, substeps])
     if engine == "genesis_lite":
         res, err = run_gl(wps.key, files, pts, 0, 1)
     elif engine == "mujoco":
@@ -529,7 +597,7 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
     in --quick (its first scene compiles for minutes); --quick runs the batch on QUICK_BATCHED only."""
     results = {}
     def counts(key):
-        return [n for n in env_counts if n <= 1 or not quick or key in QUICK_BATCHED]
+        return [n for n in env_counts if n <= 1 or (SCENES[key].batched and (not quick or key in QUICK_BATCHED))]
 
     bar = progress(total=sum(len(counts(k)) for k in scene_keys), desc="work-precision")
     for key in scene_keys:
@@ -542,10 +610,15 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
             bar.update(len(counts(key)))
             continue
         files = wps.files(tmp)
-        ref = wps.reference(files)
+        ref = (wps.quick_reference if quick and wps.quick_reference else wps.reference)(files)
         entry["reference"] = ref.label
         refs = {}
-        engines = ["genesis_lite", "mujoco"] + (["genesis"] if with_genesis and wps.genesis and not quick else [])
+        engines = (["genesis_lite"] + (["mujoco"] if wps.mj_build else [])
+                   + (["genesis"] if with_genesis and wps.genesis and not quick else []))
+        if wps.note:
+            entry["notes"].append(wps.note)
+        if not wps.batched and any(n > 1 for n in env_counts):
+            entry["notes"].append("1 env only: the batched run is not part of this row")
         for engine in engines:
             if ref.kind == "fine":
                 obs, self_err, err = _fine_reference(engine, wps, files, ref)
@@ -553,7 +626,7 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
                 entry.setdefault("ref_self_error", {})[engine] = self_err
                 if err:
                     entry["notes"].append(f"{engine}: no reference ({err})")
-                elif engine == "genesis":
+                elif engine == "genesis" and ref.fine[0] == "RK4":
                     entry["notes"].append(f"Genesis has no RK4: its reference is its implicitfast at dt = "
                                           f"{ref.fine[1]:g} s (and {ref.check[1]:g} s for the reference's error)")
             else:
@@ -563,7 +636,10 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
             for engine in engines:
                 if engine == "genesis" and n_envs > 1:
                     continue
-                pts = [p for p in sweep(engine, n_envs > 1, quick) if not integrators or p[0] in integrators]
+                if wps.sweep is not None:  # the scene's own sweep (its scheme is not one of INTEGRATORS' choices)
+                    pts = wps.sweep(engine, n_envs > 1, quick)
+                else:
+                    pts = [p for p in sweep(engine, n_envs > 1, quick) if not integrators or p[0] in integrators]
                 if engine == "genesis_lite":
                     res, err = run_gl(key, files, pts, n_envs, repeats)
                 elif engine == "mujoco":
@@ -633,7 +709,7 @@ def tables(results) -> list[str]:
             continue
         lines.append(f"Error: {entry['error_label']}. Reference: {entry.get('reference')}.")
         if entry.get("ref_self_error"):
-            lines.append("Reference's own error (fine run vs the same at twice its dt): " + ", ".join(
+            lines.append("Reference's own error (fine run vs the same at twice its step or substep): " + ", ".join(
                 f"{k} {v:.1e}" if v is not None else f"{k} -" for k, v in entry["ref_self_error"].items()) + ".")
         for note in entry.get("notes", []):
             lines.append(f"Note: {note}.")
@@ -704,12 +780,22 @@ def plot(results, n_envs: str, path: Path, title: str) -> bool:
                     continue
                 plain = sorted((p for p in pts if p["substeps"] == 1), key=lambda p: -p["dt"])  # a convergence curve
                 sub = [p for p in pts if p["substeps"] > 1]
+                if not plain:  # a substep sweep (MPM): one curve per step dt, substeps growing along it
+                    for k, dt in enumerate(sorted({p["dt"] for p in sub})):
+                        c = sorted((p for p in sub if p["dt"] == dt), key=lambda p: p["substeps"])
+                        ax.plot([p["wall"] for p in c], [p["error"] for p in c], ls=ls, marker=mk, ms=5,
+                                color=f"C{k + 3}", label=f"{engine}, dt = {dt:g} s, substeps {c[0]['substeps']}.."
+                                                         f"{c[-1]['substeps']}")
+                    continue
                 if plain:
                     ax.plot([p["wall"] for p in plain], [p["error"] for p in plain], ls=ls, marker=mk, ms=5,
                             color=COLOR[integ], label=f"{engine} {integ}")
                 if sub:
                     ax.plot([p["wall"] for p in sub], [p["error"] for p in sub], ls="none", marker=mk, ms=7,
                             mfc="none", color=COLOR[integ])
+        for engine, e in (results[key].get("ref_self_error") or {}).items():
+            if e and math.isfinite(e) and e > 0:  # below this line the reference cannot tell errors apart
+                ax.axhline(e, color="grey", ls=STYLE[engine][0], lw=0.8, label=f"{engine} reference's own error")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("wall time of the run (s)")

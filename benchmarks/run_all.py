@@ -8,10 +8,12 @@ Sections (each a module of this folder that can also run alone):
 - speed (bench_rigid.py's measurements): Panda steps/s, 1 env and batched, against MuJoCo and real Genesis, and
   the build time with a cold and a warm kernel cache;
 - workprecision (bench_workprecision.py): run time against error, 1 env and --envs envs;
-- grad (bench_grad.py): backward / forward, the first backward of a fresh process, memory against horizon;
+- grad (bench_grad.py): backward / forward, the first backward of a fresh process, memory against horizon (rigid
+  Panda, and genesis_lite's MPM cube through bench_mpm.py's worker);
 - stress (bench_stress.py): stability scenes with pass / fail, largest dt survived, gradient norm vs horizon;
 - unused (bench_unused.py): the cost of the MPM package, requires_grad and collision when a scene uses none;
-- mpm (peer_genesis_mpm.py): real Genesis's MPM, the peer of genesis_lite's MPM solver when it lands;
+- mpm (bench_mpm.py's worker, peer_genesis_mpm.py): genesis_lite's MPM speed, build and backward / forward beside
+  real Genesis's in the same run;
 - headline: the goals of the issue, each with its figure, its peer measured in the same run and met / NOT MET,
   from the sections above that ran (speed, build, backward / forward, MPM, equal-error run time).
 Real Genesis runs in its own venv ($GENESIS_PYTHON, else /work/genesis_venv/bin/python): where it is missing,
@@ -143,12 +145,15 @@ def section_grad(a, tmp, data, log):
         parts.append(("memory", bg.part_memory))
     if not a.no_genesis:
         parts.append(("genesis", bg.part_genesis))
+    mpm_n = int(_mpm_particles(a).split(",")[0])
+    mem = (a.mpm_memory[:-1], a.mpm_memory[-1]) if a.mpm_memory else None
+    parts.append(("mpm", lambda *args: bg.part_mpm(*args, particles=mpm_n, memory=mem)))
     parts = [(n, f) for n, f in parts if not a.grad_parts or n in a.grad_parts]
     for name, fn in progress(parts, desc="gradient cost"):
         fn(urdf, a.quick, tables, gdata)
     data["grad"] = gdata
     if a.quick:
-        tables.append("Memory against horizon (100 to 10,000 steps, with and without checkpointing): full run only.")
+        tables.append("Panda memory against horizon (100 to 10,000 steps, with and without checkpointing): full run only.")
     if a.no_genesis:
         tables.append("Real Genesis's backward / forward: skipped (--no-genesis).")
     return tables
@@ -214,12 +219,14 @@ def section_stress(a, tmp, data, log):
     out = bs.run(rows, a.quick, not a.no_bisect, log=log)
     data["stress"] = out
     t = bs.tables(out)
-    text = ["Each scene at dt = 0.01 s (genesis_lite defaults: implicitfast, contact stiffness 1e6 N/m; MuJoCo the "
-            "same bodies and floor with implicitfast and its default soft contacts, elliptic cones). "
+    text = ["Each rigid scene at dt = 0.01 s (genesis_lite defaults: implicitfast, contact stiffness 1e6 N/m; MuJoCo "
+            "the same bodies and floor with implicitfast and its default soft contacts, elliptic cones); the MPM block "
+            f"at dt = 2e-3 s with {bs.MPM_SUBSTEPS} substeps, its largest dt bisected between {bs.MPM_BISECT[0]:g} and "
+            f"{bs.MPM_BISECT[1]:g} s with the same substeps and the build's CFL check bypassed, beside the CFL estimate. "
             + ("Largest dt survived: not bisected (--no-bisect). " if a.no_bisect else
                f"Largest dt survived: {2 if a.quick else bs.BISECT[2]} bisection steps in log dt between "
                f"{bs.BISECT[0]:g} and {bs.BISECT[1]:g} s on the same pass criterion (energy rows: up to 0.2 s, over "
-               f"{bs.ENERGY_BISECT_T:g} s)" + (f", in --quick for the {', '.join(bs.QUICK_BISECT_ROWS)} row only. "
+               f"{bs.ENERGY_BISECT_T:g} s)" + (f", in --quick for the {', '.join(bs.QUICK_BISECT_ROWS)} rows only. "
                                                if a.quick else ". "))
             + ("Energy drift: 10,000 steps in --quick (100,000 in the full run)." if a.quick else ""), t[0]]
     if len(t) > 1:
@@ -239,38 +246,80 @@ def section_unused(a, tmp, data, log):
     return bu.tables(res)
 
 
+MPM_PARTICLES, MPM_PARTICLES_QUICK = "8000,27000", "8000"
+MPM_GRAD_STEPS = 20
+
+
+def _mpm_particles(a):
+    return a.mpm_particles or (MPM_PARTICLES_QUICK if a.quick else MPM_PARTICLES)
+
+
 def section_mpm(a, tmp, data, log):
+    """genesis_lite's MPM (bench_mpm.py's worker) beside real Genesis's (peer_genesis_mpm.py), the same elastic cube,
+    grid and steps, each engine and precision in its own process; the ratio of their warm rates in this run."""
     py = genesis_python()
-    if a.no_genesis or not Path(py).exists():
-        why = "skipped (--no-genesis)" if a.no_genesis else f"real Genesis not installed ({py} not found)"
-        data["mpm"] = {"error": why}
-        return [f"Real Genesis MPM: {why}. genesis_lite's MPM solver: not yet in the code (solvers/mpm missing)."]
-    configs = [("32", "8000")] if a.quick else [("32", "8000,27000"), ("64", "8000,27000")]
-    rows, errs, meta = [], [], {}
-    for prec, parts in progress(configs, desc="MPM peer"):
-        res, err = run_python([str(HERE / "peer_genesis_mpm.py"), "--precision", prec, "--particles", parts,
-                               "--steps", "10" if a.quick else "50", "--repeats", "3" if a.quick else "5"]
-                              + ([] if a.quick else ["--grad"]), python=py, timeout=3600)
-        if res is None:
-            errs.append(f"f{prec}: {err}")
-            continue
-        meta = res
-        rows += res["rows"]
-    data["mpm"] = {"rows": rows, "errors": errs, "version": meta.get("version")}
-    t = print_table([{**r, "mrate": r["rate"] / 1e6 if r.get("rate") else None} for r in rows], [
-        ("precision", "precision", ""), ("n_particles", "particles", ",d"), ("mrate", "M particle-substeps/s (warm)", ".2f"),
-        ("step_ms", "ms per step (10 substeps)", ".1f"), ("build_s", "build s", ".1f"),
-        ("fwd_s", "20-step forward s", ".3f"), ("bwd_s", "backward s", ".3f"), ("bwd_over_fwd", "backward/forward", ".2f"),
-        ("grad_first_total_s", "1st grad rollout s", ".1f"), ("error", "error", "")],
-        title=f"Real Genesis {meta.get('version', '')} MPM on the CPU: elastic cube, 64^3 grid on [0, 1]^3, dt = 2e-3 s, "
-              "10 substeps (the first scene of each process compiles: its build time includes that)")
+    g_why = ("skipped (--no-genesis)" if a.no_genesis else
+             None if Path(py).exists() else f"real Genesis not installed ({py} not found)")
+    parts = _mpm_particles(a)
+    precs = ["32"] if a.quick else ["32", "64"]
+    steps, reps = ("10", "3") if a.quick else ("50", "5")
+    grad = not a.quick  # --quick: backward / forward in the grad section only (genesis_lite's, smaller)
+    rows, errs, version = [], [], None
+    for prec in progress(precs, desc="MPM"):
+        ours, err = run_python([str(HERE / "bench_mpm.py"), "--worker", prec, parts, steps, reps,
+                                str(MPM_GRAD_STEPS) if grad else "0", ""], timeout=3600)
+        if ours is None:
+            errs.append(f"genesis_lite f{prec}: {err}")
+        peer = None
+        if g_why is None:
+            peer, perr = run_python([str(HERE / "peer_genesis_mpm.py"), "--precision", prec, "--particles", parts,
+                                     "--steps", steps, "--repeats", reps] + (["--grad"] if grad else []),
+                                    python=py, timeout=3600)
+            if peer is None:
+                errs.append(f"Genesis f{prec}: {perr}")
+            else:
+                version = peer.get("version")
+        g_rows = {r["target"]: r for r in (peer or {}).get("rows", [])}
+        o_rows = {r["target"]: r for r in (ours or {}).get("rows", [])}
+        for target in (int(x) for x in parts.split(",")):
+            o, g = o_rows.get(target, {}), g_rows.get(target, {})
+            ratio = _r(o.get("rate"), g.get("rate"))
+            rows.append({"precision": prec, "target": target, "n_particles": o.get("n_particles"),
+                         "g_particles": g.get("n_particles"), "gl_rate": o.get("rate"), "g_rate": g.get("rate"),
+                         "ratio": ratio, "gl_build_s": o.get("build_s"), "g_build_s": g.get("build_s"),
+                         "gl_step_ms": o.get("step_ms"), "g_step_ms": g.get("step_ms"),
+                         "gl_bwd_fwd": o.get("bwd_over_fwd"), "g_bwd_fwd": g.get("bwd_over_fwd"),
+                         "gl_fwd_s": o.get("fwd_s"), "gl_bwd_s": o.get("bwd_s"), "g_fwd_s": g.get("fwd_s"),
+                         "g_bwd_s": g.get("bwd_s"), "gl_first_bwd_s": o.get("grad_first_bwd_s"),
+                         "goal": _met(ratio >= GOAL_MPM_GENESIS) if ratio else "not measured",
+                         "note": "; ".join(x for x in (o.get("error"), g.get("error") or g_why) if x)})
+    data["mpm"] = {"rows": rows, "errors": errs, "version": version, "genesis": g_why or "run", "steps": int(steps),
+                   "repeats": int(reps), "grad": grad}
+    fmt = [{**r, "gl_m": r["gl_rate"] / 1e6 if r.get("gl_rate") else None,
+            "g_m": r["g_rate"] / 1e6 if r.get("g_rate") else None} for r in rows]
+    cols = [("precision", "precision", ""), ("n_particles", "particles", ",d"),
+            ("gl_m", "genesis_lite M particle-substeps/s", ".2f"), ("g_m", f"Genesis {version or ''}".strip() + " M particle-substeps/s", ".2f"),
+            ("ratio", "ratio", ".2f"), ("goal", f">= {GOAL_MPM_GENESIS:g}x Genesis", ""),
+            ("gl_build_s", "build s (genesis_lite)", ".1f"), ("g_build_s", "build s (Genesis)", ".1f")]
+    if grad:
+        cols += [("gl_bwd_fwd", f"backward/forward {MPM_GRAD_STEPS} steps (genesis_lite)", ".2f"),
+                 ("g_bwd_fwd", "backward/forward (Genesis)", ".2f"),
+                 ("gl_first_bwd_s", "genesis_lite 1st backward s", ".1f")]
+    cols.append(("note", "note", ""))
+    t = print_table(fmt, cols, title=(
+        "MPM: elastic cube (E = 3e5 Pa, nu = 0.2, rho = 1000 kg/m^3, corotated) on the 0.01 m lattice centred at "
+        "(0.5, 0.5, 0.4), 64^3 grid on [0, 1]^3, gravity, dt = 2e-3 s, 10 substeps; rates: median of "
+        f"{reps} warm runs of {steps} steps (genesis_lite: bench_mpm.py's worker, Genesis: peer_genesis_mpm.py), "
+        "build: Scene() to the end of build() in the first scene of a fresh process (kernel cache as left by "
+        "earlier runs)"))
     text = [t]
     if a.quick:
-        text.append("--quick: f32, 8,000 particles, no backward (the full run adds 27,000 particles, f64 and the "
-                    "backward / forward of a 20-step rollout).")
+        text.append(f"--quick: f32, {parts.replace(',', ', ')} particles, no backward here (the full run: 8,000 and 27,000 "
+                    "particles, f32 and f64, and "
+                    f"the backward / forward of a {MPM_GRAD_STEPS}-step rollout with loss = sum of squared particle "
+                    "positions; genesis_lite's MPM backward / forward is in the gradient section).")
     if errs:
         text.append("Failed: " + "; ".join(errs))
-    text.append("genesis_lite's side: no MPM solver yet (solvers/mpm missing); its row is added when the solver lands.")
     return text
 
 
@@ -311,16 +360,32 @@ def headline(a, data) -> list[dict]:
                      "measured": f"{r['ratio']:.2f}x ({r['fwd_ms']:.0f} ms / {r['bwd_ms']:.0f} ms)",
                      "peer": f"Genesis: {gen['ratio']:.2f}x" if gen and r["envs"] == 1 else "",
                      "ratio": r["ratio"], "target": f"<= {GOAL_BWD_FWD:g}x", "met": _met(r["ratio"] <= GOAL_BWD_FWD)})
+    for r in gr.get("mpm", {}).get("ratio", []):
+        if r.get("ratio") is None:
+            continue
+        g = next((m for m in (data.get("mpm") or {}).get("rows", []) if m["precision"] == "64"
+                  and m["target"] == r["n_particles"] and m.get("g_bwd_fwd")), None)
+        rows.append({"goal": f"backward <= 2.5x forward (MPM elastic cube, {r['n_particles']:,} particles, "
+                             f"{r['steps']} steps, f64)",
+                     "measured": f"{r['ratio']:.2f}x ({r['fwd_ms']:.0f} ms / {r['bwd_ms']:.0f} ms)",
+                     "peer": f"Genesis {data['mpm'].get('version')}, f64: {g['g_bwd_fwd']:.2f}x" if g else "",
+                     "ratio": r["ratio"], "target": f"<= {GOAL_BWD_FWD:g}x", "met": _met(r["ratio"] <= GOAL_BWD_FWD)})
     mp = data.get("mpm")
     if mp is not None:
-        g8 = next((r for r in mp.get("rows", []) if r.get("precision") == "32" and r.get("target") == 8000
-                   and r.get("rate")), None)
-        rows.append({"goal": "MPM: >= 1.5x real Genesis (elastic cube, 8,000 particles, f32)",
-                     "measured": "no MPM solver in genesis_lite yet",
-                     "peer": (f"Genesis {mp.get('version')}: {g8['rate'] / 1e6:.2f} M particle-substeps/s"
-                              + (f", backward/forward {g8['bwd_over_fwd']:.2f}" if g8.get("bwd_over_fwd") else "")
-                              if g8 else mp.get("error", "-")),
-                     "target": f">= {GOAL_MPM_GENESIS:g}x", "met": "NOT MET (not measurable yet)"})
+        r8 = next((r for r in mp.get("rows", []) if r["precision"] == "32" and r["target"] == 8000), None)
+        if r8 is None:
+            r8 = next((r for r in mp.get("rows", []) if r["precision"] == "32"), None)
+        if r8 is not None:
+            n = r8.get("n_particles") or r8["target"]
+            rows.append({"goal": f"MPM: >= {GOAL_MPM_GENESIS:g}x real Genesis (elastic cube, {n:,} particles, f32, "
+                                 "particle-substeps/s)",
+                         "measured": (f"{r8['gl_rate'] / 1e6:.2f} M particle-substeps/s" if r8.get("gl_rate")
+                                      else r8.get("note") or "failed"),
+                         "peer": (f"Genesis {mp.get('version')}: {r8['g_rate'] / 1e6:.2f} M particle-substeps/s"
+                                  if r8.get("g_rate") else f"Genesis: {r8.get('note') or mp.get('genesis')}"),
+                         "ratio": r8.get("ratio"), "target": f">= {GOAL_MPM_GENESIS:g}x",
+                         "met": (_met(r8["ratio"] >= GOAL_MPM_GENESIS) if r8.get("ratio") else
+                                 "NOT MET (failed)" if not r8.get("gl_rate") else "not measured (no Genesis figure)")})
     eq = data.get("equal_error")
     if eq:
         mj = [r for r in eq if r.get("peer") == "mujoco" and r.get("max") is not None]
@@ -363,7 +428,7 @@ def write_results(a, data, texts, t_total, out_path: Path):
         lines.append("")
     titles = {"speed": "Stepping speed and build time", "workprecision": "Work-precision: run time against error",
               "grad": "Gradient cost", "stress": "Stability under stress", "unused": "The cost of what a scene does not use",
-              "mpm": "MPM peer: real Genesis"}
+              "mpm": "MPM: genesis_lite against real Genesis"}
     for key, text in texts:
         lines.append(f"## {titles[key]}")
         lines.append("")
@@ -394,7 +459,11 @@ def main(argv=None):
     ap.add_argument("--stress-rows", default=None, help="stress rows (default: all)")
     ap.add_argument("--integrators", default=None, help="work-precision integrators (default: Euler,implicitfast,RK4)")
     ap.add_argument("--unused-parts", default=None, help="bench_unused parts: mpm,grad,collision (default: all)")
-    ap.add_argument("--grad-parts", default=None, help="bench_grad parts: ratio,first,memory,genesis (default: all)")
+    ap.add_argument("--grad-parts", default=None, help="bench_grad parts: ratio,first,memory,genesis,mpm (default: all)")
+    ap.add_argument("--mpm-memory", default=None, help="MPM memory rows: horizons then the cube's particles, e.g. "
+                    "100,1000,1000 (default: 100,1000 steps of 1,000 particles; --quick 100 steps)")
+    ap.add_argument("--mpm-particles", default=None, help="MPM section's cube sizes, e.g. 8000,27000 (default: "
+                    f"{MPM_PARTICLES}, --quick {MPM_PARTICLES_QUICK})")
     ap.add_argument("--envs", type=int, default=1024, help="batched environments (0: 1 env only)")
     ap.add_argument("--no-genesis", action="store_true", help="skip real Genesis even where it is installed")
     ap.add_argument("--no-bisect", action="store_true", help="skip the largest-dt bisection of the stress table")
@@ -408,6 +477,9 @@ def main(argv=None):
     a.scenes = a.scenes.split(",") if a.scenes else None
     a.stress_rows = a.stress_rows.split(",") if a.stress_rows else None
     a.grad_parts = a.grad_parts.split(",") if a.grad_parts else None
+    a.mpm_memory = [int(x) for x in a.mpm_memory.split(",")] if a.mpm_memory else None
+    if a.mpm_memory is not None and len(a.mpm_memory) < 2:
+        ap.error("--mpm-memory needs at least one horizon and the particle count, e.g. 100,1000")
     a.integrators = a.integrators.split(",") if a.integrators else None
     a.unused_parts = a.unused_parts.split(",") if a.unused_parts else None
     a.out_dir = a.out_dir.resolve()
