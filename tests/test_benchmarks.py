@@ -102,6 +102,7 @@ def test_mpm_sweep_stays_inside_the_cfl_limit_and_on_the_sample_times():
     assert not wps.batched and wps.mj_build is None  # 1 env, genesis_lite only: no MuJoCo MPM
 
 
+@pytest.mark.slow
 def test_mpm_workprecision_row_runs_small(tmp_path):
     """The MPM row as --quick runs it (a child process runs genesis_lite): 4 and 8 substeps of 2 ms against 32 (the
     quick reference, checked against 16). Errors are finite, positive, and smaller with more substeps (closer to
@@ -271,6 +272,7 @@ def test_run_all_smoke(tmp_path):
     assert eq[0]["met"] == ("met" if eq[0]["ratio"] <= 1.0 else "NOT MET")
 
 
+@pytest.mark.slow
 def test_run_all_mpm_rows(tmp_path):
     """genesis_lite's MPM rows of every other kind, small: the MPM section (125-particle cube, f32; real Genesis
     skipped, which its row and the headline say), the gradient section's MPM backward / forward and memory rows
