@@ -153,7 +153,8 @@ def _pile_slope(x, dx, floor):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("phi", [25.0, 35.0])
+@pytest.mark.parametrize("phi", [25.0, pytest.param(35.0, marks=pytest.mark.xfail(
+    strict=True, reason="known gap: at 35 degrees the pile settles at ~28 degrees (issue #7 asks within 5)"))])
 def test_sand_column_collapses_to_a_pile_at_its_friction_angle(phi):
     """A long sand block (plane strain) 24 cm wide and 12 cm tall collapses on a floor with friction 1;
     the pile's flanks settle at an angle set by the friction angle."""
@@ -167,7 +168,7 @@ def test_sand_column_collapses_to_a_pile_at_its_friction_angle(phi):
     assert sand.get_particles_vel().norm(dim=1).max().item() < 0.05  # at rest
     slope = _pile_slope(sand.get_particles_pos().numpy(), 1 / dens, 3 / dens)
     print(f"friction angle {phi}: pile slope {slope:.1f} deg")
-    assert abs(slope - phi) < 8.0, slope
+    assert abs(slope - phi) < 5.0, slope
 
 
 @pytest.mark.slow
