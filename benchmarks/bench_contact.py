@@ -12,6 +12,8 @@ dropped, fixed links fused, non-positive-definite dummy inertias diagonalised) a
 a free joint and position actuators. Rates are medians of 5 repeats:
 - 1 env: steps/s of a Python loop of `scene.step()` / `mujoco.mj_step`;
 - N envs: env-steps/s of `scene.step()` on `build(n_envs=N)` / `mujoco.rollout.rollout` (2 threads).
+  The genesis_lite child also runs MuJoCo's rollout itself, alternating run for run, and reports the
+  median of the per-pair ratios ("paired ratio"): this machine's load changes within a run.
 
 No collision pairs: the same robot without a ground plane, built with RigidOptions(enable_collision=True)
 and =False; the solver compiles no contact stages when no two geoms can touch, so both step equally fast.
@@ -133,7 +135,24 @@ def mujoco_rates(urdf, n_envs, steps_1, steps_b, threads, repeats):
 
     once()
     r1 = median_rate(once, steps_1, repeats)
-    ncon = d0.ncon
+    once_b, shutdown = mujoco_rollout_runner(urdf, n_envs, steps_b, threads)
+    try:
+        once_b()
+        rb = median_rate(once_b, n_envs * steps_b, repeats)
+    finally:
+        shutdown()
+    return {"rate_1": r1, "rate_b": rb, "ncon": d0.ncon, "version": mujoco.__version__}
+
+
+def mujoco_rollout_runner(urdf, n_envs, steps_b, threads):
+    """(once, shutdown): once() runs mujoco.rollout.rollout of n_envs quadrupeds settled on the ground
+    for steps_b steps on `threads` threads and returns its seconds; shutdown() ends its thread pool."""
+    import mujoco
+    from mujoco import rollout
+
+    m, names = mujoco_quadruped(urdf)
+    q0 = standing_pose(names)
+    d0 = mujoco_settled(m, q0)
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
     s0 = np.empty(mujoco.mj_stateSize(m, spec))
     mujoco.mj_getState(m, d0, s0, spec)
@@ -148,12 +167,7 @@ def mujoco_rates(urdf, n_envs, steps_1, steps_b, threads, repeats):
         assert np.all(np.isfinite(out[:, -1])), "MuJoCo rollout diverged"
         return t.seconds
 
-    try:
-        once_b()
-        rb = median_rate(once_b, n_envs * steps_b, repeats)
-    finally:
-        rollout.shutdown_persistent_pool()
-    return {"rate_1": r1, "rate_b": rb, "ncon": ncon, "version": mujoco.__version__}
+    return once_b, rollout.shutdown_persistent_pool
 
 
 # --- genesis_lite (child process: --worker) ---------------------------------------------------------
@@ -180,7 +194,11 @@ def _gl_quadruped(gs, n_envs, plane=True, collision=True):
     return scene, robot, dofs, q0
 
 
-def worker_speed(n_envs, steps_1, steps_b, repeats):
+def worker_speed(n_envs, steps_1, steps_b, repeats, paired_threads=0):
+    """genesis_lite's rates; with paired_threads > 0 the batched one alternates run for run with MuJoCo's
+    rollout on that many threads in this process (both under the same load; see bench_rigid.py)."""
+    import statistics
+
     import genesis_lite as gs
 
     gs.init(backend=gs.cpu, precision="64")
@@ -195,7 +213,22 @@ def worker_speed(n_envs, steps_1, steps_b, repeats):
     with Timer() as tb:
         scene_b, robot_b, _, _ = _gl_quadruped(gs, n_envs)
     out["build_b"] = tb.seconds
-    out["rate_b"] = _gl_rate_ctrl(scene_b, robot_b, dofs, q0, scene_b.get_state(), steps_b, n_envs, repeats)
+    state_b = scene_b.get_state()
+    if not paired_threads:
+        out["rate_b"] = _gl_rate_ctrl(scene_b, robot_b, dofs, q0, state_b, steps_b, n_envs, repeats)
+    else:
+        gl_once = _gl_once_ctrl(scene_b, robot_b, dofs, q0, state_b, steps_b)
+        mj_once, shutdown = mujoco_rollout_runner(anymal_urdf(), n_envs, steps_b, paired_threads)
+        try:
+            gl_once()
+            mj_once()
+            pairs = [(mj_once(), gl_once()) for _ in range(2 * repeats)]
+        finally:
+            shutdown()
+        n = n_envs * steps_b
+        out["rate_b"] = statistics.median(n / g for _, g in pairs)
+        out["mj_rate_b"] = statistics.median(n / m for m, _ in pairs)
+        out["paired_ratio"] = statistics.median(m / g for m, g in pairs)
     # no collision pairs: the robot alone, collision on and off
     for key, coll in (("nopair_on", True), ("nopair_off", False)):
         s, r, d, q = _gl_quadruped(gs, 0, plane=False, collision=coll)
@@ -205,7 +238,7 @@ def worker_speed(n_envs, steps_1, steps_b, repeats):
     return out
 
 
-def _gl_rate_ctrl(scene, robot, dofs, q0, state, n_steps, n_envs, repeats):
+def _gl_once_ctrl(scene, robot, dofs, q0, state, n_steps):
     def once():
         scene.reset(state)
         robot.control_dofs_position(q0, dofs)
@@ -214,6 +247,11 @@ def _gl_rate_ctrl(scene, robot, dofs, q0, state, n_steps, n_envs, repeats):
                 scene.step()
         return t.seconds
 
+    return once
+
+
+def _gl_rate_ctrl(scene, robot, dofs, q0, state, n_steps, n_envs, repeats):
+    once = _gl_once_ctrl(scene, robot, dofs, q0, state, n_steps)
     once()
     return median_rate(once, max(n_envs, 1) * n_steps, repeats)
 
@@ -312,9 +350,10 @@ def _worker_main(argv):
     ap.add_argument("--stepsb", type=int, default=100)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--qsteps", type=int, default=10000)
+    ap.add_argument("--paired-threads", type=int, default=0)
     a = ap.parse_args(argv)
     if a.worker == "speed":
-        res = worker_speed(a.envs, a.steps1, a.stepsb, a.repeats)
+        res = worker_speed(a.envs, a.steps1, a.stepsb, a.repeats, a.paired_threads)
     else:
         res = worker_stress(a.qsteps)
     print(json.dumps(res), flush=True)
@@ -346,7 +385,8 @@ def main():
     print("MuJoCo ...", flush=True)
     mj = mujoco_rates(urdf, args.envs, steps_1 * 5, steps_b, args.threads, repeats)
     print("genesis_lite ...", flush=True)
-    gl, err = _child("speed", envs=args.envs, steps1=steps_1, stepsb=steps_b, repeats=repeats)
+    gl, err = _child("speed", envs=args.envs, steps1=steps_1, stepsb=steps_b, repeats=repeats,
+                     **{"paired-threads": args.threads})
     rows = [
         {"engine": f"MuJoCo {mj['version']} mj_step loop", "envs": 1, "rate": mj["rate_1"], "ratio": 1.0,
          "note": f"{mj['ncon']} contacts"},
@@ -357,12 +397,14 @@ def main():
             {"engine": "genesis_lite (f64, CPU)", "envs": 1, "rate": gl["rate_1"], "ratio": gl["rate_1"] / mj["rate_1"],
              "note": f"{gl['ncon']} contacts of {gl['slots']} slots; build {gl['build_1']:.1f} s"},
             {"engine": "genesis_lite (f64, CPU)", "envs": args.envs, "rate": gl["rate_b"],
-             "ratio": gl["rate_b"] / mj["rate_b"], "note": f"build {gl['build_b']:.1f} s"},
+             "ratio": gl["rate_b"] / mj["rate_b"], "paired": gl.get("paired_ratio"),
+             "note": f"build {gl['build_b']:.1f} s; paired with MuJoCo's rollout in its process: "
+                     f"{gl['paired_ratio']:.2f}x (MuJoCo {gl['mj_rate_b']:,.0f} there)"},
         ]
     else:
         rows.append({"engine": "genesis_lite", "envs": 1, "note": err})
     print_table(rows, [("engine", "engine", ""), ("envs", "envs", "d"), ("rate", "steps/s (env-steps/s)", ",.0f"),
-                       ("ratio", "ratio to MuJoCo", ".2f"), ("note", "note", "")],
+                       ("ratio", "ratio to MuJoCo", ".2f"), ("paired", "paired ratio", ".2f"), ("note", "note", "")],
                 title=f"ANYmal standing on the ground under PD, dt={DT}, median of {repeats} ({time.time() - t0:.0f} s)")
     nopair = []
     if gl:

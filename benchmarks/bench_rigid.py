@@ -7,7 +7,10 @@ engine), fixed base, gravity, zero control, semi-implicit Euler at dt = 0.01 s, 
 joint limits on, starting from the "ready" pose. Rates are medians of 5 repeats:
 - 1 env: steps/s of a Python loop of `scene.step()` / `mujoco.mj_step`;
 - 1024 envs: env-steps/s of `build(n_envs=1024)` + 100 `scene.step()` / `mujoco.rollout.rollout`
-  (1024 initial states, 100 steps, 2 threads);
+  (1024 initial states, 100 steps, 2 threads). The machine is shared and its load changes within a
+  run, so the genesis_lite child also runs MuJoCo's rollout itself, alternating run for run: the
+  "paired ratio" is the median of those per-pair ratios (the "ratio" column divides medians taken
+  minutes apart);
 - real Genesis (`genesis-world`, CPU) when a separate venv at /tmp/gvenv (or $GENESIS_PYTHON) has it.
 Build time: `import genesis_lite`, `gs.init`, a scene with the full Panda URDF (meshes) and a plane,
 `build()`, first `step()`, in a fresh process, with an empty Taichi kernel cache and with a warm one.
@@ -19,6 +22,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -60,6 +64,17 @@ def mujoco_step_loop(urdf, n_steps=5000, repeats=5) -> float:
 
 def mujoco_rollout(urdf, n_envs=1024, n_steps=100, threads=2, repeats=5) -> float:
     """Env-steps/s of mujoco.rollout.rollout from n_envs initial states on `threads` threads."""
+    once, shutdown = mujoco_rollout_runner(urdf, n_envs, n_steps, threads)
+    try:
+        once()  # warm-up (creates the thread pool)
+        return median_rate(once, n_envs * n_steps, repeats)
+    finally:
+        shutdown()
+
+
+def mujoco_rollout_runner(urdf, n_envs=1024, n_steps=100, threads=2):
+    """(once, shutdown): once() runs mujoco.rollout.rollout of n_envs initial states for n_steps on
+    `threads` threads and returns its seconds; shutdown() ends its thread pool."""
     import mujoco
     from mujoco import rollout
 
@@ -82,11 +97,7 @@ def mujoco_rollout(urdf, n_envs=1024, n_steps=100, threads=2, repeats=5) -> floa
         assert np.all(np.isfinite(out[:, -1])), "MuJoCo rollout diverged"
         return t.seconds
 
-    try:
-        once()  # warm-up (creates the thread pool)
-        return median_rate(once, n_envs * n_steps, repeats)
-    finally:
-        rollout.shutdown_persistent_pool()
+    return once, rollout.shutdown_persistent_pool
 
 
 def mujoco_build_time(urdf) -> dict:
@@ -144,8 +155,11 @@ def _gl_reset(robot, n_envs):
     robot.set_dofs_velocity(torch.zeros(shape, dtype=dtype))
 
 
-def worker_gl_steps(urdf, n_envs, n_steps, repeats, precision) -> dict:
-    """Steps/s (n_envs == 0: 1 env, no batch axis) or env-steps/s of a loop of scene.step()."""
+def worker_gl_steps(urdf, n_envs, n_steps, repeats, precision, paired_threads=0) -> dict:
+    """Steps/s (n_envs == 0: 1 env, no batch axis) or env-steps/s of a loop of scene.step().
+    paired_threads > 0: MuJoCo's rollout of the same env and step counts on that many threads runs in
+    this process too, alternating with genesis_lite's runs, so that both see the same load; the ratio
+    is the median of the per-pair ratios (this machine's load changes faster than a whole run)."""
     with Timer() as tb:
         gs, scene, robot = _gl_scene(urdf, n_envs, precision)
         _gl_set(robot, robot.set_dofs_damping, np.zeros(robot.n_dofs), n_envs)
@@ -164,8 +178,17 @@ def worker_gl_steps(urdf, n_envs, n_steps, repeats, precision) -> dict:
         return t.seconds
 
     once()
-    rate = median_rate(once, max(n_envs, 1) * n_steps, repeats)
-    return {"rate": rate, "build_s": build_s}
+    n = max(n_envs, 1) * n_steps
+    if not paired_threads:
+        return {"rate": median_rate(once, n, repeats), "build_s": build_s}
+    mj_once, shutdown = mujoco_rollout_runner(urdf, n_envs, n_steps, paired_threads)
+    try:
+        mj_once()
+        pairs = [(mj_once(), once()) for _ in range(repeats)]
+    finally:
+        shutdown()
+    return {"rate": statistics.median(n / g for _, g in pairs), "mj_rate": statistics.median(n / m for m, _ in pairs),
+            "paired_ratio": statistics.median(m / g for m, g in pairs), "build_s": build_s}
 
 
 def peer_genesis(urdf, n_steps, repeats, precision):
@@ -215,8 +238,9 @@ def _worker_main(argv):
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--precision", default="64")
+    ap.add_argument("--paired-threads", type=int, default=0)
     a = ap.parse_args(argv)
-    res = worker_gl_steps(a.urdf, a.envs, a.steps, a.repeats, a.precision)
+    res = worker_gl_steps(a.urdf, a.envs, a.steps, a.repeats, a.precision, a.paired_threads)
     print(json.dumps(res), flush=True)
 
 
@@ -266,10 +290,16 @@ def main():
     if not args.skip_genesis_lite:
         for n_envs, n_steps in ((0, steps_1), (args.envs, steps_b)):
             print(f"genesis_lite {max(n_envs, 1)} env(s) ...", flush=True)
-            res, err = _child("gl_steps", urdf, envs=n_envs, steps=n_steps, repeats=repeats,
-                              precision=args.precision)
+            paired = args.threads if n_envs else 0
+            res, err = _child("gl_steps", urdf, envs=n_envs, steps=n_steps, repeats=repeats if not paired else 2 * repeats,
+                              precision=args.precision, **({"paired-threads": paired} if paired else {}))
+            note = err or f"build+compile {res['build_s']:.1f} s"
+            if res and "paired_ratio" in res:
+                note += (f"; paired with MuJoCo's rollout in its process: {res['paired_ratio']:.2f}x "
+                         f"(MuJoCo {res['mj_rate']:,.0f} there)")
             rows.append({"engine": f"genesis_lite (f{args.precision}, CPU)", "envs": max(n_envs, 1),
-                         "rate": res["rate"] if res else None, "note": err or f"build+compile {res['build_s']:.1f} s"})
+                         "rate": res["rate"] if res else None, "paired": res.get("paired_ratio") if res else None,
+                         "note": note})
     if Path(GENESIS_PYTHON).exists():
         print("Genesis (genesis-world) 1 env ...", flush=True)
         res, err = peer_genesis(urdf, steps_1, repeats, args.precision)
@@ -279,7 +309,7 @@ def main():
     for r in rows:
         r["ratio"] = r["rate"] / ref[r["envs"]] if r.get("rate") and r["envs"] in ref else None
     print_table(rows, [("engine", "engine", ""), ("envs", "envs", "d"), ("rate", "steps/s (env-steps/s)", ",.0f"),
-                       ("ratio", "ratio to MuJoCo", ".3f"), ("note", "note", "")],
+                       ("ratio", "ratio to MuJoCo", ".3f"), ("paired", "paired ratio", ".2f"), ("note", "note", "")],
                 title=f"Panda, dt={DT}, median of {repeats} ({time.time() - t0:.0f} s)")
 
     build_rows = []

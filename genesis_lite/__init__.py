@@ -10,7 +10,11 @@ import logging
 import os
 
 import numpy as np
-import torch
+
+# The solvers (and Taichi) before torch: decorating a Taichi function looks its frame's module up in
+# sys.modules (inspect.getframeinfo), a scan that torch's ~2,000 modules make several times longer.
+import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)
+import torch  # noqa: E402
 
 from . import materials, morphs, options, surfaces
 from .errors import GenesisException
@@ -65,17 +69,47 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     ti_float = ti.f64 if str(precision) == "64" else ti.f32
     tc_float = torch.float64 if str(precision) == "64" else torch.float32
     np_float = np.float64 if str(precision) == "64" else np.float32
-    # Taichi's advanced IR optimisation makes the gradient kernels compile 4-5x slower (tens of
-    # seconds) for ~10 % faster steps; it stays available as gs.init(advanced_optimization=True).
-    kw = dict(arch=arch, default_fp=ti_float, default_ip=ti.i32, debug=debug, unrolling_limit=0, advanced_optimization=False,
+    # Taichi's advanced IR optimisation makes the gradient kernels compile 2-5x slower for ~10 %
+    # faster steps, so float64 goes without it. float32 cannot: without it, Taichi 1.7.4's reverse
+    # mode gives zero adjoints to every local accumulated in float32 (`acc += x`, and so `dot`, `norm`,
+    # `sum`) and crashes on some kernels (tests/test_precision.py checks float32 gradients against float64).
+    kw = dict(arch=arch, default_fp=ti_float, default_ip=ti.i32, debug=debug, unrolling_limit=0,
+              advanced_optimization=str(precision) == "32",
               log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
     kw.update(taichi_kwargs)
     ti.init(**kw)
+    _lighten_taichi_source_info()
     if seed is not None:
         torch.manual_seed(seed)
         np.random.seed(seed)
     _init_args = args
     _initialized = True
+
+
+def _lighten_taichi_source_info():
+    """Taichi 1.7's kernel compiler formats a source excerpt with a caret line, wrapped by textwrap, for
+    every AST node it transforms (kept for error messages), whether or not an error comes: half of the
+    Python time of compiling a kernel, which a process pays on every first launch even when the kernel
+    comes from the offline cache. The same excerpt without the caret line and the wrapping costs almost
+    nothing; error messages still name the file, line, function and source line.
+    GS_TAICHI_FULL_SOURCE_INFO=1 keeps Taichi's own."""
+    if os.environ.get("GS_TAICHI_FULL_SOURCE_INFO") == "1":
+        return
+    try:
+        from taichi.lang.ast import ast_transformer_utils as atu
+    except ImportError:  # another Taichi layout: leave it alone
+        return
+    ctx_cls = getattr(atu, "ASTTransformerContext", None)
+    if ctx_cls is None or getattr(ctx_cls.get_pos_info, "_gs_light", False):
+        return
+
+    def get_pos_info(self, node):
+        line = node.lineno + self.lineno_offset
+        src = self.src[node.lineno - 1] if 0 < node.lineno <= len(self.src) else ""
+        return f'File "{self.file}", line {line}, in {self.func.func.__name__}:\n{src}\n'
+
+    get_pos_info._gs_light = True
+    ctx_cls.get_pos_info = get_pos_info
 
 
 def _assert_initialized():

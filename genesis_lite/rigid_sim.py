@@ -17,7 +17,8 @@ from .errors import GenesisException, SimulationNaNError
 from .grad.functions import OutputFunction
 from .grad.indexing import as_slices, as_span, index_put, raise_if_nan_grad
 
-# name -> (solver field, trailing shape, axis it is indexed by)
+# name -> (solver field, trailing shape, axis it is indexed by). The core's parameters travel packed in one
+# tensor (RigidSolver.param_layout); contact friction lives in the contact solver's own field.
 PARAMS = {
     "mass": ("link_mass", (), "link"),
     "com": ("link_com", (3,), "link"),
@@ -65,12 +66,17 @@ class RigidSim:
         self.sim = None  # the scene's Simulator, set when it takes this bridge
         # parameters: base values from the model, then the user's setter calls replayed on top
         self.param_names = [k for k in PARAMS if not PARAMS[k][0].startswith("contact.") or s.contact is not None]
-        self.param_base = {k: self._field_to_torch(self.param_field(k)) for k in self.param_names}
+        self.core_params = [k for k in self.param_names if not PARAMS[k][0].startswith("contact.")]
+        base = s.initial_params(sim_options.gravity)
+        self.param_base = {k: torch.as_tensor(v, device=self.device).to(self.dtype) for k, v in base.items()
+                           if k in self.core_params}
+        if s.contact is not None:
+            self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
         self.param_ops = {k: [] for k in self.param_names}
         self.params = dict(self.param_base)
         self._loaded_params = dict(self.params)  # the tensors whose values are in the fields now
-        self.force_lo = self._field_to_torch(s.dof_force_lo)
-        self.force_hi = self._field_to_torch(s.dof_force_hi)
+        self.force_lo = torch.as_tensor(base["force_lo"], device=self.device).to(self.dtype)
+        self.force_hi = torch.as_tensor(base["force_hi"], device=self.device).to(self.dtype)
         self._params_dirty = set()
         self.reset_controls()
         q0 = torch.as_tensor(s.np_qpos0, dtype=self.dtype, device=self.device).reshape(1, -1).repeat(self.B, 1)
@@ -136,11 +142,25 @@ class RigidSim:
         if self._ctrl_dirty:
             self._load_ctrl(self.ctrl, self.ctrl_mode)
             self._ctrl_dirty = False
-        for k in self._params_dirty:
-            if self._loaded_params.get(k) is not self.params[k]:
-                self.param_field(k).from_torch(self._c(self.params[k]))
-                self._loaded_params[k] = self.params[k]
+        self._load_params(self._params_dirty)
         self._params_dirty = set()
+
+    def _load_params(self, names):
+        """Upload the parameters among `names` whose tensors are not the ones in the fields (the core's
+        all together, packed: one launch)."""
+        stale = [k for k in names if self._loaded_params.get(k) is not self.params[k]]
+        if not stale:
+            return
+        if any(k in self.core_params for k in stale):
+            self._upload_core_params()
+        if "friction" in stale:
+            self.param_field("friction").from_torch(self._c(self.params["friction"]))
+        for k in stale:
+            self._loaded_params[k] = self.params[k]
+
+    def _upload_core_params(self):
+        parts = [self.params[k] if k in self.params else getattr(self, k) for k, _ in self.solver.param_layout()]
+        self.solver.set_params(self._c(torch.cat([p.detach().reshape(self.B, -1).to(self.dtype) for p in parts], -1)))
 
     # ---------------------------------------------------------------- controls and parameters
     def reset_controls(self):
@@ -202,8 +222,7 @@ class RigidSim:
     def set_force_range(self, lo, hi, envs, idx):
         self.force_lo = index_put(self.force_lo, envs, idx, lo.detach())
         self.force_hi = index_put(self.force_hi, envs, idx, hi.detach())
-        self.solver.dof_force_lo.from_torch(self._c(self.force_lo))
-        self.solver.dof_force_hi.from_torch(self._c(self.force_hi))
+        self._upload_core_params()
 
     # ---------------------------------------------------------------- stepping
     upload = _upload
@@ -229,8 +248,7 @@ class RigidSim:
 
     def first_nan_step(self):
         """The first step after which the (fused-path) state was not finite, or None."""
-        k = self.solver.nan_step[None]
-        return None if k == self.solver.NO_NAN else k
+        return self.solver.first_nan_step()
 
     def check_finite(self, entities, step):
         """Raise SimulationNaNError naming the entity, the quantity and the step if the state is not finite."""
@@ -252,11 +270,13 @@ class RigidSim:
         self._write_state(qpos, qvel)
         self._load_ctrl(ctrl, mode)
         self._ctrl_dirty = True
-        for k, p in zip(self.param_names, params):
-            if self._loaded_params.get(k) is not p:
-                self.param_field(k).from_torch(self._c(p))
-                self._loaded_params[k] = p
-                self._params_dirty.add(k)
+        changed = [k for k, p in zip(self.param_names, params) if self._loaded_params.get(k) is not p]
+        if changed:
+            current = dict(self.params)
+            self.params.update(zip(self.param_names, params))
+            self._load_params(changed)
+            self.params = current
+            self._params_dirty.update(changed)
         self._state_on_device = False
         self._outputs = None
 
@@ -267,7 +287,8 @@ class RigidSim:
         (gx,) = grads
         if gx is None:
             return
-        self.solver.kernel_vjp(self.solver.last_slot, self._c(gx), loss)
+        # the solver accumulates into its own scalar, whose adjoint its clear_grads seeds to 1 (kernel_vjp)
+        self.solver.kernel_vjp(self.solver.last_slot, self._c(gx))
 
     def input_grads(self, needs, step):
         """Gradients of one step's inputs (qpos, qvel, ctrl, *params) from the adjoint fields."""
@@ -277,13 +298,22 @@ class RigidSim:
         s.kernel_get_grads(g)
         out = [g[:, : self.n_qs] if needs[0] else None, g[:, self.n_qs: nx] if needs[1] else None,
                g[:, nx:].reshape(self.B, 3, self.n_dofs) if needs[2] else None]
-        for k, n in zip(self.param_names, needs[3:]):
-            if n:
+        wanted = dict(zip(self.param_names, needs[3:]))
+        packed = {}
+        if any(wanted[k] for k in self.core_params):
+            layout = [(k, w) for k, w in s.param_layout() if k in self.core_params]
+            pg = torch.empty(self.B, sum(w for _, w in layout), dtype=self.dtype, device=self.device)
+            s.kernel_get_param_grads(pg)
+            packed = dict(zip([k for k, _ in layout], torch.split(pg, [w for _, w in layout], -1)))
+        for k in self.param_names:
+            if not wanted[k]:
+                out.append(None)
+            elif k in packed:
+                out.append(packed[k].reshape(self.params[k].shape))
+            else:
                 pg = torch.empty_like(self.params[k], dtype=self.dtype)
                 s.get_param_grad(self.param_field(k), pg)
                 out.append(pg)
-            else:
-                out.append(None)
         raise_if_nan_grad(out, step)
         return out
 
@@ -321,7 +351,7 @@ class RigidSim:
         s.scratch_overwritten()
         with ti.ad.Tape(loss=self.sim.loss, clear_gradients=False):
             s.kernel_kinematics(0)
-            s.kernel_link_vjp(*g, self.sim.loss)
+            s.kernel_link_vjp(*g)
         g = torch.empty(self.B, self.n_qs + 4 * self.n_dofs, dtype=self.dtype, device=self.device)
         s.kernel_get_grads(g)
         gq, gv = g[:, : self.n_qs], g[:, self.n_qs: self.n_qs + self.n_dofs]
@@ -331,7 +361,7 @@ class RigidSim:
     # ---------------------------------------------------------------- rollouts
     def new_rollout(self, state):
         qpos, qvel = state
-        self.solver.nan_step[None] = self.solver.NO_NAN
+        self.solver.reset_nan()
         self.reset_controls()
         self.rebuild_params()
         self.set_state(qpos, qvel)

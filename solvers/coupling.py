@@ -115,8 +115,8 @@ class RigidMPMCoupler:
                     best_phi = phi
             self.node_geom[i_b, I] = best
         for i_b, l in ti.ndrange(self.rigid.n_envs, max(self.rigid.n_links, 1)):
-            self.rigid.ext_f[sub, i_b, l] = ti.Vector.zero(float, 3)
-            self.rigid.ext_t[sub, i_b, l] = ti.Vector.zero(float, 3)
+            self.rigid.external.ext_f[i_b, sub, l] = ti.Vector.zero(float, 3)
+            self.rigid.external.ext_t[i_b, sub, l] = ti.Vector.zero(float, 3)
 
     @ti.func
     def func_rigid_boundary(self, mpm: ti.template(), i_b, I, v, h, sub):
@@ -140,6 +140,6 @@ class RigidMPMCoupler:
         v_new = v + alpha * approach * (vt_new - v_rel)
         if ti.static(self.reaction):
             f = mpm.grid_m[i_b, I] / h * (v - v_new)
-            self.rigid.ext_f[sub, i_b, l] += f
-            self.rigid.ext_t[sub, i_b, l] += x.cross(f)
+            self.rigid.external.ext_f[i_b, sub, l] += f
+            self.rigid.external.ext_t[i_b, sub, l] += x.cross(f)
         return v_new

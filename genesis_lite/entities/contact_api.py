@@ -183,8 +183,8 @@ class ContactMixin:
         envs = self._envs(envs_idx)
         s = sim.solver
         out = np.zeros((sim.B, self.n_links, 3))
-        if getattr(s, "external", False):
+        if s.external is not None:
             ls = self._link_start
-            out = s.ext_f.to_numpy().mean(0)[:, ls:ls + self.n_links]
+            out = s.external.ext_f.to_numpy().mean(1)[:, ls:ls + self.n_links]
         t = torch.as_tensor(out, dtype=sim.dtype, device=sim.device)
         return self._out(t[envs.cpu()])

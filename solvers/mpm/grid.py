@@ -6,7 +6,7 @@ Single-assignment form with 0/1 masks for Taichi's reverse mode (no branches on 
 """
 import taichi as ti
 
-TINY = 1e-30
+TINY = 1e-18  # squared in adjoints (d(1/m)/dm): must stay finite in float32
 
 
 @ti.func
@@ -28,7 +28,7 @@ def func_wall(s: ti.template(), v, I, d: ti.template()):
     vn = v.dot(n)
     into = ti.cast(vn < 0.0, float) * (low + high)
     vt = v - vn * n
-    vt_norm = ti.sqrt(vt.dot(vt) + TINY)
+    vt_norm = ti.sqrt(vt.dot(vt) + 1e-12)  # 1e-6 m/s smoothing keeps 1/vt_norm^2 finite in float32
     slide = vt * ti.max(0.0, 1.0 + s.wall_friction * vn / vt_norm)
     return into * slide + (1.0 - into) * v
 

@@ -87,6 +87,11 @@ class MPMSolver:
         # the block of grid nodes the particles of a substep can touch: the grid loops skip the rest
         self.active_lo = ti.Vector.field(3, ti.i32, shape=())
         self.active_n = ti.Vector.field(3, ti.i32, shape=())
+        # per-chunk bounds of the particles' stencils: atomics on six global integers from every particle
+        # cost more than the rest of the substep's grid work
+        self.n_chunks = min(64, max(1, (B * P) // 256))
+        self.chunk_lo = ti.Vector.field(3, ti.i32, shape=self.n_chunks)
+        self.chunk_hi = ti.Vector.field(3, ti.i32, shape=self.n_chunks)
         self.grad_fields = [self.x, self.v, self.C, self.F, self.tau, self.mu, self.lam, self.yield_stress,
                             self.alpha, self.viscosity, self.f_ext, self.gravity, self.grid_m, self.grid_mv,
                             self.grid_v] if g else []
@@ -184,19 +189,27 @@ class MPMSolver:
         """(lower corner, extent) of the block of nodes the stencils of all particles in slot src touch
         (all envs), also left in active_lo, active_n for the clearing kernels."""
         big = 1 << 30
-        self.active_lo[None] = ti.Vector([big, big, big])
-        self.active_n[None] = ti.Vector([-big, -big, -big])  # the upper corner, until the last loop
-        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
-            base = ti.cast(ti.floor((self.x[src, i_b, i_p] - self.lower) * self.inv_dx - 0.5), ti.i32)
-            for a in ti.static(range(3)):
-                ti.atomic_min(self.active_lo[None][a], base[a])
-                ti.atomic_max(self.active_n[None][a], base[a] + 3)
+        total = self.n_envs * self.n_particles
+        for c in range(self.n_chunks):
+            lo = ti.Vector([big, big, big])
+            hi = ti.Vector([-big, -big, -big])
+            for k in range(c * total // self.n_chunks, (c + 1) * total // self.n_chunks):
+                x = self.x[src, k // self.n_particles, k % self.n_particles]
+                base = ti.cast(ti.floor((x - self.lower) * self.inv_dx - 0.5), ti.i32)
+                lo = ti.min(lo, base)
+                hi = ti.max(hi, base + 3)
+            self.chunk_lo[c] = lo
+            self.chunk_hi[c] = hi
         for _ in range(1):
-            for a in ti.static(range(3)):
-                lo = ti.max(self.active_lo[None][a], 0)
-                hi = ti.min(self.active_n[None][a], self.grid_res[a])
-                self.active_lo[None][a] = lo
-                self.active_n[None][a] = ti.max(hi - lo, 0)
+            lo = ti.Vector([big, big, big])
+            hi = ti.Vector([-big, -big, -big])
+            for c in range(self.n_chunks):
+                lo = ti.min(lo, self.chunk_lo[c])
+                hi = ti.max(hi, self.chunk_hi[c])
+            lo = ti.max(lo, 0)
+            hi = ti.min(hi, ti.Vector([self.grid_res[0], self.grid_res[1], self.grid_res[2]]))
+            self.active_lo[None] = lo
+            self.active_n[None] = ti.max(hi - lo, 0)
         lo, n = self.active_lo[None], self.active_n[None]
         return ti.Vector([lo[0], lo[1], lo[2], n[0], n[1], n[2]])
 

@@ -2,7 +2,7 @@
 
 Taichi's `ti.svd` (McAdams et al.'s approximate Givens iterations) costs about 2.5 us per matrix in
 float64 on this project's CPUs and reassembles F only to ~1e-10; MPM calls it once per particle and
-substep, forward and backward. Here: five sweeps of exact Jacobi rotations diagonalise A = F^T F
+substep, forward and backward. Here: four sweeps of exact Jacobi rotations diagonalise A = F^T F
 (quadratic convergence: round-off level for 3x3), V holds its eigenvectors, s = sqrt(eig), and U is
 F V / s completed to a rotation. Convention as Taichi's: det U = det V = 1, s sorted descending, the
 last singular value negative when det F < 0. Not differentiated: the adjoint of the maps built on it is
@@ -10,7 +10,7 @@ written out in constitutive.py.
 """
 import taichi as ti
 
-SWEEPS = 5
+SWEEPS = 4
 TINY = 1e-30
 
 

@@ -6,8 +6,24 @@ joint-limit springs (stiff by design).
 """
 import taichi as ti
 
+from .math3d import func_add
+
 CTRL_FORCE, CTRL_POSITION, CTRL_VELOCITY = 0, 1, 2
 FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh friction loss
+
+
+@ti.func
+def func_tanh_where(s: ti.template(), on, x):
+    """tanh(x) where `on`, else 0. Without gradients a branch skips the tanh (a libm call per dof and
+    evaluation) for the dofs without friction loss; with gradients the select form that Taichi's
+    reverse mode needs (a local assigned in a branch becomes an adstack)."""
+    if ti.static(s.requires_grad):
+        return ti.select(on, ti.tanh(x), 0.0)
+    else:
+        r = ti.cast(0.0, s.dtype)
+        if on:
+            r = ti.tanh(x)
+        return r
 
 
 @ti.func
@@ -33,7 +49,7 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         tau = ti.min(ti.max(raw, lo), hi)
         s.dof_tau[i_b, i_d] = tau
         fl = s.dof_frictionloss[i_b, i_d]
-        th = ti.tanh(v / FRICTIONLOSS_VEL)
+        th = func_tanh_where(s, fl != 0.0, v / FRICTIONLOSS_VEL)
         damp = s.dof_damping[i_b, i_d]
         # joint-limit springs, one-sided; their damping acts only while moving further out
         lim_lo = s.dof_limit_lo[i_d]
@@ -49,5 +65,9 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         K = lim_K + s.implicit_on * kp * free_act
         D = lim_D + s.implicit_on * (kv * free_act + damp + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
         s.force[i_b, i_d] = tau - damp * v - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
-        s.mass_mat[i_b, i_d, i_d] += s.dof_armature[i_b, i_d] + h * D + h * h * K
+        diag = s.dof_armature[i_b, i_d] + h * D + h * h * K
+        if ti.static(s.requires_grad):
+            s.mass_mat[i_b, i_d, i_d] += diag
+        else:  # see math3d.func_add
+            s.mass_mat[i_b, i_d, i_d] = s.mass_mat[i_b, i_d, i_d] + diag
 

@@ -2,7 +2,7 @@
 import taichi as ti
 
 from .kinematics import func_link_joint_velocity
-from .math3d import func_cross_force, func_inertia_mul
+from .math3d import func_add, func_cross_force, func_inertia_mul
 
 
 @ti.func
@@ -33,8 +33,8 @@ def func_accumulate_forces(s: ti.template(), i_b, e, src, h):
         i_l = s.n_links - 1 - k
         p = s.link_parent[i_l]
         if p >= 0:
-            s.cfrc_n[i_b, p] += s.cfrc_n[i_b, i_l]
-            s.cfrc_f[i_b, p] += s.cfrc_f[i_b, i_l]
+            func_add(s, s.cfrc_n, i_b, p, s.cfrc_n[i_b, i_l])
+            func_add(s, s.cfrc_f, i_b, p, s.cfrc_f[i_b, i_l])
 
 
 @ti.func

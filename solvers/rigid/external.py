@@ -1,37 +1,54 @@
 """External wrenches on links (the rigid-MPM coupler's reaction forces), one per substep, added to
 the generalised force: a force f (N, world frame) and a torque t (N m, about the world origin) on
-link l act on dof d through its motion subspace as cdof_w . T + cdof_v . F, with (T, F) the sum of
-the wrenches on the links below d's link (summed up the tree like composite inertia).
+link l act on dof d through its motion subspace as cdof_w . t + cdof_v . f when d moves l, that is
+when d's link is l or one of its ancestors.
+
+One stage, each dof summing over the links its link carries (a static ancestor table), rather than
+subtree sums accumulated up the tree in a scratch field: Taichi 1.7.4's adjoint of the kernel came
+out wrong (the links' mass gradients) once a tree-accumulation stage and the dof stage were both in
+it, though each alone was right.
+
+The fields belong to the scene (its envs, substeps and links), not to the pooled core: a scene with
+external wrenches runs its dynamics through a per-scene owner (solver._SceneOwner), as one with
+contacts does.
 """
+import numpy as np
 import taichi as ti
 
 from .contact import func_acc
 
 
-@ti.func
-def func_external_copy(s: ti.template(), i_b, e, src, h):
-    sub = e // s.evals_per_substep
-    for i_l in range(s.n_links):
-        s.ext_sum_f[i_b, i_l] = s.ext_f[sub, i_b, i_l]
-        s.ext_sum_t[i_b, i_l] = s.ext_t[sub, i_b, i_l]
+@ti.data_oriented
+class ExternalWrench:
+    """ext_f, ext_t [env, substep, link]: the wrench of each substep (written by the coupler);
+    carries [link, link]: 1 where the second link is the first or one of its ancestors."""
 
-
-@ti.func
-def func_external_tree(s: ti.template(), i_b, e, src, h):
-    for k in range(s.n_links):
-        i_l = s.n_links - 1 - k
-        p = s.link_parent[i_l]
-        if p >= 0:
-            func_acc(s, s.ext_sum_f, i_b, p, s.ext_sum_f[i_b, i_l])
-            func_acc(s, s.ext_sum_t, i_b, p, s.ext_sum_t[i_b, i_l])
+    def __init__(self, n_envs, substeps, link_parent, evals_per_substep, dtype, requires_grad):
+        L = max(len(link_parent), 1)
+        B, S, g = n_envs, substeps, requires_grad
+        self.evals_per_substep = evals_per_substep
+        self.ext_f = ti.Vector.field(3, dtype, shape=(B, S, L), needs_grad=g)
+        self.ext_t = ti.Vector.field(3, dtype, shape=(B, S, L), needs_grad=g)
+        carries = np.zeros((L, L), dtype=np.int32)
+        for l in range(len(link_parent)):
+            j = l
+            while j >= 0:
+                carries[l, j] = 1
+                j = int(link_parent[j])
+        self.carries = ti.field(ti.i32, shape=(L, L))
+        self.carries.from_numpy(carries)
+        self.grad_fields = [self.ext_f, self.ext_t] if g else []
+        self.stages = (func_external_dof,)
 
 
 @ti.func
 def func_external_dof(s: ti.template(), i_b, e, src, h):
+    x = s.external
+    sub = e // x.evals_per_substep
     for i_d in range(s.n_dofs):
-        i_l = s.dof_link[i_d]
-        func_acc(s, s.force, i_b, i_d, s.cdof_w[i_b, i_d].dot(s.ext_sum_t[i_b, i_l])
-                 + s.cdof_v[i_b, i_d].dot(s.ext_sum_f[i_b, i_l]))
-
-
-EXTERNAL_STAGES = (func_external_copy, func_external_tree, func_external_dof)
+        ld = s.dof_link[i_d]
+        for l in range(s.n_links):
+            # straight into the field: a local sum over a run-time loop crashes Taichi's reverse mode
+            c = ti.cast(x.carries[l, ld], s.dtype)
+            func_acc(s, s.force, i_b, i_d, c * (s.cdof_w[i_b, i_d].dot(x.ext_t[i_b, sub, l])
+                                                + s.cdof_v[i_b, i_d].dot(x.ext_f[i_b, sub, l])))

@@ -7,7 +7,7 @@ f_bar = M^-1 qacc_bar and M_bar = -f_bar qacc^T.
 """
 import taichi as ti
 
-from .math3d import func_inertia_mul
+from .math3d import func_add, func_inertia_mul
 
 
 @ti.func
@@ -24,21 +24,31 @@ def func_composite_inertia(s: ti.template(), i_b, e, src, h):
         i_l = s.n_links - 1 - k
         p = s.link_parent[i_l]
         if p >= 0:
-            s.crb_m[i_b, p] += s.crb_m[i_b, i_l]
-            s.crb_h[i_b, p] += s.crb_h[i_b, i_l]
-            s.crb_J[i_b, p] += s.crb_J[i_b, i_l]
+            func_add(s, s.crb_m, i_b, p, s.crb_m[i_b, i_l])
+            func_add(s, s.crb_h, i_b, p, s.crb_h[i_b, i_l])
+            func_add(s, s.crb_J, i_b, p, s.crb_J[i_b, i_l])
+
+
+@ti.func
+def func_dof_momentum(s: ti.template(), i_b, e, src, h):
+    """The spatial force (n, f) = I_c cdof_i of each dof i, I_c the composite inertia of its link: the
+    column of M below it is its dot product with the ancestors' cdofs (computed once per dof, not once
+    per entry)."""
+    for i in range(s.n_dofs):
+        i_l = s.dof_link[i]
+        n, f = func_inertia_mul(s.crb_m[i_b, i_l], s.crb_h[i_b, i_l], s.crb_J[i_b, i_l], s.cdof_w[i_b, i], s.cdof_v[i_b, i])
+        s.dof_n[i_b, i] = n
+        s.dof_f[i_b, i] = f
 
 
 @ti.func
 def func_mass_matrix(s: ti.template(), i_b, e, src, h):
-    """Lower triangle M[i, j] (j an ancestor-or-self of i); other entries are never read."""
-    for ij in range(s.n_dofs * s.n_dofs):
-        i = ij // s.n_dofs
-        j = ij % s.n_dofs
-        if s.dof_anc[i, j] == 1:
-            i_l = s.dof_link[i]
-            n, f = func_inertia_mul(s.crb_m[i_b, i_l], s.crb_h[i_b, i_l], s.crb_J[i_b, i_l], s.cdof_w[i_b, i], s.cdof_v[i_b, i])
-            s.mass_mat[i_b, i, j] = s.cdof_w[i_b, j].dot(n) + s.cdof_v[i_b, j].dot(f)
+    """Lower triangle M[i, j] (j an ancestor-or-self of i), over the static list of such pairs (a scan
+    of all n^2 pairs would divide by the run-time n twice per pair); other entries are never read."""
+    for t in range(s.n_anc):
+        i = s.anc_i[t]
+        j = s.anc_j[t]
+        s.mass_mat[i_b, i, j] = s.cdof_w[i_b, j].dot(s.dof_n[i_b, i]) + s.cdof_v[i_b, j].dot(s.dof_f[i_b, i])
 
 
 @ti.func
@@ -55,7 +65,7 @@ def func_factor(s: ti.template(), i_b):
             a = s.mass_fac[i_b, k, i] / s.mass_fac[i_b, k, k]
             j = i
             while j >= 0:
-                s.mass_fac[i_b, i, j] -= a * s.mass_fac[i_b, k, j]
+                s.mass_fac[i_b, i, j] = s.mass_fac[i_b, i, j] - a * s.mass_fac[i_b, k, j]
                 j = s.dof_parent[j]
             s.mass_fac[i_b, k, i] = a
             i = s.dof_parent[i]
@@ -69,14 +79,14 @@ def func_solve(s: ti.template(), i_b, x: ti.template(), e):
         i = n - 1 - kk
         j = s.dof_parent[i]
         while j >= 0:
-            x[e, i_b, j] -= s.mass_fac[i_b, i, j] * x[e, i_b, i]
+            x[e, i_b, j] = x[e, i_b, j] - s.mass_fac[i_b, i, j] * x[e, i_b, i]
             j = s.dof_parent[j]
     for i in range(n):
-        x[e, i_b, i] /= s.mass_fac[i_b, i, i]
+        x[e, i_b, i] = x[e, i_b, i] / s.mass_fac[i_b, i, i]
     for i in range(n):
         j = s.dof_parent[i]
         while j >= 0:
-            x[e, i_b, i] -= s.mass_fac[i_b, i, j] * x[e, i_b, j]
+            x[e, i_b, i] = x[e, i_b, i] - s.mass_fac[i_b, i, j] * x[e, i_b, j]
             j = s.dof_parent[j]
 
 
@@ -95,15 +105,14 @@ def func_solve_grad(s: ti.template(), i_b, e):
         s.solve_tmp[0, i_b, i] = s.qacc.grad[e, i_b, i]
     func_solve(s, i_b, s.solve_tmp, 0)
     for i in range(s.n_dofs):
-        s.force.grad[i_b, i] += s.solve_tmp[0, i_b, i]
-    for ij in range(s.n_dofs * s.n_dofs):
-        i = ij // s.n_dofs
-        j = ij % s.n_dofs
-        if s.dof_anc[i, j] == 1:
-            g = s.solve_tmp[0, i_b, i] * s.qacc[e, i_b, j]
-            if i != j:
-                g += s.solve_tmp[0, i_b, j] * s.qacc[e, i_b, i]
-            s.mass_mat.grad[i_b, i, j] -= g
+        s.force.grad[i_b, i] = s.force.grad[i_b, i] + s.solve_tmp[0, i_b, i]
+    for t in range(s.n_anc):
+        i = s.anc_i[t]
+        j = s.anc_j[t]
+        g = s.solve_tmp[0, i_b, i] * s.qacc[e, i_b, j]
+        if i != j:
+            g += s.solve_tmp[0, i_b, j] * s.qacc[e, i_b, i]
+        s.mass_mat.grad[i_b, i, j] = s.mass_mat.grad[i_b, i, j] - g
 
 
-INERTIA = (func_link_inertia, func_composite_inertia, func_mass_matrix)
+INERTIA = (func_link_inertia, func_composite_inertia, func_dof_momentum, func_mass_matrix)

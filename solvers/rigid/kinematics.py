@@ -8,7 +8,8 @@ Reads at clamped indices feed only masked-out terms.
 """
 import taichi as ti
 
-from .math3d import func_axis_angle_quat, func_cross_motion, func_quat_mul, func_quat_to_R
+from .math3d import (func_axis_angle_quat, func_cross_motion, func_quat_mul, func_quat_rotate, func_quat_to_R,
+                     func_rotate_inertia)
 
 JOINT_FIXED, JOINT_FREE, JOINT_REVOLUTE, JOINT_PRISMATIC = 0, 1, 2, 3
 
@@ -22,12 +23,60 @@ def func_vec3(x: ti.template(), a, b, i):
 def func_link_joint_velocity(s: ti.template(), i_b, src, i_l):
     """The velocity a link's own joint contributes, for the two joint shapes that have dofs:
     (d0, qd) the dof and velocity of a 1-dof joint (qd = 0 otherwise), and (free, vb, wb) a 0/1 mask
-    and the base-origin world velocity and world angular velocity of a free joint."""
+    and the base-origin world velocity and world angular velocity of a free joint (zero otherwise).
+    Without gradients only the link's own joint type is read (branches are single-assignment's cost
+    only where Taichi's reverse mode needs it)."""
     d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
-    qd = s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
-    free = ti.cast(s.link_ndof[i_l] == 6, s.dtype)
-    df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
-    return d0, qd, free, func_vec3(s.qvel, src, i_b, df), func_vec3(s.qvel, src, i_b, df + 3)
+    nd = s.link_ndof[i_l]
+    if ti.static(s.requires_grad):
+        qd = s.qvel[src, i_b, d0] * ti.cast(nd == 1, s.dtype)
+        free = ti.cast(nd == 6, s.dtype)
+        df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
+        return d0, qd, free, func_vec3(s.qvel, src, i_b, df), func_vec3(s.qvel, src, i_b, df + 3)
+    else:
+        qd = ti.cast(0.0, s.dtype)
+        free = ti.cast(0.0, s.dtype)
+        vb = ti.Vector.zero(s.dtype, 3)
+        wb = ti.Vector.zero(s.dtype, 3)
+        if nd == 1:
+            qd = s.qvel[src, i_b, d0]
+        elif nd == 6:
+            free = 1.0
+            vb = func_vec3(s.qvel, src, i_b, d0)
+            wb = func_vec3(s.qvel, src, i_b, d0 + 3)
+        return d0, qd, free, vb, wb
+
+
+@ti.func
+def func_joint_pose(s: ti.template(), i_b, src, jt, qs, axis, jpos, jquat):
+    """The pose (pos, quat) a link's joint gives it from the joint frame's pose (jpos, jquat) and
+    qpos[src]. With gradients every joint type's formula is evaluated and blended (single assignment,
+    reads at clamped indices, see above); without, only the link's own."""
+    if ti.static(s.requires_grad):
+        q1 = s.qpos[src, i_b, ti.min(qs, s.qpos_len - 1)]
+        rev = ti.cast(jt == JOINT_REVOLUTE, s.dtype)
+        pri = ti.cast(jt == JOINT_PRISMATIC, s.dtype)
+        moving_quat = func_quat_mul(jquat, func_axis_angle_quat(axis, q1 * rev))
+        moving_pos = jpos + func_quat_rotate(jquat, axis * (q1 * pri))
+        qf = ti.max(ti.min(qs, s.qpos_len - 7), 0)
+        free_pos = func_vec3(s.qpos, src, i_b, qf)
+        fq = ti.Vector([s.qpos[src, i_b, qf + 3], s.qpos[src, i_b, qf + 4], s.qpos[src, i_b, qf + 5], s.qpos[src, i_b, qf + 6]])
+        free_quat = fq / ti.sqrt(ti.max(fq.dot(fq), 1e-30))
+        is_free = jt == JOINT_FREE
+        return ti.select(is_free, free_pos, moving_pos), ti.select(is_free, free_quat, moving_quat)
+    else:
+        pos = jpos
+        quat = jquat
+        if jt == JOINT_REVOLUTE:
+            quat = func_quat_mul(jquat, func_axis_angle_quat(axis, s.qpos[src, i_b, qs]))
+        elif jt == JOINT_PRISMATIC:
+            pos = jpos + func_quat_rotate(jquat, axis * s.qpos[src, i_b, qs])
+        elif jt == JOINT_FREE:
+            pos = func_vec3(s.qpos, src, i_b, qs)
+            fq = ti.Vector([s.qpos[src, i_b, qs + 3], s.qpos[src, i_b, qs + 4], s.qpos[src, i_b, qs + 5],
+                            s.qpos[src, i_b, qs + 6]])
+            quat = fq / ti.sqrt(ti.max(fq.dot(fq), 1e-30))
+        return pos, quat
 
 
 @ti.func
@@ -42,19 +91,8 @@ def func_forward_kinematics(s: ti.template(), i_b, e, src, h):
         ppos = ti.select(has_p, s.link_pos[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype))
         pquat = ti.select(has_p, s.link_quat[i_b, pp], ti.Vector([1.0, 0.0, 0.0, 0.0], dt=s.dtype))
         jquat = func_quat_mul(pquat, s.link_jquat[i_l])
-        jpos = ppos + func_quat_to_R(pquat) @ s.link_jpos[i_l]
-        q1 = s.qpos[src, i_b, ti.min(qs, s.qpos_len - 1)]
-        rev = ti.cast(jt == JOINT_REVOLUTE, s.dtype)
-        pri = ti.cast(jt == JOINT_PRISMATIC, s.dtype)
-        moving_quat = func_quat_mul(jquat, func_axis_angle_quat(s.link_jaxis[i_l], q1 * rev))
-        moving_pos = jpos + func_quat_to_R(jquat) @ (s.link_jaxis[i_l] * (q1 * pri))
-        qf = ti.max(ti.min(qs, s.qpos_len - 7), 0)
-        free_pos = func_vec3(s.qpos, src, i_b, qf)
-        fq = ti.Vector([s.qpos[src, i_b, qf + 3], s.qpos[src, i_b, qf + 4], s.qpos[src, i_b, qf + 5], s.qpos[src, i_b, qf + 6]])
-        free_quat = fq / ti.sqrt(ti.max(fq.dot(fq), 1e-30))
-        is_free = jt == JOINT_FREE
-        pos = ti.select(is_free, free_pos, moving_pos)
-        quat = ti.select(is_free, free_quat, moving_quat)
+        jpos = ppos + func_quat_rotate(pquat, s.link_jpos[i_l])
+        pos, quat = func_joint_pose(s, i_b, src, jt, qs, s.link_jaxis[i_l], jpos, jquat)
         s.link_pos[i_b, i_l] = pos
         s.link_quat[i_b, i_l] = quat
         s.link_R[i_b, i_l] = func_quat_to_R(quat)
@@ -69,7 +107,7 @@ def func_world_inertia(s: ti.template(), i_b, e, src, h):
         m = s.link_mass[i_b, i_l]
         s.link_cpos[i_b, i_l] = c
         s.link_h[i_b, i_l] = m * c
-        s.link_J[i_b, i_l] = R @ s.link_inertia[i_b, i_l] @ R.transpose() + m * (
+        s.link_J[i_b, i_l] = func_rotate_inertia(R, s.link_inertia[i_b, i_l]) + m * (
             c.dot(c) * ti.Matrix.identity(s.dtype, 3) - c.outer_product(c))
 
 

@@ -27,6 +27,14 @@ def func_quat_to_R(q):
 
 
 @ti.func
+def func_quat_rotate(q, v):
+    """v rotated by the unit quaternion q (= func_quat_to_R(q) @ v, without forming R)."""
+    u = ti.Vector([q[1], q[2], q[3]])
+    t = 2.0 * u.cross(v)
+    return v + q[0] * t + u.cross(t)
+
+
+@ti.func
 def func_axis_angle_quat(axis, angle):
     h = 0.5 * angle
     s = ti.sin(h)
@@ -44,6 +52,26 @@ def func_rotvec_quat(w, dt):
     sinc = ti.select(small, 1.0 - h2 / 6.0 + h2 * h2 / 120.0, ti.sin(hs) / hs)
     k = 0.5 * dt * sinc
     return ti.Vector([c, k * w[0], k * w[1], k * w[2]])
+
+
+@ti.func
+def func_rotate_inertia(R, I):
+    """R I R^T, as (R I) R^T entry by entry, summed in the order of Taichi's `R @ I @ R.transpose()` (the
+    same numbers). Taichi's matmul accumulates into a local matrix entry by entry (each entry stored
+    three times), and its adjoint compiles about three times slower: seconds for the dynamics' gradient
+    kernel."""
+    RI = ti.Matrix([[_rowcol(R, a, I, b) for b in ti.static(range(3))] for a in ti.static(range(3))])
+    return ti.Matrix([[_rowrow(RI, a, R, b) for b in ti.static(range(3))] for a in ti.static(range(3))])
+
+
+@ti.func
+def _rowcol(A, a: ti.template(), B, b: ti.template()):
+    return A[a, 0] * B[0, b] + A[a, 1] * B[1, b] + A[a, 2] * B[2, b]
+
+
+@ti.func
+def _rowrow(A, a: ti.template(), B, b: ti.template()):
+    return A[a, 0] * B[b, 0] + A[a, 1] * B[b, 1] + A[a, 2] * B[b, 2]
 
 
 @ti.func
@@ -70,3 +98,15 @@ def func_inertia_mul(m, h, J, w, v):
     f = m * v + w.cross(h)
     n = J @ w + h.cross(v)
     return n, f
+
+
+@ti.func
+def func_add(s: ti.template(), x: ti.template(), i_b, i, v):
+    """x[i_b, i] += v inside a stage's env loop. Without gradients a plain read-modify-write: one thread
+    owns an env's entries, and `+=` on a field in the parallel env loop compiles to an atomic (a
+    compare-and-swap loop for floats). With gradients `+=`, the form Taichi's reverse mode needs (an
+    overwritten read breaks its global data access rule)."""
+    if ti.static(s.requires_grad):
+        x[i_b, i] += v
+    else:
+        x[i_b, i] = x[i_b, i] + v

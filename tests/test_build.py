@@ -1,0 +1,224 @@
+"""Issue #10: one compile serves every robot. A scene takes its Taichi fields from a pool of field sets
+of its capacity class (RigidCore, solvers/rigid/solver.py) and reads its sizes at run time, so a later
+scene of another robot compiles no kernel; cores reused by later scenes, or held by two scenes at
+once, must give exactly the results of a fresh core.
+
+Kernel compilations are counted by wrapping Taichi's Kernel.materialize (every kernel Taichi builds,
+ours and its own field-copy kernels, goes through it)."""
+import gc
+
+import numpy as np
+import pytest
+import torch
+from taichi.lang import kernel_impl
+
+import genesis_lite as gs
+from solvers.rigid.solver import POOL
+
+from conftest import ASSETS_DIR
+
+ARM = str(ASSETS_DIR / "urdf" / "arm.urdf")  # 4 dofs
+PENDULUM = str(ASSETS_DIR / "urdf" / "double_pendulum.urdf")  # 2 dofs
+F64 = dict(dtype=torch.float64)
+
+
+@pytest.fixture
+def compiled(monkeypatch):
+    """The names of the kernels Taichi compiles from now on."""
+    names = []
+    original = kernel_impl.Kernel.materialize
+
+    def materialize(self, key=None, args=None, arg_features=None):
+        if (key if key is not None else (self.func, 0, self.autodiff_mode)) not in self.compiled_kernels:
+            names.append(self.func.__name__ + ("" if self.autodiff_mode == kernel_impl.AutodiffMode.NONE else ".grad"))
+        return original(self, key, args, arg_features)
+
+    monkeypatch.setattr(kernel_impl.Kernel, "materialize", materialize)
+    return names
+
+
+def _fresh():
+    """Forget the pool's free cores: the next scene of every class allocates a new one."""
+    gc.collect()
+    POOL.clear()
+
+
+def _scene(urdf, n_envs=0, requires_grad=False, collision=False, plane=False, check_nan=True):
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=requires_grad),
+                     rigid_options=gs.options.RigidOptions(enable_collision=collision, check_nan=check_nan))
+    if plane:
+        scene.add_entity(gs.morphs.Plane())
+    robot = scene.add_entity(gs.morphs.URDF(file=urdf, fixed=True))
+    scene.build(n_envs=n_envs)
+    return scene, robot
+
+
+def _use(scene, robot, steps=20, seed=0):
+    """Everything a script does with a scene (setters, gains, PD and force control, getters, the mass
+    matrix, energies); returns the trajectory of positions and the last link poses."""
+    rng = np.random.default_rng(seed)
+    n = robot.n_dofs
+    B = (scene.n_envs,) if scene.n_envs else ()
+    scene.reset()
+    robot.set_dofs_kp(torch.full(B + (n,), 50.0, **F64))
+    robot.set_dofs_kv(torch.full(B + (n,), 2.0, **F64))
+    robot.set_dofs_damping(torch.full(B + (n,), 0.05, **F64))
+    robot.set_dofs_position(torch.tensor(rng.uniform(-0.5, 0.5, B + (n,)), **F64))
+    robot.control_dofs_position(torch.tensor(rng.uniform(-0.5, 0.5, B + (n,)), **F64))
+    traj = []
+    for t in range(steps):
+        if t == steps // 2:
+            robot.control_dofs_force(torch.tensor(rng.uniform(-1, 1, B + (n,)), **F64))
+        scene.step()
+        traj.append(robot.get_dofs_position().clone())
+    M = robot.get_mass_mat()
+    E = robot.get_total_energy()
+    return torch.stack(traj), robot.get_links_pos().clone(), M, E
+
+
+def test_second_robot_compiles_nothing(compiled):
+    """A scene of another robot, built after the first one is dropped, takes the first one's core and
+    compiles no kernel; its results equal those of the same scene on a fresh core."""
+    a = _scene(ARM)
+    _use(*a)
+    del a
+    gc.collect()  # the first scene dies: its core goes back to the pool
+    compiled.clear()
+    scene, pend = _scene(PENDULUM)
+    got = _use(scene, pend)
+    assert scene.rigid_solver.reused_core
+    assert compiled == [], f"the second robot compiled {compiled}"
+    # the same scene on a fresh core: bit-identical results
+    _fresh()
+    fresh, pend2 = _scene(PENDULUM)
+    assert not fresh.rigid_solver.reused_core and fresh.rigid_solver.core is not scene.rigid_solver.core
+    ref = _use(fresh, pend2)
+    for x, y in zip(got, ref):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+
+
+def test_second_robot_with_gradients_compiles_nothing(compiled):
+    """The gradient path too: forward, backward and parameter gradients of a second robot reuse the
+    first one's kernels, and its gradients equal those of a fresh core."""
+
+    def grads(scene, robot):
+        n = robot.n_dofs
+        q0 = torch.linspace(-0.4, 0.3, n, **F64).requires_grad_()
+        u = torch.linspace(0.5, -0.5, 8 * n, **F64).reshape(8, n).requires_grad_()
+        mass = torch.full((robot.n_links,), 1.3, **F64).requires_grad_()
+        scene.reset()
+        robot.set_links_mass(mass)
+        robot.set_dofs_position(q0)
+        for t in range(8):
+            robot.control_dofs_force(u[t])
+            scene.step()
+        loss = (robot.get_links_pos()[-1] ** 2).sum() + (robot.get_dofs_velocity() ** 2).sum()
+        loss.backward()
+        return loss.detach(), q0.grad, u.grad, mass.grad
+
+    a = _scene(ARM, requires_grad=True)
+    grads(*a)
+    del a
+    gc.collect()  # the first scene dies: its core goes back to the pool
+    compiled.clear()
+    scene, pend = _scene(PENDULUM, requires_grad=True)
+    got = grads(scene, pend)
+    assert scene.rigid_solver.reused_core
+    # Taichi's own loss field of the scene's Tape (genesis_lite/simulator.py) is new with every scene:
+    # its fill kernels are all that may compile
+    assert set(compiled) <= {"fill_field"}, f"the second robot compiled {compiled}"
+    _fresh()
+    fresh = _scene(PENDULUM, requires_grad=True)
+    assert not fresh[0].rigid_solver.reused_core
+    ref = grads(*fresh)
+    for x, y in zip(got, ref):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+    assert all(torch.isfinite(g).all() and g.abs().sum() > 0 for g in got[1:])
+
+
+def test_other_env_count_of_the_class_compiles_nothing(compiled):
+    """Env counts of one capacity class (up to 16 here) share a core: 3 envs after 5."""
+    a = _scene(ARM, n_envs=5)
+    _use(*a)
+    del a
+    gc.collect()  # the first scene dies: its core goes back to the pool
+    compiled.clear()
+    scene, arm = _scene(ARM, n_envs=3)
+    traj, pos, M, E = _use(scene, arm)
+    assert scene.rigid_solver.reused_core and compiled == [], compiled
+    assert traj.shape == (20, 3, arm.n_dofs) and M.shape == (3, arm.n_dofs, arm.n_dofs)
+    # the same scene on a fresh core
+    _fresh()
+    single, arm1 = _scene(ARM, n_envs=3)
+    assert not single.rigid_solver.reused_core
+    ref = _use(single, arm1)
+    for x, y in zip((traj, pos, M, E), ref):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+
+
+def test_two_scenes_alive_at_once_are_independent():
+    """Two live scenes of one class hold two cores; stepping them interleaved gives each the
+    trajectory it has alone."""
+    alone_arm = _use(*_scene(ARM), seed=1)
+    alone_pend = _use(*_scene(PENDULUM), seed=2)
+    gc.collect()  # both back in the pool: the two scenes below take them
+    s1, arm = _scene(ARM)
+    s2, pend = _scene(PENDULUM)
+    assert s1.rigid_solver.core is not s2.rigid_solver.core
+    rng1, rng2 = np.random.default_rng(1), np.random.default_rng(2)
+    for s, r, rng in ((s1, arm, rng1), (s2, pend, rng2)):
+        s.reset()
+        n = r.n_dofs
+        r.set_dofs_kp(torch.full((n,), 50.0, **F64))
+        r.set_dofs_kv(torch.full((n,), 2.0, **F64))
+        r.set_dofs_damping(torch.full((n,), 0.05, **F64))
+        r.set_dofs_position(torch.tensor(rng.uniform(-0.5, 0.5, n), **F64))
+        r.control_dofs_position(torch.tensor(rng.uniform(-0.5, 0.5, n), **F64))
+    trajs = {1: [], 2: []}
+    for t in range(20):
+        for k, s, r, rng in ((1, s1, arm, rng1), (2, s2, pend, rng2)):
+            if t == 10:
+                r.control_dofs_force(torch.tensor(rng.uniform(-1, 1, r.n_dofs), **F64))
+            s.step()
+            trajs[k].append(r.get_dofs_position().clone())
+    torch.testing.assert_close(torch.stack(trajs[1]), alone_arm[0], rtol=0, atol=0)
+    torch.testing.assert_close(torch.stack(trajs[2]), alone_pend[0], rtol=0, atol=0)
+
+
+def test_core_of_a_diverged_scene_gives_a_clean_start():
+    """A scene whose state became NaN leaves NaN in its core's fields; the next scene of the class
+    (here with contacts between moving bodies, whose dense factorisation reads M outside the tree
+    pattern) starts clean on that core: the same numbers as on a fresh core."""
+
+    def boxes():
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+        scene.add_entity(gs.morphs.Plane())
+        lower = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)))
+        top = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.03, 0, 0.25), quat=(0.995, 0.0, 0.0, 0.1)))
+        scene.build()
+        assert scene.rigid_solver.dense_solve
+        out = []
+        for _ in range(30):
+            scene.step()
+            out.append(torch.cat([lower.get_qpos(), top.get_qpos()]))
+        return scene, torch.stack(out)
+
+    _fresh()
+    bad, arm = _scene(ARM, check_nan=False)
+    core = bad.rigid_solver.core
+    # velocities of 1e200 rad/s: their squares overflow, and NaN reaches the state, M and the forces
+    arm.set_dofs_velocity(torch.full((arm.n_dofs,), 1e200, **F64))
+    for _ in range(5):
+        bad.step()
+    assert not torch.isfinite(arm.get_dofs_position()).all()
+    key = bad.rigid_solver.core.key
+    del bad, arm
+    gc.collect()
+    assert POOL.free.get(key), "the diverged scene's core went back to the pool"
+    reused, traj = boxes()
+    assert reused.rigid_solver.core is core
+    _fresh()
+    fresh, ref = boxes()
+    assert not fresh.rigid_solver.reused_core
+    assert torch.isfinite(traj).all()
+    torch.testing.assert_close(traj, ref, rtol=0, atol=0)

@@ -1,0 +1,79 @@
+"""float32 gradients agree with float64 ones (to float32's precision), for both solvers.
+
+Taichi 1.7.4's reverse mode without its advanced optimisation gives zero adjoints to locals
+accumulated in float32 (so `dot`, `norm`, `sum` and every `acc += x`) while float64 is right; gs.init
+turns the optimisation on for float32 for that reason. Each precision needs its own process (one
+gs.init per process).
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+RIGID = """
+import json, sys, numpy as np, torch, genesis_lite as gs
+gs.init(backend=gs.cpu, precision=sys.argv[1])
+dt = torch.float32 if sys.argv[1] == "32" else torch.float64
+scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True),
+                 rigid_options=gs.options.RigidOptions(enable_collision=False))
+arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True))
+scene.build()
+q0 = torch.tensor([0.3, -0.4, 0.5, 0.2], dtype=dt, requires_grad=True)
+u = torch.tensor([0.5, -1.0, 0.3, 0.2], dtype=dt, requires_grad=True)
+arm.set_dofs_position(q0)
+for _ in range(20):
+    arm.control_dofs_force(u)
+    scene.step()
+(arm.get_links_pos()[-1] ** 2).sum().backward()
+print(json.dumps({"q0": q0.grad.tolist(), "u": u.grad.tolist()}))
+"""
+
+MPM = """
+import json, sys, numpy as np, torch, genesis_lite as gs
+gs.init(backend=gs.cpu, precision=sys.argv[1])
+dt = torch.float32 if sys.argv[1] == "32" else torch.float64
+scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=4, requires_grad=True),
+                 mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5), grid_density=32))
+cube = scene.add_entity(gs.morphs.Box(pos=(0.25, 0.25, 0.15), size=(0.1,) * 3), material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
+scene.add_entity(gs.morphs.Sphere(pos=(0.25, 0.25, 0.27), radius=0.04), material=gs.materials.Rigid(rho=800))
+scene.build()
+v = torch.tensor(np.random.default_rng(0).normal(0, 0.3, (cube.n_particles, 3)), dtype=dt, requires_grad=True)
+E = torch.tensor(2e4, dtype=dt, requires_grad=True)
+cube.set_particles_vel(v); cube.set_material(E=E)
+for _ in range(8):
+    scene.step()
+((cube.get_particles_pos() ** 2).sum() + scene.rigid_entities[0].get_pos().sum()).backward()
+print(json.dumps({"v": v.grad.reshape(-1).tolist(), "E": [E.grad.item()]}))
+"""
+
+
+def _grads(code, precision):
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(code), precision], capture_output=True, text=True,
+                         cwd=REPO, timeout=1200)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return {k: np.array(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
+
+
+def _compare(code, rtol):
+    g32, g64 = _grads(code, "32"), _grads(code, "64")
+    for k in g64:
+        err = np.linalg.norm(g32[k] - g64[k]) / np.linalg.norm(g64[k])
+        print(f"{k}: |g32 - g64| / |g64| = {err:.2e}")
+        assert np.linalg.norm(g64[k]) > 0 and err < rtol, (k, g32[k], g64[k])
+
+
+def test_float32_rigid_gradients_match_float64():
+    _compare(RIGID, 1e-4)
+
+
+@pytest.mark.slow
+def test_float32_mpm_and_coupling_gradients_match_float64():
+    _compare(MPM, 1e-3)
