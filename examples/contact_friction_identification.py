@@ -6,7 +6,7 @@ reproduces the observed stopping point (and, for comparison, the closed form v^2
 
 Writes the loss and estimate per iteration and the box trajectories (guess, fit, observed) as PNG.
 """
-import argparse
+import sys
 import os
 import time
 
@@ -14,11 +14,12 @@ import torch
 
 import genesis_lite as gs
 
-ap = argparse.ArgumentParser()
-ap.add_argument("--iters", type=int, default=8)
-ap.add_argument("--out", default="out/contact_friction")
-args = ap.parse_args()
-os.makedirs(args.out, exist_ok=True)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from example_utils import parse_args, summary  # noqa: E402
+
+args = parse_args("contact_friction_identification", __doc__, lambda ap: ap.add_argument("--iters", type=int, default=8))
+if args.quick:
+    args.iters = 2
 
 gs.init(backend=gs.cpu, precision="64")
 f64 = torch.float64
@@ -107,3 +108,4 @@ try:
     print(f"wrote {os.path.join(args.out, 'friction_identification.png')}")
 except ImportError:
     print("matplotlib is not installed: no figure")
+summary("contact_friction_identification", [f"true mu {TRUE_MU}, fitted {mu_fit:.4f}"], [csv], t0)

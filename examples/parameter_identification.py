@@ -5,7 +5,7 @@ the example estimates the identifiable ones.)
 
     python examples/parameter_identification.py [--iters 40] [--out out/param_id]
 """
-import argparse
+import sys
 import os
 import time
 
@@ -13,11 +13,12 @@ import torch
 
 import genesis_lite as gs
 
-ap = argparse.ArgumentParser()
-ap.add_argument("--iters", type=int, default=25)
-ap.add_argument("--out", default="out/param_id")
-args = ap.parse_args()
-os.makedirs(args.out, exist_ok=True)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from example_utils import parse_args, summary  # noqa: E402
+
+args = parse_args("parameter_identification", __doc__, lambda ap: ap.add_argument("--iters", type=int, default=25))
+if args.quick:
+    args.iters = 2
 
 gs.init(backend=gs.cpu, precision="64")
 scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True),
@@ -69,4 +70,4 @@ for it in range(args.iters):
 with open(os.path.join(args.out, "estimate.txt"), "w") as f:
     f.write(f"true mass {true_mass.tolist()}\nestimated {log_mass.exp().tolist()}\n"
             f"true damping {true_damp.tolist()}\nestimated {log_damp.exp().tolist()}\n")
-print(f"wrote {args.out}/estimate.txt")
+summary("parameter_identification", [f"payload mass {log_mass.exp().tolist()} (true {true_mass.tolist()})", f"damping {log_damp.exp().tolist()} (true {true_damp.tolist()})"], [os.path.join(args.out, "estimate.txt")], t0)
