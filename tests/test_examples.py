@@ -26,7 +26,7 @@ EXAMPLES = {
     "contact_quadruped": ["quadruped_contacts.csv", "quadruped_contacts.png"],
     "record_video": ["first_frame.png", "rollout.mp4", "rollout.gif"],
     "parameter_identification": ["fit.md", "loss.csv", "parameter_identification.png"],
-    "contact_friction_identification": ["trajectories.csv", "friction_identification.png"],
+    "contact_friction_identification": ["fit.md", "loss.csv", "trajectories.csv", "friction_identification.png"],
     "ball_on_soft_block": ["ball_on_soft_block.gif", "ball.csv", "ball_on_soft_block.png"],
     "push_through_sand": ["push_through_sand.gif", "drag.csv", "push_through_sand.png"],
     "elastic_identification": ["fit.md", "loss.csv", "elastic_identification.png"],
