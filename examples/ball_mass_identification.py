@@ -1,7 +1,7 @@
 """Parameter identification (d): the mass of a rigid ball from how far it sinks into a soft block.
 A ball is lowered onto an elastic block (released just touching it) and sinks in; its height over
 time, observed with 0.1 mm of Gaussian noise, comes from the simulator with the true mass. From a
-guess 40 % light, L-BFGS on log(mass) fits the simulated sinking to the observed one (two-way
+guess 40 % light, L-BFGS on log(mass) (bounded to 0.1-2 kg) fits the simulated sinking to the observed one (two-way
 rigid-MPM coupling: the block's push is what holds the ball).
 
     python examples/ball_mass_identification.py [--quick] [--iters 12] [--out out/ball_mass_identification]
@@ -19,7 +19,7 @@ import torch
 import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from example_utils import (identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
+from example_utils import (LogBounds, identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
                            write_csv, write_text)
 
 F64 = dict(dtype=torch.float64)
@@ -68,13 +68,14 @@ def main():
     noise = 1e-4  # m
     # the loss in units of the noise's variance: of order 1 at the optimum, so L-BFGS's absolute
     # tolerances (1e-7 on the gradient) do not stop it at the first step
-    log_m = torch.log(init).clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([log_m], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
+    bounds = LogBounds(0.1, 2.0)  # kg
+    s = bounds.param(init)
+    opt = torch.optim.LBFGS([s], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
     history, trace = [], []
 
     def closure():
         opt.zero_grad()
-        loss = ((rollout(log_m.exp()) - observed) ** 2).mean() / noise ** 2
+        loss = ((rollout(bounds.value(s)) - observed) ** 2).mean() / noise ** 2
         loss.backward()
         return loss
 
@@ -82,7 +83,7 @@ def main():
     for _ in bar:
         loss = opt.step(closure)
         history.append(loss.item())
-        trace.append(log_m.exp().item())
+        trace.append(bounds.value(s).item())
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{history[-1]:.3e}", mass=f"{trace[-1]:.4f}")
     fitted = torch.tensor([trace[-1]], **F64)

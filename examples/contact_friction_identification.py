@@ -1,6 +1,6 @@
 """Parameter identification (b): the friction coefficient of a box from its sliding. A box is launched
 along the ground and slides to rest; its x position, observed with 0.5 mm of Gaussian noise, comes
-from the simulator with the true coefficient. From a guess a third of it, L-BFGS on log(mu) (through
+from the simulator with the true coefficient. From a guess a third of it, L-BFGS on log(mu) (bounded to 0.02-1.5; through
 `box.set_friction(mu)` and the contact model) fits the simulated slide to the observed one; the
 closed form v0^2 / (2 g d) from the observed stopping distance is printed beside it.
 
@@ -19,7 +19,7 @@ import torch
 import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from example_utils import (identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
+from example_utils import (LogBounds, identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
                            write_csv, write_text)
 
 F64 = dict(dtype=torch.float64)
@@ -65,14 +65,15 @@ def main():
     with torch.no_grad():
         observed = rollout(true) + torch.tensor(rng.normal(0.0, noise, T), **F64)
         guess = rollout(init)
-    log_mu = torch.log(init).clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([log_mu], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
+    bounds = LogBounds(0.02, 1.5)
+    s = bounds.param(init)
+    opt = torch.optim.LBFGS([s], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
     history, trace = [], []
 
     def closure():
         opt.zero_grad()
         # in units of the noise's variance: ~1 at the optimum, well above L-BFGS's absolute tolerances
-        loss = ((rollout(log_mu.exp()) - observed) ** 2).mean() / noise ** 2
+        loss = ((rollout(bounds.value(s)) - observed) ** 2).mean() / noise ** 2
         loss.backward()
         return loss
 
@@ -80,7 +81,7 @@ def main():
     for _ in bar:
         loss = opt.step(closure)
         history.append(loss.item())
-        trace.append(log_mu.exp().item())
+        trace.append(bounds.value(s).item())
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{history[-1]:.4g}", mu=f"{trace[-1]:.4f}")
     fitted = torch.tensor(trace[-1], **F64)

@@ -2,7 +2,7 @@
 observed particle positions. A soft cube is dropped 1 cm onto the floor; it lands, squashes, bulges
 sideways and rings. The "observed" particle positions (every 5th step, with 0.1 mm of Gaussian
 noise) come from the simulator with the true values; from a wrong guess (E 40 % low, nu 0.2 instead
-of 0.35), L-BFGS on (log E, logit(2 nu)) fits the simulated positions to them.
+of 0.35), L-BFGS on log E and log nu (bounded: 2 kPa - 200 kPa, 0.05 - 0.45) fits the simulated positions to them.
 
     python examples/elastic_identification.py [--quick] [--iters 20] [--out out/elastic_identification]
 
@@ -19,7 +19,7 @@ import torch
 import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from example_utils import (identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
+from example_utils import (LogBounds, identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
                            write_csv, write_text)
 
 F64 = dict(dtype=torch.float64)
@@ -66,17 +66,18 @@ def main():
         observed = clean + torch.tensor(rng.normal(0.0, 1e-4, clean.shape), **F64)  # 0.1 mm
         guess = rollout(init[0], init[1])
 
-    # E > 0 and 0 < nu < 0.5 by construction; log E puts both parameters on comparable scales
-    logE = torch.log(init[0]).clone().requires_grad_(True)
-    s = torch.logit(2 * init[1]).clone().requires_grad_(True)
+    # log scales put both on comparable footing; the bounds keep the line search inside what the
+    # time step can step (a stiffer or less compressible block has faster waves)
+    boxes = LogBounds([2e3, 0.05], [2e5, 0.45])
+    s = boxes.param(init)
 
     def params():
-        return logE.exp(), 0.5 * torch.sigmoid(s)
+        return boxes.value(s).unbind(0)
 
     noise = 1e-4  # m
     # the loss in units of the noise's variance: of order 1 at the optimum, so L-BFGS's absolute
     # tolerances (1e-7 on the gradient) do not stop it at the first step
-    opt = torch.optim.LBFGS([logE, s], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
+    opt = torch.optim.LBFGS([s], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
     history, trace = [], []
 
     def closure():

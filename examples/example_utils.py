@@ -137,3 +137,30 @@ def panda_urdf() -> str:
 def repo_path(*parts) -> str:
     """A path inside the repository (assets/...), wherever the example is started from."""
     return str(Path(__file__).resolve().parents[1].joinpath(*parts))
+
+
+class LogBounds:
+    """A positive parameter searched on a log scale inside physical bounds [lo, hi]: value =
+    exp(log lo + (log hi - log lo) sigmoid(s)). The bounds keep an optimiser's line search (L-BFGS's
+    extrapolates up to 10x a step) from trying a mass or a stiffness that makes the simulation
+    diverge; inside them the map is smooth and monotonic. Tensors in, tensors out."""
+
+    def __init__(self, lo, hi):
+        import torch
+
+        self.lo = torch.log(torch.as_tensor(lo, dtype=torch.float64))
+        self.span = torch.log(torch.as_tensor(hi, dtype=torch.float64)) - self.lo
+
+    def value(self, s):
+        import torch
+
+        return torch.exp(self.lo + self.span * torch.sigmoid(s))
+
+    def param(self, value):
+        """The unconstrained s of a value strictly inside the bounds (a leaf to optimise)."""
+        import torch
+
+        u = (torch.log(torch.as_tensor(value, dtype=torch.float64)) - self.lo) / self.span
+        if not bool(((u > 0) & (u < 1)).all()):
+            raise ValueError(f"initial value {value} outside the bounds [{self.lo.exp()}, {(self.lo + self.span).exp()}]")
+        return torch.logit(u).clone().requires_grad_(True)

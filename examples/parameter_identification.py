@@ -2,7 +2,7 @@
 double pendulum (assets/urdf/double_pendulum.urdf, 1 m rods) from a noisy trajectory. Known torques
 swing it; its joint angles, observed with 2 mrad of Gaussian noise, come from the simulator with the
 true values. From a guess 30-50 % off in every parameter, L-BFGS on the logarithms of the six
-parameters fits the simulated angles to the observed ones.
+parameters (inside wide physical bounds) fits the simulated angles to the observed ones.
 
     python examples/parameter_identification.py [--quick] [--iters 30] [--out out/parameter_identification]
 
@@ -19,7 +19,7 @@ import torch
 import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from example_utils import (identification_table, parse_args, progress, pyplot, repo_path, save_figure,  # noqa: E402
+from example_utils import (LogBounds, identification_table, parse_args, progress, pyplot, repo_path, save_figure,  # noqa: E402
                            summary, write_csv, write_text)
 
 F64 = dict(dtype=torch.float64)
@@ -68,14 +68,15 @@ def main():
     with torch.no_grad():
         observed = rollout(true) + torch.tensor(rng.normal(0.0, noise, (T, 2)), **F64)
         guess = rollout(init)
-    logp = torch.log(init).clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([logp], lr=1.0, max_iter=1, history_size=20, line_search_fn="strong_wolfe")
+    bounds = LogBounds([0.05, 0.05, 0.01, 0.01, 0.01, 0.01], [5.0, 5.0, 2.0, 2.0, 2.0, 2.0])
+    s = bounds.param(init)
+    opt = torch.optim.LBFGS([s], lr=1.0, max_iter=1, history_size=20, line_search_fn="strong_wolfe")
     history, trace = [], []
 
     def closure():
         opt.zero_grad()
         # in units of the noise's variance: ~1 at the optimum, well above L-BFGS's absolute tolerances
-        loss = ((rollout(logp.exp()) - observed) ** 2).mean() / noise ** 2
+        loss = ((rollout(bounds.value(s)) - observed) ** 2).mean() / noise ** 2
         loss.backward()
         return loss
 
@@ -83,7 +84,7 @@ def main():
     for _ in bar:
         loss = opt.step(closure)
         history.append(loss.item())
-        trace.append(logp.exp().detach().numpy().copy())
+        trace.append(bounds.value(s).detach().numpy().copy())
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{history[-1]:.4g}")
     fitted = torch.tensor(trace[-1], **F64)
