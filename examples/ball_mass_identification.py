@@ -81,7 +81,7 @@ def main():
 
     bar = progress(range(iters), desc="L-BFGS", total=iters)
     for _ in bar:
-        loss = opt.step(closure)
+        loss = opt.step(closure)  # the loss at the iterate before this step
         history.append(loss.item())
         trace.append(bounds.value(s).item())
         if hasattr(bar, "set_postfix"):
@@ -98,11 +98,11 @@ def main():
     written = []
     write_text(args.out, "fit.md", table, written)
     write_csv(args.out, "loss.csv", ["iteration", "loss_over_noise_var", "mass_kg"],
-              [np.arange(len(history) + 1), [loss0] + history, [init.item()] + trace], written)
+              [np.arange(len(history) + 1), history + [final_loss], [init.item()] + trace], written)
     tt = np.arange(1, T + 1) * dt
     plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    ax[0].semilogy([loss0] + history, "o-")
+    ax[0].semilogy(history + [final_loss], "o-")
     ax[0].set_xlabel("L-BFGS iteration")
     ax[0].set_ylabel("mean (z - z_obs)^2 / (0.1 mm)^2")
     ax[0].set_title("loss")

@@ -88,7 +88,7 @@ def main():
 
     bar = progress(range(iters), desc="L-BFGS", total=iters)
     for _ in bar:
-        loss = opt.step(closure)
+        loss = opt.step(closure)  # the loss at the iterate before this step
         history.append(loss.item())
         trace.append([p.item() for p in params()])
         if hasattr(bar, "set_postfix"):
@@ -105,7 +105,7 @@ def main():
     written = []
     write_text(args.out, "fit.md", table, written)
     write_csv(args.out, "loss.csv", ["iteration", "loss_over_noise_var", "E", "nu"],
-              [np.arange(len(history) + 1), [loss0] + history, [init[0].item()] + [t[0] for t in trace],
+              [np.arange(len(history) + 1), history + [final_loss], [init[0].item()] + [t[0] for t in trace],
                [init[1].item()] + [t[1] for t in trace]], written)
 
     def shape(P):
@@ -116,7 +116,7 @@ def main():
     tt = np.arange(1, len(observed) + 1) * every * dt
     plt = pyplot()
     fig, ax = plt.subplots(1, 4, figsize=(19, 4))
-    ax[0].semilogy([loss0] + history, "o-")
+    ax[0].semilogy(history + [final_loss], "o-")
     ax[0].set_xlabel("L-BFGS iteration")
     ax[0].set_ylabel("mean |x - x_obs|^2 / (0.1 mm)^2")
     ax[0].set_title("loss")

@@ -82,7 +82,7 @@ def main():
 
     bar = progress(range(iters), desc="L-BFGS", total=iters)
     for _ in bar:
-        loss = opt.step(closure)
+        loss = opt.step(closure)  # the loss at the iterate before this step
         history.append(loss.item())
         trace.append(bounds.value(s).detach().numpy().copy())
         if hasattr(bar, "set_postfix"):
@@ -100,10 +100,10 @@ def main():
     write_text(args.out, "fit.md", table, written)
     tr = np.array([init.numpy()] + trace)
     write_csv(args.out, "loss.csv", ["iteration", "loss_over_noise_var"] + [n.replace(" ", "_") for n in names],
-              [np.arange(len(tr)), [loss0] + history] + [tr[:, k] for k in range(6)], written)
+              [np.arange(len(tr)), history + [final_loss]] + [tr[:, k] for k in range(6)], written)
     plt = pyplot()
     fig, ax = plt.subplots(1, 4, figsize=(19, 4))
-    ax[0].semilogy([loss0] + history, "o-")
+    ax[0].semilogy(history + [final_loss], "o-")
     ax[0].set_xlabel("L-BFGS iteration")
     ax[0].set_ylabel("mean (q - q_obs)^2 / (2 mrad)^2")
     ax[0].set_title("loss")
