@@ -1,7 +1,7 @@
 """Parameter identification (d): the mass of a rigid ball from how far it sinks into a soft block.
 A ball is lowered onto an elastic block (released just touching it) and sinks in; its height over
 time, observed with 0.1 mm of Gaussian noise, comes from the simulator with the true mass. From a
-guess 40 % light, L-BFGS on log(mass) (bounded to 0.1-2 kg) fits the simulated sinking to the observed one (two-way
+guess 40 % light, L-BFGS-B on log(mass) (bounded to 0.1-2 kg) fits the simulated sinking to the observed one (two-way
 rigid-MPM coupling: the block's push is what holds the ball).
 
     python examples/ball_mass_identification.py [--quick] [--iters 12] [--out out/ball_mass_identification]
@@ -19,7 +19,7 @@ import torch
 import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from example_utils import (LogBounds, identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
+from example_utils import (fit_log_lbfgsb, identification_table, parse_args, pyplot, save_figure, summary,  # noqa: E402
                            write_csv, write_text)
 
 F64 = dict(dtype=torch.float64)
@@ -28,7 +28,7 @@ F64 = dict(dtype=torch.float64)
 def main():
     t_start = time.time()
     args = parse_args("ball_mass_identification", __doc__, lambda ap: ap.add_argument(
-        "--iters", type=int, default=12, help="L-BFGS iterations (--quick: 2)"))
+        "--iters", type=int, default=12, help="L-BFGS-B iterations (--quick: 2)"))
     quick = args.quick
     iters = 2 if quick else args.iters
     dens = 32 if quick else 48
@@ -66,26 +66,10 @@ def main():
         observed = rollout(true) + torch.tensor(rng.normal(0.0, 1e-4, T), **F64)
         guess = rollout(init)
     noise = 1e-4  # m
-    # the loss in units of the noise's variance: of order 1 at the optimum, so L-BFGS's absolute
-    # tolerances (1e-7 on the gradient) do not stop it at the first step
-    bounds = LogBounds(0.1, 2.0)  # kg
-    s = bounds.param(init)
-    opt = torch.optim.LBFGS([s], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
-    history, trace = [], []
-
-    def closure():
-        opt.zero_grad()
-        loss = ((rollout(bounds.value(s)) - observed) ** 2).mean() / noise ** 2
-        loss.backward()
-        return loss
-
-    bar = progress(range(iters), desc="L-BFGS", total=iters)
-    for _ in bar:
-        loss = opt.step(closure)  # the loss at the iterate before this step
-        history.append(loss.item())
-        trace.append(bounds.value(s).item())
-        if hasattr(bar, "set_postfix"):
-            bar.set_postfix(loss=f"{history[-1]:.3e}", mass=f"{trace[-1]:.4f}")
+    # the loss in units of the noise's variance: ~1 at the optimum
+    losses, trace = fit_log_lbfgsb(lambda p: ((rollout(p) - observed) ** 2).mean() / noise ** 2, init.numpy(),
+                                   0.1, 2.0, iters, postfix=lambda p: dict(mass=f"{p[0]:.4f}"))
+    trace = [float(p[0]) for p in trace]
     fitted = torch.tensor([trace[-1]], **F64)
     with torch.no_grad():
         fit = rollout(fitted)
@@ -98,17 +82,17 @@ def main():
     written = []
     write_text(args.out, "fit.md", table, written)
     write_csv(args.out, "loss.csv", ["iteration", "loss_over_noise_var", "mass_kg"],
-              [np.arange(len(history) + 1), history + [final_loss], [init.item()] + trace], written)
+              [np.arange(len(losses)), losses, trace], written)
     tt = np.arange(1, T + 1) * dt
     plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    ax[0].semilogy(history + [final_loss], "o-")
-    ax[0].set_xlabel("L-BFGS iteration")
+    ax[0].semilogy(losses, "o-")
+    ax[0].set_xlabel("L-BFGS-B iteration")
     ax[0].set_ylabel("mean (z - z_obs)^2 / (0.1 mm)^2")
     ax[0].set_title("loss")
-    ax[1].plot([init.item()] + trace, "o-")
+    ax[1].plot(trace, "o-")
     ax[1].axhline(true.item(), c="gray", ls="--", label="true")
-    ax[1].set_xlabel("L-BFGS iteration")
+    ax[1].set_xlabel("L-BFGS-B iteration")
     ax[1].set_ylabel("mass (kg)")
     ax[1].legend()
     sink = lambda z: 1e3 * (z_touch - z)  # noqa: E731  (mm below touching the undeformed block)
@@ -122,7 +106,7 @@ def main():
     summary("ball_mass_identification", [
         f"{block.n_particles} particles, grid {dens} cells/m, {T} steps of {dt} s ({substeps} substeps)",
         f"sink depth at the end: observed {sink(observed[-1].item()):.2f} mm, fitted {sink(fit[-1].item()):.2f} mm",
-        f"loss (mean (z - z_obs)^2 / noise^2) {loss0:.4e} -> {final_loss:.4e} in {iters} L-BFGS iterations; error {worst:.3f} %",
+        f"loss (mean (z - z_obs)^2 / noise^2) {loss0:.4e} -> {final_loss:.4e} in {len(losses) - 1} L-BFGS-B iterations; error {worst:.3f} %",
         table], written, t_start)
 
 

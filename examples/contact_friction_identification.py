@@ -1,6 +1,6 @@
 """Parameter identification (b): the friction coefficient of a box from its sliding. A box is launched
 along the ground and slides to rest; its x position, observed with 0.5 mm of Gaussian noise, comes
-from the simulator with the true coefficient. From a guess a third of it, L-BFGS on log(mu) (bounded to 0.02-1.5; through
+from the simulator with the true coefficient. From a guess a third of it, L-BFGS-B on log(mu) (bounded to 0.02-1.5; through
 `box.set_friction(mu)` and the contact model) fits the simulated slide to the observed one; the
 closed form v0^2 / (2 g d) from the observed stopping distance is printed beside it.
 
@@ -19,7 +19,7 @@ import torch
 import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from example_utils import (LogBounds, identification_table, parse_args, progress, pyplot, save_figure, summary,  # noqa: E402
+from example_utils import (fit_log_lbfgsb, identification_table, parse_args, pyplot, save_figure, summary,  # noqa: E402
                            write_csv, write_text)
 
 F64 = dict(dtype=torch.float64)
@@ -28,7 +28,7 @@ F64 = dict(dtype=torch.float64)
 def main():
     t_start = time.time()
     args = parse_args("contact_friction_identification", __doc__, lambda ap: ap.add_argument(
-        "--iters", type=int, default=10, help="L-BFGS iterations (--quick: 2)"))
+        "--iters", type=int, default=10, help="L-BFGS-B iterations (--quick: 2)"))
     quick = args.quick
     iters = 2 if quick else args.iters
     T = 40 if quick else 100
@@ -65,25 +65,10 @@ def main():
     with torch.no_grad():
         observed = rollout(true) + torch.tensor(rng.normal(0.0, noise, T), **F64)
         guess = rollout(init)
-    bounds = LogBounds(0.02, 1.5)
-    s = bounds.param(init)
-    opt = torch.optim.LBFGS([s], lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
-    history, trace = [], []
-
-    def closure():
-        opt.zero_grad()
-        # in units of the noise's variance: ~1 at the optimum, well above L-BFGS's absolute tolerances
-        loss = ((rollout(bounds.value(s)) - observed) ** 2).mean() / noise ** 2
-        loss.backward()
-        return loss
-
-    bar = progress(range(iters), desc="L-BFGS", total=iters)
-    for _ in bar:
-        loss = opt.step(closure)  # the loss at the iterate before this step
-        history.append(loss.item())
-        trace.append(bounds.value(s).item())
-        if hasattr(bar, "set_postfix"):
-            bar.set_postfix(loss=f"{history[-1]:.4g}", mu=f"{trace[-1]:.4f}")
+    # in units of the noise's variance: ~1 at the optimum
+    losses, trace = fit_log_lbfgsb(lambda p: ((rollout(p[0]) - observed) ** 2).mean() / noise ** 2, [init.item()],
+                                   0.02, 1.5, iters, postfix=lambda p: dict(mu=f"{p[0]:.4f}"))
+    trace = [float(p[0]) for p in trace]
     fitted = torch.tensor(trace[-1], **F64)
     with torch.no_grad():
         fit = rollout(fitted)
@@ -99,19 +84,19 @@ def main():
     written = []
     write_text(args.out, "fit.md", table, written)
     write_csv(args.out, "loss.csv", ["iteration", "loss_over_noise_var", "mu"],
-              [np.arange(len(history) + 1), history + [final_loss], [init.item()] + trace], written)
+              [np.arange(len(losses)), losses, trace], written)
     tt = (np.arange(T) + 1) * dt
     write_csv(args.out, "trajectories.csv", ["t", "x_observed", "x_guess", "x_fit"],
               [tt, observed.numpy(), guess.numpy(), fit.numpy()], written)
     plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    ax[0].semilogy(history + [final_loss], "o-")
-    ax[0].set_xlabel("L-BFGS iteration")
+    ax[0].semilogy(losses, "o-")
+    ax[0].set_xlabel("L-BFGS-B iteration")
     ax[0].set_ylabel("mean (x - x_obs)^2 / (0.5 mm)^2")
     ax[0].set_title("loss")
-    ax[1].plot([init.item()] + trace, "o-")
+    ax[1].plot(trace, "o-")
     ax[1].axhline(true.item(), c="gray", ls="--", label="true")
-    ax[1].set_xlabel("L-BFGS iteration")
+    ax[1].set_xlabel("L-BFGS-B iteration")
     ax[1].set_ylabel("mu")
     ax[1].legend()
     ax[2].plot(tt, observed.numpy(), "k.", ms=3, label=f"observed (mu = {true.item()}, noisy)")
@@ -123,7 +108,7 @@ def main():
     save_figure(fig, args.out, "friction_identification.png", written)
     summary("contact_friction_identification", [
         f"box launched at {V0} m/s, {T} steps of {dt} s, x observed with {noise * 1e3:.1f} mm noise",
-        f"loss (mean (x - x_obs)^2 / noise^2) {loss0:.4e} -> {final_loss:.4e} in {iters} L-BFGS iterations; "
+        f"loss (mean (x - x_obs)^2 / noise^2) {loss0:.4e} -> {final_loss:.4e} in {len(losses) - 1} L-BFGS-B iterations; "
         f"error {worst:.3f} %",
         f"closed form v0^2 / (2 g d) from the observed slide: {closed:.4f}" + (" (the quick horizon ends before the box "
                                                                                "stops)" if quick else ""),

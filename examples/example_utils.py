@@ -139,28 +139,42 @@ def repo_path(*parts) -> str:
     return str(Path(__file__).resolve().parents[1].joinpath(*parts))
 
 
-class LogBounds:
-    """A positive parameter searched on a log scale inside physical bounds [lo, hi]: value =
-    exp(log lo + (log hi - log lo) sigmoid(s)). The bounds keep an optimiser's line search (L-BFGS's
-    extrapolates up to 10x a step) from trying a mass or a stiffness that makes the simulation
-    diverge; inside them the map is smooth and monotonic. Tensors in, tensors out."""
 
-    def __init__(self, lo, hi):
-        import torch
+def fit_log_lbfgsb(loss_fn, init, lo, hi, iters, desc="L-BFGS-B", postfix=None):
+    """Fit positive parameters by L-BFGS-B (scipy's: a Moré-Thuente line search and bounds) on their
+    logarithms, with the gradient from autograd. loss_fn(values) takes a float64 tensor of parameter
+    values and returns a scalar tensor; init, lo, hi are the start and the physical bounds (the bounds
+    keep the line search from trying a mass or stiffness that makes the simulation diverge). One
+    progress-bar tick per iteration; `postfix(values)` gives the bar's extra fields. Returns (losses,
+    iterates): the loss and the parameter values at the start and after every iteration."""
+    import torch
+    from scipy.optimize import minimize
 
-        self.lo = torch.log(torch.as_tensor(lo, dtype=torch.float64))
-        self.span = torch.log(torch.as_tensor(hi, dtype=torch.float64)) - self.lo
+    init = np.asarray(init, dtype=float).reshape(-1)
+    cache = {}
 
-    def value(self, s):
-        import torch
+    def fun(x):
+        leaf = torch.tensor(x, dtype=torch.float64, requires_grad=True)
+        loss = loss_fn(leaf.exp())
+        (g,) = torch.autograd.grad(loss, leaf)
+        cache[x.tobytes()] = float(loss)
+        return float(loss), g.numpy().copy()
 
-        return torch.exp(self.lo + self.span * torch.sigmoid(s))
+    x0 = np.log(init)
+    losses, iterates = [fun(x0)[0]], [init.copy()]
+    bar = progress(total=iters, desc=desc)
 
-    def param(self, value):
-        """The unconstrained s of a value strictly inside the bounds (a leaf to optimise)."""
-        import torch
+    def callback(x):
+        losses.append(cache[x.tobytes()] if x.tobytes() in cache else fun(x)[0])
+        iterates.append(np.exp(x))
+        bar.update(1)
+        if hasattr(bar, "set_postfix"):
+            bar.set_postfix(loss=f"{losses[-1]:.4g}", **(postfix(iterates[-1]) if postfix else {}))
 
-        u = (torch.log(torch.as_tensor(value, dtype=torch.float64)) - self.lo) / self.span
-        if not bool(((u > 0) & (u < 1)).all()):
-            raise ValueError(f"initial value {value} outside the bounds [{self.lo.exp()}, {(self.lo + self.span).exp()}]")
-        return torch.logit(u).clone().requires_grad_(True)
+    res = minimize(fun, x0, jac=True, method="L-BFGS-B", callback=callback,
+                   bounds=list(zip(np.log(np.broadcast_to(lo, init.shape)), np.log(np.broadcast_to(hi, init.shape)))),
+                   options=dict(maxiter=iters))
+    if hasattr(bar, "close"):
+        bar.close()
+    print(f"L-BFGS-B: {res.nit} iterations, {res.nfev} evaluations: {res.message}")
+    return losses, iterates
