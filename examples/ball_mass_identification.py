@@ -28,11 +28,11 @@ F64 = dict(dtype=torch.float64)
 def main():
     t_start = time.time()
     args = parse_args("ball_mass_identification", __doc__, lambda ap: ap.add_argument(
-        "--iters", type=int, default=12, help="L-BFGS-B iterations (--quick: 2)"))
+        "--iters", type=int, default=12, help="L-BFGS-B iterations (--quick: 1)"))
     quick = args.quick
-    iters = 2 if quick else args.iters
+    iters = 1 if quick else args.iters
     dens = 32 if quick else 48
-    T = 40 if quick else 100
+    T = 30 if quick else 100
     dt, substeps = 2e-3, 6
 
     gs.init(backend=gs.cpu, precision="64")

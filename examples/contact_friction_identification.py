@@ -28,9 +28,9 @@ F64 = dict(dtype=torch.float64)
 def main():
     t_start = time.time()
     args = parse_args("contact_friction_identification", __doc__, lambda ap: ap.add_argument(
-        "--iters", type=int, default=10, help="L-BFGS-B iterations (--quick: 2)"))
+        "--iters", type=int, default=10, help="L-BFGS-B iterations (--quick: 1)"))
     quick = args.quick
-    iters = 2 if quick else args.iters
+    iters = 1 if quick else args.iters
     T = 40 if quick else 100
     dt = 0.01
 

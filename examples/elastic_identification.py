@@ -29,9 +29,9 @@ F64 = dict(dtype=torch.float64)
 def main():
     t_start = time.time()
     args = parse_args("elastic_identification", __doc__, lambda ap: ap.add_argument(
-        "--iters", type=int, default=20, help="L-BFGS-B iterations (--quick: 2)"))
+        "--iters", type=int, default=20, help="L-BFGS-B iterations (--quick: 1)"))
     quick = args.quick
-    iters = 2 if quick else args.iters
+    iters = 1 if quick else args.iters
     dens = 32 if quick else 48
     T = 50 if quick else 80
     dt, substeps = 2e-3, 4
