@@ -15,9 +15,9 @@ library issue.)
 
     python examples/arm_press_plasticine.py [--quick] [--iters 30] [--out out/arm_press_plasticine]
 
-Writes loss.csv, knots.csv (true / initial / fitted), arm_press_plasticine.png (loss curve and the
-plasticine's top surface: target, initial guess, fitted) and before_after.png (camera views of the
-final dent: target, initial guess, fitted).
+Writes fitted_press.gif (the rollout of the fitted controls), loss.csv, knots.md (true / initial /
+fitted), arm_press_plasticine.png (loss curve and the plasticine's top surface: target, initial
+guess, fitted) and before_after.png (camera views of the final dent: target, initial guess, fitted).
 """
 import os
 import sys
@@ -92,12 +92,15 @@ def main():
             out.append(q_start + torch.stack([off.new_zeros(()), off[0], off[1], off.new_zeros(())]))
         return out
 
-    def rollout(knots, bar=None):
+    def rollout(knots, every=0):
+        """Final particle positions (m); with every > 0 the camera renders every that many steps."""
         scene.reset()
         arm.set_dofs_position(q_start)
-        for q in targets(knots):
+        for t, q in enumerate(targets(knots)):
             arm.control_dofs_position(q)
             scene.step()
+            if every and t % every == 0:
+                cam.render()
         return block.get_particles_pos()
 
     # (pitch, elbow) offsets at the 3 knots, rad: press 2-3 cm down, then drag the tool sideways
@@ -128,14 +131,16 @@ def main():
             bar.set_postfix(loss=f"{loss.item():.3e}")
     with torch.no_grad():
         knots.copy_(best[1])
-        final_loss = ((rollout(knots) - target) ** 2).sum(1).mean().item()
+        cam.start_recording()
+        final_loss = ((rollout(knots, every=3) - target) ** 2).sum(1).mean().item()
+        gif = cam.stop_recording(save_to_filename=os.path.join(args.out, "fitted_press.gif"), fps=round(1 / (3 * dt)))
         fitted = block.get_particles_pos().clone()
         img_fit = cam.render()[0]
     history.append(final_loss)
     if not history[-1] < history[0]:
         raise SystemExit(f"the loss did not decrease: {history[0]:.4e} -> {history[-1]:.4e}")
 
-    written = []
+    written = [gif]
     write_csv(args.out, "loss.csv", ["iteration", "loss_m2"], [np.arange(len(history)), history], written)
     names = [f"{j} knot {k + 1}" for k in range(3) for j in ("pitch", "elbow")]
     table = format_table(["offset (rad)", "true", "initial", "fitted"],

@@ -31,7 +31,7 @@ EXAMPLES = {
     "push_through_sand": ["push_through_sand.gif", "drag.csv", "push_through_sand.png"],
     "elastic_identification": ["fit.md", "loss.csv", "elastic_identification.png"],
     "ball_mass_identification": ["fit.md", "loss.csv", "ball_mass_identification.png"],
-    "arm_press_plasticine": ["loss.csv", "knots.md", "arm_press_plasticine.png", "before_after.png"],
+    "arm_press_plasticine": ["fitted_press.gif", "loss.csv", "knots.md", "arm_press_plasticine.png", "before_after.png"],
 }
 SLOW = set()  # examples whose --quick run takes longer than ~40 s on the project's 2-core machine
 
