@@ -7,35 +7,27 @@ Writes <out>/rollout.mp4 (every step at 1/dt frames per second) and <out>/rollou
 step, GIFs play at most 50 frames per second), and <out>/first_frame.png. Only pip packages are
 needed (Pillow, imageio-ffmpeg): no OpenGL, no window.
 """
-import argparse
 import os
-import site
 import sys
-import sysconfig
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
 import genesis_lite as gs
 
-
-def panda_urdf() -> str:
-    for base in list(site.getsitepackages()) + [sysconfig.get_paths()["purelib"], sys.prefix]:
-        p = Path(base) / "cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf"
-        if p.is_file():
-            return str(p)
-    sys.exit("example-robot-data is not installed: pip install example-robot-data")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from example_utils import panda_urdf, parse_args, progress, summary  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--seconds", type=float, default=3.0)
-    ap.add_argument("--out", default="out/record_video")
-    ap.add_argument("--res", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
-    ap.add_argument("--quick", action="store_true", help="0.3 s at 320x240 (what the tests run)")
-    args = ap.parse_args()
+    t_start = time.time()
+
+    def extra(ap):
+        ap.add_argument("--seconds", type=float, default=3.0)
+        ap.add_argument("--res", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
+
+    args = parse_args("record_video", __doc__, extra)  # --quick: 0.3 s at 320x240
     seconds, res = (0.3, (320, 240)) if args.quick else (args.seconds, tuple(args.res))
 
     gs.init(backend=gs.cpu, precision="64")
@@ -59,7 +51,6 @@ def main():
     arm.set_dofs_position(start)
     arm.control_dofs_position(sweep)
 
-    os.makedirs(args.out, exist_ok=True)
     t0 = time.time()
     first = cam.render()[0]  # the first render reads and decimates the robot's meshes
     from PIL import Image
@@ -71,11 +62,7 @@ def main():
     side.start_recording()
     steps = int(round(seconds / dt))
     render_s = 0.0
-    try:
-        from tqdm import trange
-    except ImportError:  # progress bars are a nicety
-        trange = range
-    for t in trange(steps):
+    for t in progress(range(steps), desc="record", total=steps):
         scene.step()
         r0 = time.perf_counter()
         cam.render()
@@ -85,11 +72,12 @@ def main():
     mp4 = cam.stop_recording(save_to_filename=os.path.join(args.out, "rollout.mp4"), fps=round(1 / dt))
     gif = side.stop_recording(save_to_filename=os.path.join(args.out, "rollout.gif"), fps=round(1 / (3 * dt)))
     n_side = len(range(0, steps, 3))
-    print(f"{steps} steps; rendering {1e3 * render_s / (steps + n_side):.1f} ms per frame ({res[0]}x{res[1]})")
-    print(f"wrote {mp4} ({steps} frames) and {gif} ({n_side} frames)")
     tower = np.array([0.04 + 0.081 * i for i in range(len(colors))])
     heights = np.array([e.get_pos()[2].item() for e in scene.entities[2:]])
-    print("box heights (m): start", np.round(tower, 3).tolist(), "end", np.round(heights, 3).tolist())
+    summary("record_video", [f"{steps} steps; rendering {1e3 * render_s / (steps + n_side):.1f} ms per frame "
+                             f"({res[0]}x{res[1]}); {steps} MP4 frames, {n_side} GIF frames",
+                             f"box heights (m): start {np.round(tower, 3).tolist()}, end {np.round(heights, 3).tolist()}"],
+            [os.path.join(args.out, "first_frame.png"), mp4, gif], t_start)
 
 
 if __name__ == "__main__":
