@@ -24,7 +24,7 @@ def func_p2g(s: ti.template(), i_b, i_p, src, dt):
     x = s.x[src, i_b, i_p]
     m = s.p_mass[i_p]
     base, fx, w = func_stencil(s, x)
-    stress = (-dt * s.p_vol[i_p] * 4.0 * s.inv_dx * s.inv_dx) * s.tau[i_b, i_p]
+    stress = (-dt * s.p_vol[i_p] * 4.0 * s.inv_dx * s.inv_dx) * s.tau[src, i_b, i_p]
     affine = stress + m * s.C[src, i_b, i_p]
     # momentum at node base + o: m v + dt f + affine (o - fx) dx = q + dx (o_0 a_0 + o_1 a_1 + o_2 a_2)
     # with a_k the columns of affine: o's entries are the constants 0, 1, 2, so each node costs a few

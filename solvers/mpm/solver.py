@@ -3,15 +3,18 @@
 Fields (axes as in DESIGN.md): particle state x, v, C, F has a slot axis [t, i_b, i_p] holding the
 substeps of one step (one slot without gradients: substeps update it in place; substeps + 1 with
 gradients, each substep writing the next slot once); per-particle data without an env axis (mass,
-volume, material); parameters and external forces [i_b, i_p]; the grid [i_b, node] and the stress
-tau [i_b, i_p] are scratch, rewritten every substep.
+volume, material); parameters and external forces [i_b, i_p]; the grid [i_b, node] is scratch,
+rewritten every substep; the Kirchhoff stress tau [t, i_b, i_p] has one slot per substep of the
+current step with gradients (one without), so a substep's adjoint finds its stress without redoing
+the SVD.
 
 A substep is the launches of `_substep_launches`: clear the grid, constitutive update (F, tau),
 particle-to-grid, grid update (gravity, walls, rigid boundaries), grid-to-particle. With gradients it
 is one `ti.ad.grad_replaced` call on the scene's Tape, whose adjoint recomputes the substep's grid
-(another substep has overwritten it) by replaying the launches under a nested Tape, which then runs
-their adjoints in reverse; the SVD-based constitutive update is itself such a call with a
-hand-written adjoint (constitutive.py).
+(another substep has overwritten it) by replaying the transfer launches under a nested Tape, which
+then runs their adjoints in reverse, followed by the adjoint of the constitutive update (the
+SVD-based one hand-written, constitutive.py; the others Taichi's). The constitutive update itself is
+not replayed: its outputs (F of the next slot, tau of this one) are kept.
 """
 
 import numpy as np
@@ -75,7 +78,7 @@ class MPMSolver:
         M3 = lambda shape, grad=g: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=grad)  # noqa: E731
         F = lambda shape, grad=g: ti.field(f, shape=shape, needs_grad=grad)  # noqa: E731
         self.x, self.v, self.C, self.F = V3((S, B, P)), V3((S, B, P)), M3((S, B, P)), M3((S, B, P))
-        self.tau = M3((B, P))
+        self.tau = M3((max(S - 1, 1), B, P))  # slot = the substep's source slot
         self.p_mass, self.p_vol = F(P, False), F(P, False)
         self.p_mat = ti.field(ti.i32, shape=P)
         self.mu, self.lam, self.yield_stress, self.alpha, self.viscosity = (F((B, P)) for _ in range(5))
@@ -95,7 +98,6 @@ class MPMSolver:
         self.grad_fields = [self.x, self.v, self.C, self.F, self.tau, self.mu, self.lam, self.yield_stress,
                             self.alpha, self.viscosity, self.f_ext, self.gravity, self.grid_m, self.grid_mv,
                             self.grid_v] if g else []
-        self.grid_grad_fields = [self.grid_m, self.grid_mv, self.grid_v, self.tau] if g else []
 
     def _fill(self, x0, vol, mass, mat, gravity):
         nd = self.np_dtype
@@ -133,11 +135,16 @@ class MPMSolver:
         @ti.ad.grad_for(substep_unit)
         def substep_unit_grad(i):
             # another substep has overwritten the grid: recompute this one's, and let a nested Tape run
-            # the adjoints of its launches in reverse, from zeroed grid adjoints
+            # the adjoints of its transfers in reverse, from zeroed grid adjoints; then the adjoint of
+            # the constitutive update, whose outputs (F[i + 1], tau[i]) are still there
             self._region = tuple(int(r) for r in self.kernel_active_region(i))
-            self.kernel_clear_grid_grads()
+            self.kernel_clear_grid_grads(i)
             with ti.ad.Tape(loss=torch.zeros((), dtype=torch.float64, requires_grad=True), clear_gradients=False):
-                self._substep_launches(i, i, i + 1, taped=True)
+                self._substep_launches(i, i, i + 1, taped=True, constitutive=False)
+            if self.has_ad:
+                self.kernel_constitutive_ad.grad(i, i + 1, self.h)
+            if self.has_svd:
+                self.kernel_constitutive_svd_grad(i, i + 1, self.h)
 
         self.constitutive_svd = constitutive_svd
         self.clear_grid = clear_grid
@@ -148,22 +155,23 @@ class MPMSolver:
         self._region = tuple(int(r) for r in self.kernel_active_region(src))
         self.kernel_clear_grid()
 
-    def _substep_launches(self, i, src, dst, taped=False):
+    def _substep_launches(self, i, src, dst, taped=False, constitutive=True):
         """Substep i's launches, from particle slot src to dst. `taped`: they are being recorded on the nested Tape of the substep's
         adjoint, so the pieces with adjoints of their own go through their grad_replaced / no_grad
         wrappers. Otherwise they are plain launches: Taichi clears its 'inside a grad_replaced call'
         flag when such a wrapper returns, so one called inside the substep's own grad_replaced forward
-        would let the launches after it onto the scene's Tape."""
+        would let the launches after it onto the scene's Tape. `constitutive=False` leaves out the
+        constitutive update (the adjoint's recompute: its outputs are kept per substep)."""
         if taped:
             self.clear_grid(src)
         else:
             self._clear_grid(src)
-        if self.has_svd:
+        if self.has_svd and constitutive:
             if taped:
                 self.constitutive_svd(src, dst)
             else:
                 self.kernel_constitutive_svd(src, dst, self.h)
-        if self.has_ad:
+        if self.has_ad and constitutive:
             self.kernel_constitutive_ad(src, dst, self.h)
         self.kernel_p2g(src, self.h)
         if self.coupler is not None:
@@ -222,15 +230,15 @@ class MPMSolver:
             self.grid_mv[i_b, I] = ti.Vector.zero(float, 3)
 
     @ti.kernel
-    def kernel_clear_grid_grads(self):
+    def kernel_clear_grid_grads(self, src: ti.i32):
         lo, n = self.active_lo[None], self.active_n[None]
         for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
             I = lo + ti.Vector([i, j, k])
             self.grid_m.grad[i_b, I] = 0.0
             self.grid_mv.grad[i_b, I] = ti.Vector.zero(float, 3)
             self.grid_v.grad[i_b, I] = ti.Vector.zero(float, 3)
-        for i_b, i_p in self.tau:
-            self.tau.grad[i_b, i_p] = ti.Matrix.zero(float, 3, 3)
+        for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+            self.tau.grad[src, i_b, i_p] = ti.Matrix.zero(float, 3, 3)
 
     @ti.func
     def func_trial(self, i_b, i_p, src, h):
@@ -253,7 +261,7 @@ class MPMSolver:
                     self.F[dst, i_b, i_p] = Ft
                 else:
                     self.F[dst, i_b, i_p] = Fn
-                self.tau[i_b, i_p] = U @ ti.Matrix([[t[0], 0.0, 0.0], [0.0, t[1], 0.0], [0.0, 0.0, t[2]]]) @ U.transpose()
+                self.tau[src, i_b, i_p] = U @ ti.Matrix([[t[0], 0.0, 0.0], [0.0, t[1], 0.0], [0.0, 0.0, t[2]]]) @ U.transpose()
 
     @ti.kernel
     def kernel_constitutive_svd_grad(self, src: ti.i32, dst: ti.i32, h: float):
@@ -267,7 +275,7 @@ class MPMSolver:
                 hs, Jh, dh, t, Jt, dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
                                                        self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], True, self.mats)
                 gFt, dG, dT = func_svd_adjoint(U, s, V, hs, Jh, t, Jt, self.F.grad[dst, i_b, i_p],
-                                               self.tau.grad[i_b, i_p])
+                                               self.tau.grad[src, i_b, i_p])
                 self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
                 self.F.grad[src, i_b, i_p] += A.transpose() @ gFt
                 gp = dh.transpose() @ dG + dt.transpose() @ dT
@@ -285,7 +293,7 @@ class MPMSolver:
                 Fn, tau = func_ad_material(mat, Ft, self.C[src, i_b, i_p], h, self.mu[i_b, i_p],
                                            self.lam[i_b, i_p], self.viscosity[i_b, i_p], self.mats)
                 self.F[dst, i_b, i_p] = Fn
-                self.tau[i_b, i_p] = tau
+                self.tau[src, i_b, i_p] = tau
 
     @ti.kernel
     def kernel_p2g(self, src: ti.i32, h: float):
