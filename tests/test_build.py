@@ -186,6 +186,7 @@ def test_two_scenes_alive_at_once_are_independent():
     torch.testing.assert_close(torch.stack(trajs[2]), alone_pend[0], rtol=0, atol=0)
 
 
+@pytest.mark.slow
 def test_core_of_a_diverged_scene_gives_a_clean_start():
     """A scene whose state became NaN leaves NaN in its core's fields; the next scene of the class
     (here with contacts between moving bodies, whose dense factorisation reads M outside the tree

@@ -416,6 +416,7 @@ def test_grad_stopping_distance_wrt_mu_and_v():
     assert abs(g_v / (v / (mu * G)) - 1) < 0.03
 
 
+@pytest.mark.slow
 def test_grad_rest_height_wrt_mass():
     """A dropped box's rest height against its mass: exact against finite differences and equal to the
     derivative of the smoothed model's equilibrium, 4 k delta softplus(depth / delta) = m g."""

@@ -106,6 +106,7 @@ def test_mass_is_conserved_and_particles_stay_in_the_domain():
         assert abs(grid_mass - total) < 1e-12 * total
 
 
+@pytest.mark.slow
 def test_elastic_cube_bounces_back_to_shape_and_plasticine_keeps_its_dent():
     scene = _scene(density=64, upper=(0.8, 0.4, 0.6))
     size = 0.12
@@ -267,6 +268,7 @@ def test_gradients_of_every_input_match_finite_differences(kind):
         assert abs(ad - fd) <= 2e-6 * abs(fd) + 1e-12, (k, ad, fd)
 
 
+@pytest.mark.slow
 def test_batched_environments_match_single_runs_and_get_their_own_gradients():
     def make(n_envs):
         scene = _scene(requires_grad=True, density=32)
@@ -337,6 +339,7 @@ def test_scene_without_gradients_keeps_only_the_current_state():
     assert s.n_slots == 1 and s.x.shape[0] == 1 and not s.grad_fields
 
 
+@pytest.mark.slow
 def test_tape_validation_of_one_step_of_each_solver():
     """One step of the rigid solver and one substep of the MPM solver, each kernel launch recorded on a
     ti.ad.Tape(validation=True) in debug mode: Taichi checks the global data access rule of reverse
