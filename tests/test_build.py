@@ -137,6 +137,7 @@ def test_second_robot_with_gradients_compiles_nothing(compiled):
     assert all(torch.isfinite(g).all() and g.abs().sum() > 0 for g in got[1:])
 
 
+@pytest.mark.slow
 def test_other_env_count_of_the_class_compiles_nothing(compiled):
     """Env counts of one capacity class (up to 16 here) share a core: 3 envs after 5."""
     a = _scene(ARM, n_envs=5)

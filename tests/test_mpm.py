@@ -300,6 +300,7 @@ def test_batched_environments_match_single_runs_and_get_their_own_gradients():
             assert torch.allclose(v1.grad, v.grad[1], rtol=1e-10, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_checkpointing_gives_identical_gradients_and_keeps_one_state_per_step():
     """Saved for backward: one particle state per step (not per substep), or per checkpoint."""
     def run(checkpoint_every):
