@@ -25,6 +25,7 @@ substep's adjoint replays it.
 import numpy as np
 import taichi as ti
 
+from .adstack import require as require_ad_stack
 from .rigid.collision import func_sdf_any, geom_rotations
 
 TINY = 1e-30
@@ -42,6 +43,8 @@ class RigidMPMCoupler:
         self.rigid = rigid
         idx = np.asarray(idx, dtype=np.int64)
         self.n_geoms = len(idx)
+        if rigid.requires_grad:
+            require_ad_stack(self.n_geoms)  # each grid node loops over the coupled geoms
         self.softness = float(softness)
         self.reaction = bool(reaction)
         self.lower = ti.Vector([float(v) for v in lower])

@@ -334,6 +334,38 @@ def test_substeps_and_long_horizon_gradient():
     assert_ok(gs.grad.check(rollout, {"q0": torch.tensor(rng.uniform(-1, 1, n))}, tol=TOL))
 
 
+def test_chain_longer_than_taichis_default_autodiff_stack(tmp_path):
+    """A 40-link chain: Taichi keeps a loop's overwritten locals on an autodiff stack of 32 entries by
+    default and does not check it outside debug mode, so loops over 40 links used to overflow it (a NaN
+    gradient). Initial positions and velocities, joint torques, eight steps."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_chain", ASSETS_DIR / "make_chain.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    urdf = tmp_path / "chain40.urdf"
+    urdf.write_text(mod.make_chain(40))
+    scene = make_scene(integrator=gs.integrator.Euler, dt=0.002)
+    chain = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True))
+    scene.build()
+    assert chain.n_dofs == 40
+    rng = np.random.default_rng(40)
+    w = torch.tensor([1.0, -0.5, 2.0], **F64)
+
+    def rollout(q0, v0, f):
+        scene.reset()
+        chain.set_dofs_position(q0)
+        chain.set_dofs_velocity(v0)
+        for _ in range(8):
+            chain.control_dofs_force(f)
+            scene.step()
+        return (chain.get_links_pos()[-1] * w).sum() + chain.get_links_pos()[20, 0]
+
+    inputs = {"q0": torch.tensor(rng.uniform(-0.3, 0.3, 40)), "v0": torch.tensor(rng.uniform(-1, 1, 40)),
+              "force": torch.tensor(rng.uniform(-0.05, 0.05, 40))}
+    assert_ok(gs.grad.check(rollout, inputs, tol=TOL))
+
+
 def test_no_grad_reads_are_not_tracked(arm_env):
     scene, arm = arm_env
     q0 = torch.zeros(arm.n_dofs, **F64, requires_grad=True)

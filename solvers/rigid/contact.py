@@ -458,6 +458,10 @@ class ContactSolver:
             if g:
                 self.grad_fields += [self.lp_Sww, self.lp_Swv, self.lp_Svv, self.mass_cross]
 
+    def longest_loop(self) -> int:
+        """Iterations of the longest loop in the contact stages (for the autodiff stack, adstack.py)."""
+        return max(self.n_slots, self.n_pairs, self.n_geoms, self.n_anc, self.n_cross)
+
     # ------------------------------------------------------------------ readers
     def read(self):
         """numpy views of the last evaluation: dict of position, normal, force (on the point side),

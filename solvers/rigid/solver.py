@@ -34,6 +34,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
+from ..adstack import require as require_ad_stack
 from .actuation import func_generalized_force
 from .bias import BIAS
 from .contact import func_factor_solve_dense, func_solve_grad_dense
@@ -802,6 +803,12 @@ class RigidSolver:
             self.owner = self.core
         else:
             self.owner = _SceneOwner(self.core, self.contact, self.external)
+        if requires_grad:
+            # reverse-mode loops run over the core's element capacity and the contact tables (adstack.py)
+            loops = [self.core.cap_elems] + ([self.contact.longest_loop()] if self.contact is not None else [])
+            if self.external is not None:
+                loops.append(self.n_links * self.n_dofs)  # its dof x link double loop
+            require_ad_stack(max(loops))
         self.dynamics_stages = self.owner.dynamics_stages
         # contacts between two moving bodies couple dofs outside the tree sparsity: dense factorisation
         self.dense_solve = self.owner.dense_solve
