@@ -837,7 +837,9 @@ def test_grad_crossed_edges_rest_height_wrt_mass():
             scene.step()
         return upper.get_pos()[2]
 
-    rep = gs.grad.check(height, {"mass": _t(1.6)}, tol=1e-6)
+    # the gradient is ~1e-5 m/kg (a stiff contact gives way little): central differences of a 0.42 m
+    # height with eps = 1e-6 carry ~1e-11 m of rounding per evaluation, a few 1e-6 of the gradient
+    rep = gs.grad.check(height, {"mass": _t(1.6)}, tol=1e-5)
     assert rep.ok, str(rep)
     assert float(rep.autograd[0]) < 0
 
