@@ -40,7 +40,10 @@ contact's linear force pulls where another contact stops the body first:
     points slip alike; a sticking contact gets eta = mu f2 / eps, the static friction of a stiff
     damper), and drops the speculative contacts whose f2 pulled: A3 = A2 + sum J^T dW J, qacc = A3^-1
     (force + sum J^T dF).
-Steps 1, 2 and 4 factorise, 3 reuses the second factor. The passes between the solves (link velocities
+Steps 1, 2 and 4 factorise, 3 reuses the second factor. A speculative contact is found and
+linearised with the relative velocity at the start of the step: two bodies falling together, the lower
+one stopped within the step, close their gap without it (a stack released with gaps overlaps by up to
+one step's fall at landing; see tests/test_contact.py's 45-degree stack). The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse). Friction uses the
 normal forces of a frictionless solve: where friction carries load (legs, chains), the final normal
