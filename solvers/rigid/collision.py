@@ -11,6 +11,10 @@ function (SDF) of the other (the "SDF side"):
   sphere x any non-plane      the sphere centre (radius r): exact           the other geom
   capsule x capsule           closest points of the two segments, and each  the other capsule
                               capsule's end points
+  box x box                   as other primitive pairs below, plus the      the other box
+                              closest points of the edge pair whose axis
+                              (cross product) separates the boxes best,
+                              where it beats every face axis (edge on edge)
   other primitive pairs,      corners + edge midpoints (box), rim and cap   the other geom
   mesh x primitive            samples (cylinder), axis samples (capsule),
                               hull vertices (mesh), in both directions
@@ -41,8 +45,12 @@ GEOM_PLANE, GEOM_SPHERE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH = 0, 1
 GEOM_CODE = {"plane": GEOM_PLANE, "sphere": GEOM_SPHERE, "box": GEOM_BOX, "capsule": GEOM_CAPSULE,
              "cylinder": GEOM_CYLINDER, "mesh": GEOM_MESH}
 # slot kinds: a fixed sample point of the point-side geom; the deepest rim point of a cylinder cap
-# towards a plane (aux = cap side +-1); the closest points of two capsule segments
-SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG = 0, 1, 2
+# towards a plane (aux = cap side +-1); the closest points of two capsule segments; the closest points
+# of the two box edges whose cross product separates two boxes best (edge against edge)
+SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE = 0, 1, 2, 3
+# an edge-edge axis counts only where it separates two boxes better than every face axis by this
+# fraction of the smaller box's smallest half size (ties, as in face-on-face stacks, are the faces')
+BOXEDGE_TOL = 0.02
 
 # k-DOP directions: 3 axes, 6 edge diagonals, 4 corner diagonals, each with both signs
 _D = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1), (0, 1, 1), (0, 1, -1),
@@ -283,6 +291,9 @@ def build_slots(geoms: GeomTable, pairs):
             continue
         else:
             jobs = [(a, b, False), (b, a, False)]
+            if ta == GEOM_BOX and tb == GEOM_BOX:
+                tol = BOXEDGE_TOL * float(min(geoms.size[a].min(), geoms.size[b].min()))
+                slots.append((i_p, SLOT_BOXEDGE, a, b, np.zeros(3), 0.0, tol))
         for pa, pb, plane in jobs:
             for kind, p, r, aux in sample_points(geoms, pa, plane):
                 slots.append((i_p, kind, pa, pb, p, r, aux))
@@ -461,20 +472,37 @@ def func_plane_extent(c: ti.template(), g, R, n):
 @ti.func
 def func_broad_phase(s: ti.template(), i_b, e, src, h):
     """pair_active: the geom reaches within the contact margin of a plane (support function), or two
-    bounding spheres do."""
+    bounding spheres do, now or within the step (the margin grows by how far the two can approach each
+    other in h at their current velocities: speculative contacts, see contact.py)."""
     c = s.contact
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]
         gb = c.pair_gb[i_p]
+        la = c.geom_link[ga]
+        lb = c.geom_link[gb]
         Ra = c.geom_xR[i_b, ga]
         Rb = c.geom_xR[i_b, gb]
         ca = c.geom_xpos[i_b, ga] + Ra @ c.geom_center[ga]
         cb = c.geom_xpos[i_b, gb] + Rb @ c.geom_center[gb]
         nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
         gap_plane = (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb)
-        gap_pair = (ca - cb).norm() - c.geom_rbound[ga] - c.geom_rbound[gb]
-        gap = ti.select(c.geom_type[gb] == GEOM_PLANE, gap_plane, gap_pair)
-        c.pair_active[i_b, i_p] = ti.select(gap < c.margin, 1, 0)
+        dc = ca - cb
+        # norms with TINY under the root: no infinite derivative at 0 in the adjoint (0 * inf is NaN)
+        ldc = ti.sqrt(dc.dot(dc) + TINY)
+        gap_pair = ldc - c.geom_rbound[ga] - c.geom_rbound[gb]
+        is_plane = c.geom_type[gb] == GEOM_PLANE
+        gap = ti.select(is_plane, gap_plane, gap_pair)
+        # closing speed bound: centre velocities along the separating direction, plus rotation of the
+        # geoms' extents (a plane does not move: candidate_pairs rejects moving planes)
+        va = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(ca)
+        vb = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(cb)
+        dirn = ti.select(is_plane, nb, dc / ti.max(ldc, 1e-12))
+        wa = s.cvel_w[i_b, la]
+        wb = s.cvel_w[i_b, lb]
+        rot_a = ti.sqrt(wa.dot(wa) + TINY) * ti.min(c.geom_rbound[ga], 1e6)
+        rot_b = ti.select(is_plane, 0.0, ti.sqrt(wb.dot(wb) + TINY) * ti.min(c.geom_rbound[gb], 1e6))
+        closing = ti.max(-(va - vb).dot(dirn), 0.0) + rot_a + rot_b
+        c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
 
 
 @ti.func
@@ -508,9 +536,101 @@ def func_with_segseg(c: ti.template(), kind, ga, gb, xa, za, xb, zb, p, phi, n):
 
 
 @ti.func
+def func_box_axis_sep(T, L, Ra, ha, Rb, hb):
+    """Separation of two boxes (centre offset T = xb - xa, rotations, half sizes) along the unit axis L:
+    |T . L| minus the two boxes' half extents along L (negative: the projections overlap)."""
+    ra = ha[0] * ti.abs(Ra[0, 0] * L[0] + Ra[1, 0] * L[1] + Ra[2, 0] * L[2]) \
+        + ha[1] * ti.abs(Ra[0, 1] * L[0] + Ra[1, 1] * L[1] + Ra[2, 1] * L[2]) \
+        + ha[2] * ti.abs(Ra[0, 2] * L[0] + Ra[1, 2] * L[1] + Ra[2, 2] * L[2])
+    rb = hb[0] * ti.abs(Rb[0, 0] * L[0] + Rb[1, 0] * L[1] + Rb[2, 0] * L[2]) \
+        + hb[1] * ti.abs(Rb[0, 1] * L[0] + Rb[1, 1] * L[1] + Rb[2, 1] * L[2]) \
+        + hb[2] * ti.abs(Rb[0, 2] * L[0] + Rb[1, 2] * L[1] + Rb[2, 2] * L[2])
+    return ti.abs(T.dot(L)) - ra - rb
+
+
+@ti.func
+def func_col(R, i: ti.template()):
+    return ti.Vector([R[0, i], R[1, i], R[2, i]])
+
+
+@ti.func
+def func_face_sep(T, Ra, ha, Rb, hb):
+    """Largest separation of two boxes over their 6 face axes."""
+    return ti.max(ti.max(ti.max(func_box_axis_sep(T, func_col(Ra, 0), Ra, ha, Rb, hb),
+                                func_box_axis_sep(T, func_col(Ra, 1), Ra, ha, Rb, hb)),
+                         ti.max(func_box_axis_sep(T, func_col(Ra, 2), Ra, ha, Rb, hb),
+                                func_box_axis_sep(T, func_col(Rb, 0), Ra, ha, Rb, hb))),
+                  ti.max(func_box_axis_sep(T, func_col(Rb, 1), Ra, ha, Rb, hb),
+                         func_box_axis_sep(T, func_col(Rb, 2), Ra, ha, Rb, hb)))
+
+
+@ti.func
+def func_edge_best(T, Ra, ha, Rb, hb, k: ti.template()):
+    """Over the edge axes k..8 (a_i x b_j, i = k // 3, j = k % 3): (separation, unit axis oriented from
+    box a to box b, i, j) of the best-separating one; near-parallel edge pairs never win."""
+    i = ti.static(k // 3)
+    j = ti.static(k % 3)
+    C = func_col(Ra, i).cross(func_col(Rb, j))
+    ln = ti.sqrt(C.dot(C) + TINY)
+    ok = ln > 1e-6
+    Lu = C / ti.max(ln, 1e-6)
+    L = ti.select(T.dot(Lu) >= 0, Lu, -Lu)
+    v = ti.select(ok, func_box_axis_sep(T, L, Ra, ha, Rb, hb), -1e30)
+    if ti.static(k == 8):
+        return v, L, i, j
+    else:
+        bv, bL, bi, bj = func_edge_best(T, Ra, ha, Rb, hb, k + 1)
+        take = v > bv
+        return ti.select(take, v, bv), ti.select(take, L, bL), ti.select(take, i, bi), ti.select(take, j, bj)
+
+
+@ti.func
+def func_box_edge_contact(c: ti.template(), ga, gb, xa, Ra, xb, Rb, tol):
+    """(point midway between the two edges, normal from box b towards box a, depth) of the edge pair
+    whose axis separates boxes a and b best; depth -1 (no contact) unless that axis beats every face
+    axis by tol and the closest points lie inside both edges (else corners and faces carry the contact)."""
+    ha = c.geom_size[ga]
+    hb = c.geom_size[gb]
+    T = xb - xa
+    sep_f = func_face_sep(T, Ra, ha, Rb, hb)
+    sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
+    # the supporting edge of a (towards b) runs along a_i; that of b (towards a) along b_j
+    sa = func_sgn3(Ra.transpose() @ L)
+    sb = func_sgn3(Rb.transpose() @ L)
+    ea = ti.Vector([ti.select(i == 0, 0.0, sa[0] * ha[0]), ti.select(i == 1, 0.0, sa[1] * ha[1]),
+                    ti.select(i == 2, 0.0, sa[2] * ha[2])])
+    eb = ti.Vector([ti.select(j == 0, 0.0, sb[0] * hb[0]), ti.select(j == 1, 0.0, sb[1] * hb[1]),
+                    ti.select(j == 2, 0.0, sb[2] * hb[2])])
+    ua = ti.Vector([ti.select(i == 0, ha[0], 0.0), ti.select(i == 1, ha[1], 0.0), ti.select(i == 2, ha[2], 0.0)])
+    ub = ti.Vector([ti.select(j == 0, hb[0], 0.0), ti.select(j == 1, hb[1], 0.0), ti.select(j == 2, hb[2], 0.0)])
+    ca = xa + Ra @ ea
+    cb = xb - Rb @ eb
+    da = Ra @ ua
+    db = Rb @ ub
+    pa, pb = func_segment_closest(ca - da, ca + da, cb - db, cb + db)
+    # inside both edges: the closest points are not end points (parameters strictly inside (0, 1))
+    ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), 1e-30)
+    tb = (pb - (cb - db)).dot(db) / ti.max(2.0 * db.dot(db), 1e-30)
+    inner = (ta > 1e-9) & (ta < 1.0 - 1e-9) & (tb > 1e-9) & (tb < 1.0 - 1e-9)
+    on = (sep_e > sep_f + tol) & inner
+    return 0.5 * (pa + pb), -L, ti.select(on, -sep_e, -1.0)
+
+
+@ti.func
+def func_with_boxedge(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, n, depth):
+    """(point, normal, depth) of the slot: those given, or for box edge slots the edge-edge contact."""
+    if ti.static(c.has_boxedge):
+        pe, ne, de = func_box_edge_contact(c, ga, gb, xa, Ra, xb, Rb, c.slot_aux[i_s])
+        be = kind == SLOT_BOXEDGE
+        return ti.select(be, pe, pos), ti.select(be, ne, n), ti.select(be, de, depth)
+    else:
+        return pos, n, depth
+
+
+@ti.func
 def func_slot_geometry(s: ti.template(), i_b, i_s):
     """(contact point, normal from the SDF side to the point side, depth) of slot i_s; depth > 0 is
-    penetration. The contact point lies midway between the two surfaces."""
+    penetration."""
     c = s.contact
     kind = c.slot_kind[i_s]
     ga = c.slot_ga[i_s]
@@ -530,7 +650,12 @@ def func_slot_geometry(s: ti.template(), i_b, i_s):
     phi_sdf, n_loc = func_sdf_any(c, 0, c.geom_type[gb], gb, q, chat, c.geom_beta[gb])
     pt, phi, n = func_with_segseg(c, kind, ga, gb, xa, za, xb, zb, p, phi_sdf, Rb @ n_loc)
     depth = ra - phi
-    return pt - n * (0.5 * (ra + phi)), n, depth
+    # the contact point: on the point side's surface against a static geom (where that side's velocity
+    # and Jacobian belong: a speculative contact's gap can be centimetres, and a fast-turning link's
+    # velocity changes across it), else midway between the two surfaces
+    mid = pt - n * (0.5 * (ra + phi))
+    cp = ti.select(c.link_dyn[c.geom_link[gb]] == 1, mid, pt - n * ra)
+    return func_with_boxedge(c, i_s, kind, ga, gb, xa, Ra, xb, Rb, cp, n, depth)
 
 
 def geom_rotations(quat: np.ndarray) -> np.ndarray:

@@ -1,50 +1,83 @@
 """Stage 7, contact: smooth penalty forces with Coulomb friction, treated implicitly.
 
 The model, per contact slot (see collision.py for where slots come from), with depth d > 0 meaning
-penetration, n the normal from the SDF side towards the point side and u the velocity of the point
-side relative to the other at the contact point:
+penetration, n the normal from the SDF side towards the point side, u the velocity of the point side
+relative to the other at the contact point, h the step and d' = d - h (u' . n) the depth at the end
+of the step (u' the velocity after it):
 
-    normal     f_n = k * delta * softplus(d / delta) - c * sigmoid(d / delta) * (u . n),  clipped at 0
-    friction   f_t = -mu * f_n * u_t / sqrt(|u_t|^2 + eps^2)        mu = max(mu_a, mu_b)
+    normal     f_n = k delta softplus(d' / delta) + (c / h) delta (softplus(d' / delta) - softplus(d / delta))
+    friction   f_t = -mu f_n u_t' / sqrt(|v|^2 + eps^2)        mu = max(mu_a, mu_b)
 
-Friction scales with the net normal force f_n of the step's start. Known limitation: on the step a
-body lands (or is placed overlapping) f_n exceeds the impulse the implicit step delivers by orders of
-magnitude (its damping is far above critical, its spring force is that of a penetration the step
-undoes), so a body landing while sliding loses far more tangential speed than mu times its normal
-impulse; bodies in steady contact (resting, sliding, rolling, standing) are not affected. Substeps
-shrink the effect (~h^2).
+The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
+step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
+spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.
+Because the force is a function of the end-of-step depth, a pair whose gap closes within the step is in
+contact in that step (a speculative contact): a body arriving at 20 m/s stops at the surface instead
+of being caught one step deep (the broad phase widens its margin by the distance the pair can close in
+h, and a slot counts while its current or its predicted depth is within the margin). Friction follows
+Coulomb's law with the normal force the step actually applies, and is viscous below the slip speed eps.
 
-Every term is differentiable in the state and in mu, k and c; the only kinks are the clip at f_n = 0
-(fast separation) and the slot's on/off at the contact margin (where the force is below 1e-8 k delta).
-Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
+Time stepping. The forces are linearly implicit (backward Euler on the linearised force, as the
+joint-limit springs): f_n is linearised about the predicted depth d - h (u . n), which makes it
+linear in u' with slope B = (c + h k) sigmoid; each contact contributes J^T W J to the generalised mass
+matrix (W the 3x3 block on the contact's relative velocity) and J^T f to the force. One evaluation's
+solve runs in steps (func_contact_solve), because Coulomb's law ties the friction to a normal force that
+only the solve determines (a stiff implicit contact is a velocity constraint: its force is whatever
+stops the approach, far from the explicit penalty force of the state), and because a speculative
+contact's linear force pulls where another contact stops the body first:
+
+ 1. every candidate normal contact: A1 = M + sum J^T (h B n n^T) J, qacc1 = A1^-1 force; each
+    contact's normal force in it, f1 = f_n(u1), from the implicit law at the resulting velocity.
+ 2. without the speculative contacts (those starting apart) whose f1 pulled: A2, qacc2 (the normal
+    solve), and its normal forces f2. (Dropping a contact whose force is 0 at the solution leaves the
+    solution unchanged, so the removal is continuous.)
+ 3. Coulomb's forces -mu f2 g2 (g2 the smoothed slip direction of u2) applied to A2 (a back-substitution
+    with its factor) predict each contact's slip speed at the end of the step, v = (u2 + h J A2^-1 J^T
+    f_c)_t . g2, smoothly clipped at 0 (a slip that would reverse sticks).
+ 4. the final system adds friction as a viscosity eta = mu f2 / sqrt(v^2 + eps^2) (the secant of the
+    law at the predicted slip, so the implicit step can stop a contact but never reverse it: while a
+    contact slides, eta |u_t'| = mu f2 to the accuracy of the prediction, exact for a body whose contact
+    points slip alike; a sticking contact gets eta = mu f2 / eps, the static friction of a stiff
+    damper), and drops the speculative contacts whose f2 pulled: A3 = A2 + sum J^T dW J, qacc = A3^-1
+    (force + sum J^T dF).
+Steps 1, 2 and 4 factorise, 3 reuses the second factor. A speculative contact is found and
+linearised with the relative velocity at the start of the step: two bodies falling together, the lower
+one stopped within the step, close their gap without it (a stack released with gaps overlaps by up to
+one step's fall at landing; see tests/test_contact.py's 45-degree stack). The passes between the solves (link velocities
+of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
+solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse). Friction uses the
+normal forces of a frictionless solve: where friction carries load (legs, chains), the final normal
+forces differ from f2 and so does the friction bound.
+
+Every term is differentiable in the state and in mu, k and c; the kinks are the contact's on/off (at
+the margin, where the force is below 1e-8 k delta, and where the force of the current and of the
+predicted state both stop pushing: fast separation), and the removals of steps 2 and 4 (continuous,
+see above). Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
 tests/test_contact.py checks against finite differences); they approach those of hard contact and
 exact Coulomb friction only as delta, eps and dt go to 0.
 
-Stiff contacts at dt = 0.01 are stable because they are integrated like the joint-limit springs:
-linearly implicit (backward Euler on the linearised force). For each contact the 3x3 matrix
-W = h D + h^2 K with K = k sigmoid n n^T (normal stiffness), D = c sigmoid n n^T + eta (I - n n^T)
-(normal damping, and friction as a viscosity eta = mu f_n / sqrt(|u_t|^2 + eps^2): the secant of the
-friction law, so an implicit step can stop a sliding contact but never reverse it) enters the
-generalised mass matrix as J^T W J, and the force gets the explicit correction -h K u. The part of
-J^T W J that lives on one kinematic tree (a contact against a static geom, and the two diagonal
-blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and b) is accumulated like
-composite inertia (a 6x6 block per link, summed up the tree), so it fits the tree sparsity of M. The
-coupling -(J_a^T W J_b + J_b^T W J_a) between two moving links does not: scenes with such contact
+The part of J^T W J that lives on one kinematic tree (a contact against a static geom, and the two
+diagonal blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and b) is accumulated like
+composite inertia (a 6x6 block per link, summed up the tree: AccBank), so it fits the tree sparsity of
+M. The coupling -(J_a^T W J_b + J_b^T W J_a) between two moving links does not: scenes with such contact
 pairs (objects stacked or touching each other, self-collision) accumulate it per link pair into
-`mass_cross` and factor M densely (func_factor_solve_dense); scenes whose contacts all involve a
-static geom (robots on the ground) keep the tree factorisation. (Dropping the coupling is not an
-option: stacked bodies then close the gap between them twice per step, or half of it when the blocks
-are doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
+`mass_cross` and factor M densely (func_factor_solve_dense); scenes whose contacts all involve a static
+geom (robots on the ground) keep the tree factorisation. (Dropping the coupling is not an option:
+stacked bodies then close the gap between them twice per step, or half of it when the blocks are
+doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
 
-Stages (each one loop over elements, see solver.py): geom poses, broad phase, clear the per-link
-(and per-link-pair) accumulators, slots (geometry + force, accumulated onto the two links), sum up the
-tree, project onto the dofs (force += J^T f, M += J^T W J), and with moving pairs the cross terms.
+Dynamics stages (each one loop over elements, see solver.py): geom poses, broad phase, clear the
+per-link (and per-link-pair) accumulators, slots (geometry + normal force, accumulated onto the two
+links, and the slot's data for the passes), sum up the tree, project onto the dofs (force += J^T f,
+M += J^T W J), and with moving pairs the cross terms. The passes of the solve repeat the accumulation
+for their own forces.
 """
 
 import numpy as np
 import taichi as ti
 
-from .collision import (SLOT_CYL_RIM, SLOT_SEGSEG, ContactBuildError, build_geoms, build_slots, candidate_pairs,
+from .inertia import func_factor, func_factor_solve
+from .collision import (SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
@@ -76,126 +109,155 @@ def func_acc2(s: ti.template(), x: ti.template(), i_b, i, j, v):
         x[i_b, i, j] = x[i_b, i, j] + v
 
 
+class FieldTree:
+    """Fields placed in an SNode tree of their own. Taichi caps the SNodes of one tree (1024; every
+    component of a vector or matrix field and of its adjoint is one), and a scene's contact fields with
+    their adjoints would take the rigid solver's tree past it: each AccBank and the rest of the contact
+    solver get their own tree. finalize() after the last field, before any is used."""
+
+    def __init__(self, dtype, grad):
+        self.fb = ti.FieldsBuilder()
+        self.dtype, self.grad = dtype, grad
+
+    def _place(self, x, shape):
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        self.fb.dense(ti.axes(*range(len(shape))), shape).place(x)
+        return x
+
+    def F(self, shape, grad=None):
+        return self._place(ti.field(self.dtype, needs_grad=self.grad if grad is None else grad), shape)
+
+    def I(self, shape):  # noqa: E741, E743
+        return self._place(ti.field(ti.i32), shape)
+
+    def V3(self, shape, grad=None):
+        return self._place(ti.Vector.field(3, self.dtype, needs_grad=self.grad if grad is None else grad), shape)
+
+    def M3(self, shape, grad=None):
+        return self._place(ti.Matrix.field(3, 3, self.dtype, needs_grad=self.grad if grad is None else grad), shape)
+
+    def finalize(self):
+        if self.grad:
+            self.fb.lazy_grad()
+        return self.fb.finalize()
+
+
+@ti.data_oriented
+class AccBank:
+    """Per-link sums of one set of contact forces (wrench about the world origin) and, with
+    `matrices`, of their implicit blocks J^T W J (6x6 per link: Sww, Swv, Svv), per link pair for
+    contacts between two moving links (the coupling outside the tree sparsity), and the per-dof
+    vectors S(link(i)) cdof_i the projection onto M dots with the ancestors' cdofs."""
+
+    def __init__(self, B, L, D, n_lp, dtype, grad, matrices):
+        t = FieldTree(dtype, grad)
+        V3, M3 = t.V3, t.M3
+        self.matrices = matrices
+        self.pairs = matrices and n_lp > 0
+        self.link_fn, self.link_ff = V3((B, L)), V3((B, L))
+        self.link_touch = t.I((B, L))
+        self.grad_fields = [self.link_fn, self.link_ff]
+        if matrices:
+            self.link_Sww, self.link_Swv, self.link_Svv = M3((B, L)), M3((B, L)), M3((B, L))
+            self.dof_Sw, self.dof_Sv = V3((B, D)), V3((B, D))
+            self.grad_fields += [self.link_Sww, self.link_Swv, self.link_Svv, self.dof_Sw, self.dof_Sv]
+        if self.pairs:
+            self.lp_Sww, self.lp_Swv, self.lp_Svv = M3((B, n_lp)), M3((B, n_lp)), M3((B, n_lp))
+            self.grad_fields += [self.lp_Sww, self.lp_Swv, self.lp_Svv]
+        self.tree = t.finalize()
+
+
 @ti.func
-def func_contact_clear(s: ti.template(), i_b, e, src, h):
-    c = s.contact
+def func_bank_clear(s: ti.template(), b: ti.template(), i_b):
     for i_l in range(s.n_links):
-        c.link_fn[i_b, i_l] = ti.Vector([0.0, 0.0, 0.0])
-        c.link_ff[i_b, i_l] = ti.Vector([0.0, 0.0, 0.0])
-        c.link_Sww[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
-        c.link_Swv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
-        c.link_Svv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
-        c.link_touch[i_b, i_l] = 0
+        b.link_fn[i_b, i_l] = ti.Vector([0.0, 0.0, 0.0])
+        b.link_ff[i_b, i_l] = ti.Vector([0.0, 0.0, 0.0])
+        if ti.static(b.matrices):
+            b.link_Sww[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+            b.link_Swv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+            b.link_Svv[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+        b.link_touch[i_b, i_l] = 0
 
 
 @ti.func
-def func_contact_force(s: ti.template(), i_b, i_s, h, pos, n, depth):
-    """Force and implicit block of slot i_s (within the contact margin), added onto its two links."""
+def func_bank_clear_pairs(s: ti.template(), b: ti.template(), i_b):
     c = s.contact
-    ga = c.slot_ga[i_s]
-    gb = c.slot_gb[i_s]
-    la = c.geom_link[ga]
-    lb = c.geom_link[gb]
-    u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
-    un = u.dot(n)
-    z = depth / c.delta
-    # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
-    zc = ti.min(ti.max(z, -60.0), 60.0)
-    sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zc)))
-    sg = 1.0 / (1.0 + ti.exp(-zc))
-    fn_raw = c.k * c.delta * sp - c.d * sg * un
-    on = ti.cast(fn_raw > 0, s.dtype)
-    fn = fn_raw * on
-    ut = u - un * n
-    mu = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
-    eta = mu * fn / ti.sqrt(ut.dot(ut) + c.eps * c.eps)
-    F = (fn - on * h * c.k * sg * un) * n - eta * ut
-    wn = on * (h * c.d * sg + h * h * c.k * sg)
-    W = (wn - h * eta) * n.outer_product(n) + h * eta * ti.Matrix.identity(s.dtype, 3)
+    for lp in range(c.n_lp):
+        b.lp_Sww[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+        b.lp_Swv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+        b.lp_Svv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+
+
+@ti.func
+def func_bank_add(s: ti.template(), b: ti.template(), i_b, i_s, pos, F, W):
+    """Force F at pos on the point side of slot i_s (-F on the other side) and, with matrices, the
+    implicit block W (3x3, on the relative velocity at pos), added onto the slot's moving links."""
+    c = s.contact
+    la = c.geom_link[c.slot_ga[i_s]]
+    lb = c.geom_link[c.slot_gb[i_s]]
     P = func_skew(pos)
     PW = P @ W
     Sww = -(PW @ P)
     tq = pos.cross(F)
-    c.c_fn[i_b, i_s] = fn
-    if fn > 0:
-        c.c_pos[i_b, i_s] = pos
-        c.c_normal[i_b, i_s] = n
-        c.c_force[i_b, i_s] = F
-        c.c_depth[i_b, i_s] = depth
-        if c.link_dyn[la] == 1:
-            c.link_touch[i_b, la] = 1
-            func_acc(s, c.link_ff, i_b, la, F)
-            func_acc(s, c.link_fn, i_b, la, tq)
-            func_acc(s, c.link_Sww, i_b, la, Sww)
-            func_acc(s, c.link_Swv, i_b, la, PW)
-            func_acc(s, c.link_Svv, i_b, la, W)
-        if c.link_dyn[lb] == 1:
-            c.link_touch[i_b, lb] = 1
-            func_acc(s, c.link_ff, i_b, lb, -F)
-            func_acc(s, c.link_fn, i_b, lb, -tq)
-            func_acc(s, c.link_Sww, i_b, lb, Sww)
-            func_acc(s, c.link_Swv, i_b, lb, PW)
-            func_acc(s, c.link_Svv, i_b, lb, W)
-        if ti.static(c.dense):
-            lp = c.slot_lp[i_s]
-            if lp >= 0:
-                func_acc(s, c.lp_Sww, i_b, lp, Sww)
-                func_acc(s, c.lp_Swv, i_b, lp, PW)
-                func_acc(s, c.lp_Svv, i_b, lp, W)
+    if c.link_dyn[la] == 1:
+        b.link_touch[i_b, la] = 1
+        func_acc(s, b.link_ff, i_b, la, F)
+        func_acc(s, b.link_fn, i_b, la, tq)
+        if ti.static(b.matrices):
+            func_acc(s, b.link_Sww, i_b, la, Sww)
+            func_acc(s, b.link_Swv, i_b, la, PW)
+            func_acc(s, b.link_Svv, i_b, la, W)
+    if c.link_dyn[lb] == 1:
+        b.link_touch[i_b, lb] = 1
+        func_acc(s, b.link_ff, i_b, lb, -F)
+        func_acc(s, b.link_fn, i_b, lb, -tq)
+        if ti.static(b.matrices):
+            func_acc(s, b.link_Sww, i_b, lb, Sww)
+            func_acc(s, b.link_Swv, i_b, lb, PW)
+            func_acc(s, b.link_Svv, i_b, lb, W)
+    if ti.static(b.pairs):
+        lp = c.slot_lp[i_s]
+        if lp >= 0:
+            func_acc(s, b.lp_Sww, i_b, lp, Sww)
+            func_acc(s, b.lp_Swv, i_b, lp, PW)
+            func_acc(s, b.lp_Svv, i_b, lp, W)
 
 
 @ti.func
-def func_contact_slots(s: ti.template(), i_b, e, src, h):
-    """Geometry and force of every slot of an active pair; the force (at the contact point, on the
-    point side, its opposite on the other side) and the implicit block J^T W J are added onto the two
-    links. Single-assignment form (see kinematics.py): the contact's on/off is a 0/1 mask."""
-    c = s.contact
-    for i_s in range(c.n_slots):
-        if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
-            pos, n, depth = func_slot_geometry(s, i_b, i_s)
-            if depth > -c.margin:
-                func_contact_force(s, i_b, i_s, h, pos, n, depth)
-            else:
-                c.c_fn[i_b, i_s] = 0.0
-        # slots of inactive pairs keep stale outputs: readers mask them with pair_active
-
-
-@ti.func
-def func_contact_tree(s: ti.template(), i_b, e, src, h):
+def func_bank_tree(s: ti.template(), b: ti.template(), i_b):
     """Per-link sums over the link's subtree (children after parents in link order)."""
-    c = s.contact
     for k in range(s.n_links):
         i_l = s.n_links - 1 - k
         p = s.link_parent[i_l]
-        if (p >= 0) & (c.link_touch[i_b, i_l] == 1):
-            c.link_touch[i_b, p] = 1
-            func_acc(s, c.link_ff, i_b, p, c.link_ff[i_b, i_l])
-            func_acc(s, c.link_fn, i_b, p, c.link_fn[i_b, i_l])
-            func_acc(s, c.link_Sww, i_b, p, c.link_Sww[i_b, i_l])
-            func_acc(s, c.link_Swv, i_b, p, c.link_Swv[i_b, i_l])
-            func_acc(s, c.link_Svv, i_b, p, c.link_Svv[i_b, i_l])
+        if (p >= 0) & (b.link_touch[i_b, i_l] == 1):
+            b.link_touch[i_b, p] = 1
+            func_acc(s, b.link_ff, i_b, p, b.link_ff[i_b, i_l])
+            func_acc(s, b.link_fn, i_b, p, b.link_fn[i_b, i_l])
+            if ti.static(b.matrices):
+                func_acc(s, b.link_Sww, i_b, p, b.link_Sww[i_b, i_l])
+                func_acc(s, b.link_Swv, i_b, p, b.link_Swv[i_b, i_l])
+                func_acc(s, b.link_Svv, i_b, p, b.link_Svv[i_b, i_l])
 
 
 @ti.func
-def func_contact_dof(s: ti.template(), i_b, e, src, h):
+def func_bank_dof(s: ti.template(), b: ti.template(), i_b):
     """Per dof i: force_i += cdof_i . wrench(subtree of link(i)) (J^T f), and the spatial vector
-    S(link(i)) cdof_i that the next stage dots with the ancestors' cdofs."""
-    c = s.contact
+    S(link(i)) cdof_i that func_bank_project dots with the ancestors' cdofs."""
     for i in range(s.n_dofs):
         i_l = s.dof_link[i]
-        touch = c.link_touch[i_b, i_l] == 1
+        touch = b.link_touch[i_b, i_l] == 1
         wi = s.cdof_w[i_b, i]
         vi = s.cdof_v[i_b, i]
-        Swv = c.link_Swv[i_b, i_l]
+        Swv = b.link_Swv[i_b, i_l]
         zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
-        c.dof_Sw[i_b, i] = ti.select(touch, c.link_Sww[i_b, i_l] @ wi + Swv @ vi, zero)
-        c.dof_Sv[i_b, i] = ti.select(touch, Swv.transpose() @ wi + c.link_Svv[i_b, i_l] @ vi, zero)
+        b.dof_Sw[i_b, i] = ti.select(touch, b.link_Sww[i_b, i_l] @ wi + Swv @ vi, zero)
+        b.dof_Sv[i_b, i] = ti.select(touch, Swv.transpose() @ wi + b.link_Svv[i_b, i_l] @ vi, zero)
         if touch:
-            func_acc(s, s.force, i_b, i, wi.dot(c.link_fn[i_b, i_l]) + vi.dot(c.link_ff[i_b, i_l]))
+            func_acc(s, s.force, i_b, i, wi.dot(b.link_fn[i_b, i_l]) + vi.dot(b.link_ff[i_b, i_l]))
 
 
 @ti.func
-def func_contact_project(s: ti.template(), i_b, e, src, h):
+def func_bank_project(s: ti.template(), b: ti.template(), i_b):
     """M[i, j] += cdof_j^T S(link(i)) cdof_i for j an ancestor-or-self of i (the composite-inertia
     pattern of func_mass_matrix), over the static list of such (i, j), skipping links with no contact
     below them."""
@@ -203,17 +265,43 @@ def func_contact_project(s: ti.template(), i_b, e, src, h):
     for t in range(c.n_anc):
         i = c.anc_i[t]
         j = c.anc_j[t]
-        if c.link_touch[i_b, s.dof_link[i]] == 1:
-            func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(c.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(c.dof_Sv[i_b, i]))
+        if b.link_touch[i_b, s.dof_link[i]] == 1:
+            func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(b.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(b.dof_Sv[i_b, i]))
+
+
+@ti.func
+def func_bank_cross(s: ti.template(), b: ti.template(), i_b):
+    """mass_cross[row, col] -= fac * cdof_i^T S(link pair) cdof_j over the static list of (i, j) with i
+    a dof moving one link of a touching pair and j one moving the other: the coupling
+    -(J_a^T W J_b + J_b^T W J_a) of J^T W J with J = J_a - J_b."""
+    c = s.contact
+    for t in range(c.n_cross):
+        i = c.cross_i[t]
+        j = c.cross_j[t]
+        lp = c.cross_lp[t]
+        Swv = b.lp_Swv[i_b, lp]
+        wi = s.cdof_w[i_b, i]
+        vi = s.cdof_v[i_b, i]
+        wj = s.cdof_w[i_b, j]
+        vj = s.cdof_v[i_b, j]
+        m = wj.dot(b.lp_Sww[i_b, lp] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + b.lp_Svv[i_b, lp] @ vi)
+        func_acc2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)
+
+
+# ------------------------------------------------------------------------------------------------
+# Dynamics stages (inside the evaluation, before the solve): geometry, and the normal forces with their
+# implicit blocks, which the first solve of func_contact_solve takes as they are
+# ------------------------------------------------------------------------------------------------
+@ti.func
+def func_contact_clear(s: ti.template(), i_b, e, src, h):
+    c = s.contact
+    c.eval_h[i_b] = h
+    func_bank_clear(s, c.bank_n, i_b)
 
 
 @ti.func
 def func_contact_clear_pairs(s: ti.template(), i_b, e, src, h):
-    c = s.contact
-    for lp in range(c.n_lp):
-        c.lp_Sww[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
-        c.lp_Swv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
-        c.lp_Svv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+    func_bank_clear_pairs(s, s.contact.bank_n, i_b)
 
 
 @ti.func
@@ -224,22 +312,82 @@ def func_contact_clear_cross(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
-def func_contact_cross(s: ti.template(), i_b, e, src, h):
-    """mass_cross[row, col] -= fac * cdof_i^T S(link pair) cdof_j over the static list of (i, j) with i
-    a dof moving one link of a touching pair and j one moving the other: the coupling
-    -(J_a^T W J_b + J_b^T W J_a) of J^T W J with J = J_a - J_b."""
+def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u):
+    """Normal force and its implicit block of slot i_s (within the contact margin, now or at the end
+    of the step), added onto its two links; the slot's data for the friction passes."""
     c = s.contact
-    for t in range(c.n_cross):
-        i = c.cross_i[t]
-        j = c.cross_j[t]
-        lp = c.cross_lp[t]
-        Swv = c.lp_Swv[i_b, lp]
-        wi = s.cdof_w[i_b, i]
-        vi = s.cdof_v[i_b, i]
-        wj = s.cdof_w[i_b, j]
-        vj = s.cdof_v[i_b, j]
-        m = wj.dot(c.lp_Sww[i_b, lp] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + c.lp_Svv[i_b, lp] @ vi)
-        func_acc2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)
+    un = u.dot(n)
+    # the normal force is linearised about the depth predicted for the end of the step, so a contact
+    # that closes its gap within the step acts in it (speculative contact, see the module docstring)
+    z = depth / c.delta
+    zp = (depth - h * un) / c.delta
+    # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
+    zc = ti.min(ti.max(z, -60.0), 60.0)
+    zpc = ti.min(ti.max(zp, -60.0), 60.0)
+    sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zc)))
+    spp = ti.max(zp, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zpc)))
+    sg = 1.0 / (1.0 + ti.exp(-zpc))
+    ch = c.d / h
+    fn_pred = (c.k + ch) * c.delta * spp - ch * c.delta * sp
+    # on while the force of the current state pushes (a contact creeping out of a deep overlap, whose
+    # predicted force sits at ~0) or the predicted one does (a gap closing within the step)
+    fn_now = c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * un
+    on = (fn_now > 0) | (fn_pred > 0)
+    c.sl_on[i_b, i_s] = ti.select(on, 1, 0)
+    if on:
+        wn = h * (c.d + h * c.k) * sg
+        func_bank_add(s, c.bank_n, i_b, i_s, pos, fn_pred * n, wn * n.outer_product(n))
+        ga = c.slot_ga[i_s]
+        gb = c.slot_gb[i_s]
+        c.sl_pos[i_b, i_s] = pos
+        c.sl_n[i_b, i_s] = n
+        c.sl_u[i_b, i_s] = u
+        c.sl_Fn[i_b, i_s] = fn_pred
+        c.sl_wn[i_b, i_s] = wn
+        c.sl_mu[i_b, i_s] = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
+        c.c_pos[i_b, i_s] = pos
+        c.c_normal[i_b, i_s] = n
+        c.c_depth[i_b, i_s] = depth
+
+
+@ti.func
+def func_contact_slots(s: ti.template(), i_b, e, src, h):
+    """Geometry and normal force of every slot of an active pair. Single-assignment form (see
+    kinematics.py): the contact's on/off is a 0/1 mask."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
+            pos, n, depth = func_slot_geometry(s, i_b, i_s)
+            la = c.geom_link[c.slot_ga[i_s]]
+            lb = c.geom_link[c.slot_gb[i_s]]
+            u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
+            # within the margin now, or at the end of the step if the velocity stays
+            if ti.max(depth, depth - h * u.dot(n)) > -c.margin:
+                func_contact_normal(s, i_b, i_s, h, pos, n, depth, u)
+            else:
+                c.sl_on[i_b, i_s] = 0
+        else:
+            c.sl_on[i_b, i_s] = 0
+
+
+@ti.func
+def func_contact_tree(s: ti.template(), i_b, e, src, h):
+    func_bank_tree(s, s.contact.bank_n, i_b)
+
+
+@ti.func
+def func_contact_dof(s: ti.template(), i_b, e, src, h):
+    func_bank_dof(s, s.contact.bank_n, i_b)
+
+
+@ti.func
+def func_contact_project(s: ti.template(), i_b, e, src, h):
+    func_bank_project(s, s.contact.bank_n, i_b)
+
+
+@ti.func
+def func_contact_cross(s: ti.template(), i_b, e, src, h):
+    func_bank_cross(s, s.contact.bank_n, i_b)
 
 
 CONTACT_STAGES = (func_geom_pose, func_broad_phase, func_contact_clear, func_contact_slots, func_contact_tree,
@@ -250,31 +398,300 @@ CROSS_STAGES = (func_contact_clear_pairs, func_contact_clear_cross, func_geom_po
 
 
 # ------------------------------------------------------------------------------------------------
-# Dense factorisation for scenes with contacts between moving bodies (not differentiated by Taichi:
-# forward and hand-written adjoint, as the tree factorisation in inertia.py)
+# Friction passes (inside the solve, see func_contact_solve): differentiated by Taichi, each stage
+# one loop per env as the dynamics stages
 # ------------------------------------------------------------------------------------------------
 @ti.func
-def func_dense_solve(s: ti.template(), i_b, x: ti.template(), e):
-    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with A = L D L^T in mass_fac (unit lower L, D on the diagonal)."""
+def func_vec3(x: ti.template(), e, i_b, i):
+    return ti.Vector([x[e, i_b, i], x[e, i_b, i + 1], x[e, i_b, i + 2]])
+
+
+@ti.func
+def func_link_motion(s: ti.template(), x: ti.template(), e, i_b, out_w: ti.template(), out_v: ti.template()):
+    """Spatial velocity (about the world origin) of every link for the dof velocities h * x[e, i_b], h
+    the evaluation's step (kinematics.func_velocity's recursion for another velocity vector; x is sized
+    by the core's element capacity, so the clamped reads of masked-out joint shapes stay inside it)."""
+    for i_l in range(s.n_links):
+        # read inside the loop: a field value loaded before a loop and used in it made Taichi 1.7.4's
+        # adjoint of the loop fail LLVM verification ("Instruction does not dominate all uses")
+        scale = s.contact.eval_h[i_b]
+        p = s.link_parent[i_l]
+        has_p = p >= 0
+        pp = ti.max(p, 0)
+        zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+        nd = s.link_ndof[i_l]
+        d0 = ti.min(s.link_dof_start[i_l], s.cap_elems - 1)
+        df = ti.max(ti.min(s.link_dof_start[i_l], s.cap_elems - 6), 0)
+        one = ti.cast(nd == 1, s.dtype) * scale * x[e, i_b, d0]
+        free = ti.cast(nd == 6, s.dtype) * scale
+        vb = func_vec3(x, e, i_b, df)
+        wb = func_vec3(x, e, i_b, df + 3)
+        out_w[i_b, i_l] = ti.select(has_p, out_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * one + free * wb
+        out_v[i_b, i_l] = (ti.select(has_p, out_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * one
+                           + free * (vb + s.link_pos[i_b, i_l].cross(wb)))
+
+
+@ti.func
+def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.template()):
+    """Velocity of the point side relative to the other at pos, for the link motions lw, lv."""
+    c = s.contact
+    la = c.geom_link[c.slot_ga[i_s]]
+    lb = c.geom_link[c.slot_gb[i_s]]
+    return (lv[i_b, la] + lw[i_b, la].cross(pos)) - (lv[i_b, lb] + lw[i_b, lb].cross(pos))
+
+
+@ti.func
+def func_normal_after(c: ti.template(), i_b, i_s, u0, u1, n):
+    """The normal force the implicit law gives at the end-of-step relative velocity u1 (u0 at the start)."""
+    return c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / c.eval_h[i_b] * (u1 - u0).dot(n)
+
+
+# pass 1 (after the first solve): drop the contacts whose force pulled
+@ti.func
+def func_p1_clear(s: ti.template(), i_b):
+    func_bank_clear(s, s.contact.bank_d, i_b)
+
+
+@ti.func
+def func_p1_clear_pairs(s: ti.template(), i_b):
+    func_bank_clear_pairs(s, s.contact.bank_d, i_b)
+
+
+@ti.func
+def func_p1_motion(s: ti.template(), i_b):
+    c = s.contact
+    func_link_motion(s, c.qacc1, 0, i_b, c.lv1_w, c.lv1_v)
+
+
+@ti.func
+def func_p1_slots(s: ti.template(), i_b):
+    """Per touching slot: the normal force the first solve applied; a contact whose force pulled (a
+    speculative contact that another contact stopped first, or one that separates) leaves the system."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if c.sl_on[i_b, i_s] == 1:
+            pos = c.sl_pos[i_b, i_s]
+            n = c.sl_n[i_b, i_s]
+            u0 = c.sl_u[i_b, i_s]
+            f1 = func_normal_after(c, i_b, i_s, u0, u0 + func_rel_motion(s, i_b, i_s, pos, c.lv1_w, c.lv1_v), n)
+            keep = f1 > 0
+            c.sl_keep1[i_b, i_s] = ti.select(keep, 1, 0)
+            if not keep:
+                func_bank_add(s, c.bank_d, i_b, i_s, pos, -c.sl_Fn[i_b, i_s] * n, -c.sl_wn[i_b, i_s] * n.outer_product(n))
+
+
+@ti.func
+def func_p1_tree(s: ti.template(), i_b):
+    func_bank_tree(s, s.contact.bank_d, i_b)
+
+
+@ti.func
+def func_p1_dof(s: ti.template(), i_b):
+    func_bank_dof(s, s.contact.bank_d, i_b)
+
+
+@ti.func
+def func_p1_project(s: ti.template(), i_b):
+    func_bank_project(s, s.contact.bank_d, i_b)
+
+
+@ti.func
+def func_p1_cross(s: ti.template(), i_b):
+    func_bank_cross(s, s.contact.bank_d, i_b)
+
+
+# pass 2 (after the second, normal solve): normal forces, Coulomb's forces for them
+@ti.func
+def func_p2_clear(s: ti.template(), i_b):
+    func_bank_clear(s, s.contact.bank_c, i_b)
+
+
+@ti.func
+def func_p2_motion(s: ti.template(), i_b):
+    c = s.contact
+    func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
+
+
+@ti.func
+def func_p2_slots(s: ti.template(), i_b):
+    """Per kept slot: the velocity after the normal solve, the normal force it applied, and Coulomb's
+    force for that load along that velocity's (smoothed) slip."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep1[i_b, i_s] == 1):
+            pos = c.sl_pos[i_b, i_s]
+            n = c.sl_n[i_b, i_s]
+            u0 = c.sl_u[i_b, i_s]
+            u2 = u0 + func_rel_motion(s, i_b, i_s, pos, c.lv2_w, c.lv2_v)
+            f2 = func_normal_after(c, i_b, i_s, u0, u2, n)
+            u2t = u2 - u2.dot(n) * n
+            g2 = u2t / ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+            c.sl_u2[i_b, i_s] = u2
+            c.sl_f2[i_b, i_s] = f2
+            load = ti.max(f2, 0.0)
+            func_bank_add(s, c.bank_c, i_b, i_s, pos, -c.sl_mu[i_b, i_s] * load * g2, ti.Matrix.zero(s.dtype, 3, 3))
+
+
+@ti.func
+def func_p2_tree(s: ti.template(), i_b):
+    func_bank_tree(s, s.contact.bank_c, i_b)
+
+
+@ti.func
+def func_p2_dof(s: ti.template(), i_b):
+    """rhs_c = J^T (Coulomb forces of func_p2_slots)."""
+    c = s.contact
+    b = c.bank_c
+    for i in range(s.n_dofs):
+        i_l = s.dof_link[i]
+        g = s.cdof_w[i_b, i].dot(b.link_fn[i_b, i_l]) + s.cdof_v[i_b, i].dot(b.link_ff[i_b, i_l])
+        c.rhs_c[i_b, i] = ti.select(b.link_touch[i_b, i_l] == 1, g, 0.0)
+
+
+# pass 3 (after the Coulomb response): friction, and the contacts that pulled in the normal solve leave
+@ti.func
+def func_p3_clear(s: ti.template(), i_b):
+    func_bank_clear(s, s.contact.bank_t, i_b)
+
+
+@ti.func
+def func_p3_clear_pairs(s: ti.template(), i_b):
+    func_bank_clear_pairs(s, s.contact.bank_t, i_b)
+
+
+@ti.func
+def func_p3_motion(s: ti.template(), i_b):
+    c = s.contact
+    func_link_motion(s, c.dqc, 0, i_b, c.lvc_w, c.lvc_v)
+
+
+@ti.func
+def func_p3_slots(s: ti.template(), i_b):
+    """Per kept slot, the change to the normal system: friction (implicit, its viscosity the secant of
+    Coulomb's law at the slip speed predicted with Coulomb's forces applied, never below zero), and the
+    removal of contacts whose normal-solve force pulled."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep1[i_b, i_s] == 1):
+            h = c.eval_h[i_b]
+            pos = c.sl_pos[i_b, i_s]
+            n = c.sl_n[i_b, i_s]
+            u0 = c.sl_u[i_b, i_s]
+            u2 = c.sl_u2[i_b, i_s]
+            f2 = c.sl_f2[i_b, i_s]
+            u2t = u2 - u2.dot(n) * n
+            s2 = ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+            uc = u2 + func_rel_motion(s, i_b, i_s, pos, c.lvc_w, c.lvc_v)
+            w = (uc - uc.dot(n) * n).dot(u2t) / s2
+            # slip speed ahead, smoothly clipped at 0 (a reversal means the contact sticks)
+            wc = ti.min(ti.max(w / c.eps, -60.0), 60.0)
+            vp = ti.max(w, 0.0) + c.eps * ti.log(1.0 + ti.exp(-ti.abs(wc)))
+            keep = f2 > 0
+            eta = c.sl_mu[i_b, i_s] * ti.max(f2, 0.0) / ti.sqrt(vp * vp + c.eps * c.eps)
+            drop = ti.select(keep, 0.0, 1.0)
+            nn = n.outer_product(n)
+            u0t = u0 - u0.dot(n) * n
+            dF = -eta * u0t - drop * c.sl_Fn[i_b, i_s] * n
+            dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn[i_b, i_s] * nn
+            func_bank_add(s, c.bank_t, i_b, i_s, pos, dF, dW)
+            c.sl_eta[i_b, i_s] = eta
+            c.sl_keep[i_b, i_s] = ti.select(keep, 1, 0)
+        else:
+            c.sl_keep[i_b, i_s] = 0
+
+
+@ti.func
+def func_p3_tree(s: ti.template(), i_b):
+    func_bank_tree(s, s.contact.bank_t, i_b)
+
+
+@ti.func
+def func_p3_dof(s: ti.template(), i_b):
+    func_bank_dof(s, s.contact.bank_t, i_b)
+
+
+@ti.func
+def func_p3_project(s: ti.template(), i_b):
+    func_bank_project(s, s.contact.bank_t, i_b)
+
+
+@ti.func
+def func_p3_cross(s: ti.template(), i_b):
+    func_bank_cross(s, s.contact.bank_t, i_b)
+
+
+@ti.func
+def func_contact_report(s: ti.template(), i_b, e):
+    """The forces the step applied (normal and friction at the final velocity), for the entity API's
+    readers: not differentiated, own link-velocity fields."""
+    c = s.contact
+    func_link_motion(s, s.qacc, e, i_b, c.lvr_w, c.lvr_v)
+    for i_s in range(c.n_slots):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep[i_b, i_s] == 1):
+            pos = c.sl_pos[i_b, i_s]
+            n = c.sl_n[i_b, i_s]
+            u0 = c.sl_u[i_b, i_s]
+            u3 = u0 + func_rel_motion(s, i_b, i_s, pos, c.lvr_w, c.lvr_v)
+            f3 = func_normal_after(c, i_b, i_s, u0, u3, n)
+            c.c_fn[i_b, i_s] = ti.max(f3, 0.0)
+            c.c_force[i_b, i_s] = f3 * n - c.sl_eta[i_b, i_s] * (u3 - u3.dot(n) * n)
+        else:
+            c.c_fn[i_b, i_s] = 0.0
+
+
+PASS1 = (func_p1_clear, func_p1_motion, func_p1_slots, func_p1_tree, func_p1_dof, func_p1_project)
+PASS1_CROSS = (func_p1_clear_pairs,) + PASS1 + (func_p1_cross,)
+PASS2 = (func_p2_clear, func_p2_motion, func_p2_slots, func_p2_tree, func_p2_dof)
+PASS3 = (func_p3_clear, func_p3_motion, func_p3_slots, func_p3_tree, func_p3_dof, func_p3_project)
+PASS3_CROSS = (func_p3_clear_pairs,) + PASS3 + (func_p3_cross,)
+
+
+# ------------------------------------------------------------------------------------------------
+# Solves (not differentiated by Taichi: forward and hand-written adjoint, as the tree factorisation in
+# inertia.py). The solves of func_contact_solve reuse the first factor, kept in fac1; these variants
+# of inertia.func_solve and func_dense_solve take the factor's field as an argument.
+# ------------------------------------------------------------------------------------------------
+@ti.func
+def func_tree_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with the tree L^T D L factor of A in Fc (inertia.func_solve)."""
+    n = s.n_dofs
+    for kk in range(n):
+        i = n - 1 - kk
+        j = s.dof_parent[i]
+        while j >= 0:
+            x[e, i_b, j] -= Fc[i_b, i, j] * x[e, i_b, i]
+            j = s.dof_parent[j]
+    for i in range(n):
+        x[e, i_b, i] /= Fc[i_b, i, i]
+    for i in range(n):
+        j = s.dof_parent[i]
+        while j >= 0:
+            x[e, i_b, i] -= Fc[i_b, i, j] * x[e, i_b, j]
+            j = s.dof_parent[j]
+
+
+@ti.func
+def func_dense_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with A = L D L^T in Fc (unit lower L, D on the diagonal)."""
     n = s.n_dofs
     for i in range(n):
         acc = x[e, i_b, i]
         for k in range(i):
-            acc -= s.mass_fac[i_b, i, k] * x[e, i_b, k]
+            acc -= Fc[i_b, i, k] * x[e, i_b, k]
         x[e, i_b, i] = acc
     for i in range(n):
-        x[e, i_b, i] /= s.mass_fac[i_b, i, i]
+        x[e, i_b, i] /= Fc[i_b, i, i]
     for ii in range(n):
         i = n - 1 - ii
         acc = x[e, i_b, i]
         for k in range(i + 1, n):
-            acc -= s.mass_fac[i_b, k, i] * x[e, i_b, k]
+            acc -= Fc[i_b, k, i] * x[e, i_b, k]
         x[e, i_b, i] = acc
 
 
 @ti.func
-def func_factor_solve_dense(s: ti.template(), i_b, e):
-    """qacc[e] = A^-1 force with A = M (tree entries) + mass_cross, by a dense L D L^T."""
+def func_factor_dense(s: ti.template(), i_b):
+    """mass_fac <- L D L^T of A = M (tree entries) + mass_cross, dense."""
     c = s.contact
     n = s.n_dofs
     for i in range(n):
@@ -290,31 +707,115 @@ def func_factor_solve_dense(s: ti.template(), i_b, e):
             for k in range(j):
                 v -= s.mass_fac[i_b, i, k] * s.mass_fac[i_b, j, k] * s.mass_fac[i_b, k, k]
             s.mass_fac[i_b, i, j] = v / dj
-    for i in range(n):
-        s.qacc[e, i_b, i] = s.force[i_b, i]
-    func_dense_solve(s, i_b, s.qacc, e)
 
 
 @ti.func
-def func_solve_grad_dense(s: ti.template(), i_b, e):
-    """Adjoint of qacc[e] = A^-1 force: force_bar += A^-1 qacc_bar, A_bar = -force_bar qacc^T (lower
-    triangle, symmetrised), split into the tree entries of mass_mat and mass_cross."""
+def func_factor_solve_dense(s: ti.template(), i_b, e):
+    """qacc[e] = A^-1 force with A = M (tree entries) + mass_cross, by a dense L D L^T."""
+    func_factor_dense(s, i_b)
+    for i in range(s.n_dofs):
+        s.qacc[e, i_b, i] = s.force[i_b, i]
+    func_dense_solve(s, s.mass_fac, i_b, s.qacc, e)
+
+
+@ti.func
+def func_solve_adjoint(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), xg: ti.template(), e,
+                       rhs_g: ti.template()):
+    """Adjoint of x[e] = A^-1 rhs (A's factor in Fc): rhs_bar += A^-1 x_bar, A_bar = -rhs_bar x^T (lower
+    triangle, symmetrised), onto the tree entries of mass_mat and, in dense scenes, mass_cross."""
     c = s.contact
     for i in range(s.n_dofs):
-        s.solve_tmp[0, i_b, i] = s.qacc.grad[e, i_b, i]
-    func_dense_solve(s, i_b, s.solve_tmp, 0)
+        c.solve_tmp[0, i_b, i] = xg[e, i_b, i]
+    if ti.static(c.dense):
+        func_dense_solve(s, Fc, i_b, c.solve_tmp, 0)
+    else:
+        func_tree_solve(s, Fc, i_b, c.solve_tmp, 0)
     for i in range(s.n_dofs):
-        s.force.grad[i_b, i] += s.solve_tmp[0, i_b, i]
+        rhs_g[i_b, i] += c.solve_tmp[0, i_b, i]
     for ij in range(s.n_dofs * s.n_dofs):
         i = ij // s.n_dofs
         j = ij % s.n_dofs
         if j <= i:
-            g = s.solve_tmp[0, i_b, i] * s.qacc[e, i_b, j]
+            g = c.solve_tmp[0, i_b, i] * x[e, i_b, j]
             if i != j:
-                g += s.solve_tmp[0, i_b, j] * s.qacc[e, i_b, i]
-            c.mass_cross.grad[i_b, i, j] -= g
+                g += c.solve_tmp[0, i_b, j] * x[e, i_b, i]
+            if ti.static(c.dense):
+                c.mass_cross.grad[i_b, i, j] -= g
             if s.dof_anc[i, j] == 1:
                 s.mass_mat.grad[i_b, i, j] -= g
+
+
+@ti.func
+def func_solve_grad_dense(s: ti.template(), i_b, e):
+    """Adjoint of qacc[e] = A^-1 force (func_factor_solve_dense), its factor still in mass_fac."""
+    func_solve_adjoint(s, s.mass_fac, i_b, s.qacc, s.qacc.grad, e, s.force.grad)
+
+
+@ti.func
+def func_factor_into(s: ti.template(), i_b, Fc: ti.template(), x: ti.template()):
+    """Factor the current system (mass_mat, and mass_cross in dense scenes) into mass_fac, keep a copy in
+    Fc, and solve x[0] = A^-1 force with it."""
+    c = s.contact
+    if ti.static(c.dense):
+        func_factor_dense(s, i_b)
+    else:
+        func_factor(s, i_b)
+    n = s.n_dofs
+    for ij in range(n * n):
+        Fc[i_b, ij // n, ij % n] = s.mass_fac[i_b, ij // n, ij % n]
+    for i in range(n):
+        x[0, i_b, i] = s.force[i_b, i]
+    func_any_solve(s, Fc, i_b, x, 0)
+
+
+@ti.func
+def func_any_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
+    if ti.static(s.contact.dense):
+        func_dense_solve(s, Fc, i_b, x, e)
+    else:
+        func_tree_solve(s, Fc, i_b, x, e)
+
+
+@ti.func
+def func_solve_first(s: ti.template(), i_b):
+    """qacc1: the system with every candidate normal contact."""
+    func_factor_into(s, i_b, s.contact.fac1, s.contact.qacc1)
+
+
+@ti.func
+def func_solve_second(s: ti.template(), i_b):
+    """qacc2: the normal system without the contacts that pulled in the first."""
+    func_factor_into(s, i_b, s.contact.fac2, s.contact.qacc2)
+
+
+@ti.func
+def func_solve_coulomb(s: ti.template(), i_b):
+    """dqc = A2^-1 rhs_c: the response of the normal system to the Coulomb forces of pass 2."""
+    c = s.contact
+    for i in range(s.n_dofs):
+        c.dqc[0, i_b, i] = c.rhs_c[i_b, i]
+    func_any_solve(s, c.fac2, i_b, c.dqc, 0)
+
+
+@ti.func
+def func_contact_solve(s: ti.template(), i_b, e):
+    """The solve of a scene with contacts, all stages for one env (the fused step; see
+    ContactSolver.factor_solve)."""
+    c = s.contact
+    func_solve_first(s, i_b)
+    for stage in ti.static(c.pass1):
+        stage(s, i_b)
+    func_solve_second(s, i_b)
+    for stage in ti.static(PASS2):
+        stage(s, i_b)
+    func_solve_coulomb(s, i_b)
+    for stage in ti.static(c.pass3):
+        stage(s, i_b)
+    if ti.static(c.dense):
+        func_factor_solve_dense(s, i_b, e)
+    else:
+        func_factor_solve(s, i_b, e)
+    func_contact_report(s, i_b, e)
 
 
 @ti.data_oriented
@@ -348,6 +849,7 @@ class ContactSolver:
         # static: code is generated only for the slot kinds and SDF types this scene uses
         self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
         self.has_segseg = any(x[1] == SLOT_SEGSEG for x in slots)
+        self.has_boxedge = any(x[1] == SLOT_BOXEDGE for x in slots)
         self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)
         self.entity_geom_count = list(geoms.entity_count)
@@ -379,21 +881,21 @@ class ContactSolver:
         self.n_cross = len(cross)
 
         B, G, Pn, S, L = solver.n_envs, geoms.n, len(pairs), len(slots), max(solver.n_links, 1)
+        # dof vectors at the core's element capacity: the link-motion pass reads a free joint's six
+        # entries at a clamped index even in scenes with fewer dofs (masked out, as in kinematics.py)
+        D = solver.core.cap_elems
         f, g = solver.dtype, solver.requires_grad
-        I = lambda shape: ti.field(ti.i32, shape=shape)  # noqa: E731, E741
-        V3 = lambda shape, grad=g: ti.Vector.field(3, f, shape=shape, needs_grad=grad)  # noqa: E731
-        M3 = lambda shape, grad=g: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=grad)  # noqa: E731
+        tree = FieldTree(f, g)
+        I, V3, M3, F = tree.I, tree.V3, tree.M3, tree.F  # noqa: E741
         # geoms
         self.geom_type, self.geom_link = I(G), I(G)
         self.geom_pos, self.geom_center, self.geom_size = V3(G, False), V3(G, False), V3(G, False)
         self.geom_R = M3(G, False)
-        self.geom_rbound = ti.field(f, shape=G)
-        self.geom_beta = ti.field(f, shape=G)
-        self.geom_kdop = ti.field(f, shape=(G, geoms.kdop.shape[1]))
-        self.geom_friction = ti.field(f, shape=(B, G), needs_grad=g)
+        self.geom_rbound = F(G, False)
+        self.geom_beta = F(G, False)
+        self.geom_kdop = F((G, geoms.kdop.shape[1]), False)
+        self.geom_friction = F((B, G))
         self.link_dyn = I(L)
-        self.link_touch = I((B, L))  # a contact acts on the link or below it (this evaluation)
-        self.dof_Sw, self.dof_Sv = V3((B, max(solver.n_dofs, 1))), V3((B, max(solver.n_dofs, 1)))
         anc = [(i, j) for i in range(solver.n_dofs) for j in range(i + 1) if solver.np_dof_anc[i, j]]
         self.n_anc = max(len(anc), 1)
         self.anc_i, self.anc_j = I(self.n_anc), I(self.n_anc)
@@ -402,21 +904,37 @@ class ContactSolver:
         self.pair_active = I((B, Pn))
         self.slot_pair, self.slot_kind, self.slot_ga, self.slot_gb = I(S), I(S), I(S), I(S)
         self.slot_p = V3(S, False)
-        self.slot_r, self.slot_aux = ti.field(f, shape=S), ti.field(f, shape=S)
-        # per evaluation
+        self.slot_r, self.slot_aux = F(S, False), F(S, False)
+        # per evaluation: geom poses, the touching slots' data (normal model, for the friction passes),
+        # the accumulators of the normal forces (n), the Coulomb forces of pass 1 (c) and the changes of
+        # pass 2 (t), and the solves' vectors
         self.geom_xpos, self.geom_xR = V3((B, G)), M3((B, G))
-        self.link_fn, self.link_ff = V3((B, L)), V3((B, L))
-        self.link_Sww, self.link_Swv, self.link_Svv = M3((B, L)), M3((B, L)), M3((B, L))
+        self.eval_h = F(B, False)
+        self.sl_on = I((B, S))
+        self.sl_pos, self.sl_n, self.sl_u = V3((B, S)), V3((B, S)), V3((B, S))
+        self.sl_u2 = V3((B, S))
+        self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_f2 = F((B, S)), F((B, S)), F((B, S)), F((B, S))
+        self.sl_keep1 = I((B, S))
+        self.bank_n = AccBank(B, L, D, self.n_lp, f, g, True)
+        self.bank_d = AccBank(B, L, D, self.n_lp, f, g, True)
+        self.bank_c = AccBank(B, L, D, 0, f, g, False)
+        self.bank_t = AccBank(B, L, D, self.n_lp, f, g, True)
+        self.qacc1, self.qacc2, self.dqc, self.rhs_c = F((1, B, D)), F((1, B, D)), F((1, B, D)), F((B, D))
+        self.lv1_w, self.lv1_v, self.lv2_w, self.lv2_v = V3((B, L)), V3((B, L)), V3((B, L)), V3((B, L))
+        self.lvc_w, self.lvc_v = V3((B, L)), V3((B, L))
+        self.fac1, self.fac2 = F((B, D, D), False), F((B, D, D), False)
+        self.sl_eta, self.sl_keep = F((B, S), False), I((B, S))
+        self.lvr_w, self.lvr_v = V3((B, L), False), V3((B, L), False)
+        self.solve_tmp = F((1, B, D), False)
         if self.dense:
-            D = max(solver.n_dofs, 1)
             self.slot_lp = I(S)
-            self.lp_Sww, self.lp_Swv, self.lp_Svv = M3((B, self.n_lp)), M3((B, self.n_lp)), M3((B, self.n_lp))
             self.cross_i, self.cross_j, self.cross_lp = I(self.n_cross), I(self.n_cross), I(self.n_cross)
-            self.cross_fac = ti.field(f, shape=self.n_cross)
-            self.mass_cross = ti.field(f, shape=(B, D, D), needs_grad=g)
+            self.cross_fac = F(self.n_cross, False)
+            self.mass_cross = F((B, D, D))
         # outputs of the last evaluation (read by the entity API; no gradient)
         self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
-        self.c_depth, self.c_fn = ti.field(f, shape=(B, S)), ti.field(f, shape=(B, S))
+        self.c_depth, self.c_fn = F((B, S), False), F((B, S), False)
+        self.tree = tree.finalize()
 
         npf = solver.np_dtype
         self.geom_type.from_numpy(geoms.type)
@@ -446,8 +964,16 @@ class ContactSolver:
         self.slot_aux.from_numpy(np.array([x[6] for x in slots], dtype=npf))
 
         self.stages = CONTACT_STAGES
-        self.grad_fields = [self.geom_friction, self.geom_xpos, self.geom_xR, self.link_fn, self.link_ff,
-                            self.link_Sww, self.link_Swv, self.link_Svv, self.dof_Sw, self.dof_Sv] if g else []
+        self.pass1, self.pass3 = PASS1, PASS3
+        # adjoints cleared before each solve's backward (read from the passes' backward onwards)
+        self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u2, self.sl_Fn,
+                                     self.sl_wn, self.sl_mu, self.sl_f2, self.qacc1, self.qacc2, self.dqc, self.rhs_c,
+                                     self.lv1_w, self.lv1_v, self.lv2_w, self.lv2_v, self.lvc_w, self.lvc_v]
+                                    + self.bank_d.grad_fields + self.bank_c.grad_fields
+                                    + self.bank_t.grad_fields) if g else []
+        # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
+        # are zeroed before every solve's adjoint instead
+        self.grad_fields = ([self.geom_friction, self.geom_xpos, self.geom_xR] + self.bank_n.grad_fields) if g else []
         if self.dense:
             self.slot_lp.from_numpy(np.array(slot_lp, dtype=np.int32))
             self.cross_i.from_numpy(np.array([x[0] for x in cross], dtype=np.int32))
@@ -455,8 +981,127 @@ class ContactSolver:
             self.cross_lp.from_numpy(np.array([x[2] for x in cross], dtype=np.int32))
             self.cross_fac.from_numpy(np.array([x[3] for x in cross], dtype=npf))
             self.stages = CROSS_STAGES
+            self.pass1, self.pass3 = PASS1_CROSS, PASS3_CROSS
             if g:
-                self.grad_fields += [self.lp_Sww, self.lp_Swv, self.lp_Svv, self.mass_cross]
+                self.grad_fields += [self.mass_cross]
+
+    # ------------------------------------------------------------------ the solve op
+    # With contacts, the solve of an evaluation is a sequence of launches (see func_contact_solve, which
+    # the fused step runs inside its own kernel). The passes modify force, mass_mat and mass_cross in
+    # place (A2 = A1 + pass 1's changes, A3 = A2 + pass 3's), so backward reads each pass's adjoint off
+    # the matrix adjoint accumulated by the solves after it. Backward: the hand-written adjoints of the
+    # solves and Taichi's of the passes, in reverse order.
+    def factor_solve(self, s, e: int):
+        """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule)."""
+        self.kernel_solve_first(s)
+        self.kernel_pass1(s)
+        self.kernel_solve_second(s)
+        self.kernel_pass2(s)
+        self.kernel_solve_coulomb(s)
+        self.kernel_pass3(s)
+        s._kernel_factor_solve(e)
+        self.kernel_report(s, e)
+
+    def solve_grad(self, s, e: int):
+        """Adjoint of factor_solve, with its forward values in the fields."""
+        if self.scratch_grad_fields:
+            self.kernel_clear_scratch_grads(s)
+        s._kernel_solve_grad(e)
+        self.kernel_pass3.grad(s)
+        self.kernel_adjoint_solve(s, 2)
+        self.kernel_pass2.grad(s)
+        self.kernel_adjoint_solve(s, 1)
+        self.kernel_pass1.grad(s)
+        self.kernel_adjoint_solve(s, 0)
+
+    # Env loops over the core's env capacity with a guard, as solver._Kernels explains (a loop bound
+    # read from a field in a kernel of several loops broke Taichi's adjoint).
+    @ti.kernel
+    def kernel_report(self, s: ti.template(), e: ti.i32):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_contact_report(s, i_b, e)
+
+    @ti.kernel
+    def kernel_solve_first(self, s: ti.template()):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_solve_first(s, i_b)
+
+    @ti.kernel
+    def kernel_solve_second(self, s: ti.template()):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_solve_second(s, i_b)
+
+    @ti.kernel
+    def kernel_solve_coulomb(self, s: ti.template()):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_solve_coulomb(s, i_b)
+
+    @ti.kernel
+    def kernel_pass1(self, s: ti.template()):
+        for stage in ti.static(self.pass1):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(s.cap_envs):
+                if i_b < s.n_envs:
+                    stage(s, i_b)
+
+    @ti.kernel
+    def kernel_pass2(self, s: ti.template()):
+        for stage in ti.static(PASS2):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(s.cap_envs):
+                if i_b < s.n_envs:
+                    stage(s, i_b)
+
+    @ti.kernel
+    def kernel_pass3(self, s: ti.template()):
+        for stage in ti.static(self.pass3):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(s.cap_envs):
+                if i_b < s.n_envs:
+                    stage(s, i_b)
+
+    @ti.kernel
+    def kernel_adjoint_solve(self, s: ti.template(), which: ti.template()):
+        """Adjoint of one of the solves before the final one: 0 the first (qacc1 = A1^-1 force), 1 the
+        second (qacc2 = A2^-1 force), 2 the Coulomb response (dqc = A2^-1 rhs_c)."""
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                if ti.static(which == 0):
+                    func_solve_adjoint(s, self.fac1, i_b, self.qacc1, self.qacc1.grad, 0, s.force.grad)
+                elif ti.static(which == 1):
+                    func_solve_adjoint(s, self.fac2, i_b, self.qacc2, self.qacc2.grad, 0, s.force.grad)
+                else:
+                    func_solve_adjoint(s, self.fac2, i_b, self.dqc, self.dqc.grad, 0, self.rhs_c.grad)
+
+    @ti.kernel
+    def kernel_clear_scratch_grads(self, s: ti.template()):
+        for x in ti.static(self.scratch_grad_fields):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for I in ti.grouped(ti.ndrange(*x.shape)):
+                if ti.static(not hasattr(x, "n")):
+                    x.grad[I] = 0.0
+                elif ti.static(x.m == 1):
+                    x.grad[I] = ti.Vector.zero(s.dtype, x.n)
+                else:
+                    x.grad[I] = ti.Matrix.zero(s.dtype, x.n, x.m)
 
     def longest_loop(self) -> int:
         """Iterations of the longest loop in the contact stages (for the autodiff stack, adstack.py)."""
@@ -482,4 +1127,5 @@ def _link_dofs(solver, l):
     return out
 
 
-__all__ = ["ContactSolver", "ContactBuildError", "CONTACT_STAGES", "func_factor_solve_dense", "func_solve_grad_dense"]
+__all__ = ["ContactSolver", "ContactBuildError", "CONTACT_STAGES", "func_contact_solve", "func_factor_solve_dense",
+           "func_solve_grad_dense"]

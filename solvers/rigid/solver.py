@@ -37,7 +37,7 @@ from taichi.lang import impl
 from ..adstack import require as require_ad_stack
 from .actuation import func_generalized_force
 from .bias import BIAS
-from .contact import func_factor_solve_dense, func_solve_grad_dense
+from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
 from .inertia import INERTIA, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
 from .kinematics import (JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS, LINK_STATE,
@@ -237,8 +237,23 @@ class _Kernels:
                 if i_b < self.n_envs:
                     stage(self, i_b, e, src, h)
 
+    has_contact = False
+
+    def kernel_factor_solve(self, e: int):
+        """The solve op: qacc[e] (with contacts, the contact solver's passes around the final solve)."""
+        if self.has_contact:
+            self.contact.factor_solve(self, e)
+        else:
+            self._kernel_factor_solve(e)
+
+    def kernel_solve_grad(self, e: int):
+        if self.has_contact:
+            self.contact.solve_grad(self, e)
+        else:
+            self._kernel_solve_grad(e)
+
     @ti.kernel
-    def kernel_factor_solve(self, e: ti.i32):
+    def _kernel_factor_solve(self, e: ti.i32):
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
@@ -249,7 +264,7 @@ class _Kernels:
                     func_factor_solve(self, i_b, e)
 
     @ti.kernel
-    def kernel_solve_grad(self, e: ti.i32):
+    def _kernel_solve_grad(self, e: ti.i32):
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
@@ -286,7 +301,9 @@ class _Kernels:
                         for stage in ti.static(self.dynamics_stages):
                             stage(self, i_b, e, src, h)
                     elif op == OP_SOLVE:
-                        if ti.static(self.dense_solve):
+                        if ti.static(self.has_contact):
+                            func_contact_solve(self, i_b, e)
+                        elif ti.static(self.dense_solve):
                             func_factor_solve_dense(self, i_b, e)
                         else:
                             func_factor_solve(self, i_b, e)
@@ -675,6 +692,7 @@ class _SceneOwner(_Kernels):
         extra = [x for x in (contact, external) if x is not None]
         self.dynamics_stages = DYNAMICS + sum((tuple(x.stages) for x in extra), ())
         self.dense_solve = bool(contact is not None and contact.dense)
+        self.has_contact = contact is not None
         if core.requires_grad:
             self.grad_plan = _ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems,
                                        [f.grad for x in extra for f in x.grad_fields])
