@@ -501,7 +501,9 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         wb = s.cvel_w[i_b, lb]
         rot_a = ti.sqrt(wa.dot(wa) + TINY) * ti.min(c.geom_rbound[ga], 1e6)
         rot_b = ti.select(is_plane, 0.0, ti.sqrt(wb.dot(wb) + TINY) * ti.min(c.geom_rbound[gb], 1e6))
-        closing = ti.max(-(va - vb).dot(dirn), 0.0) + rot_a + rot_b
+        # either body may also turn towards the other within the step (stopped by a third one): their
+        # speeds bound that (contact.py linearises such candidate contacts again after its first solve)
+        closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a + rot_b
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
 
 

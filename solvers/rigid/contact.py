@@ -28,9 +28,10 @@ contact's linear force pulls where another contact stops the body first:
 
  1. every candidate normal contact: A1 = M + sum J^T (h B n n^T) J, qacc1 = A1^-1 force; each
     contact's normal force in it, f1 = f_n(u1), from the implicit law at the resulting velocity.
- 2. without the speculative contacts (those starting apart) whose f1 pulled: A2, qacc2 (the normal
-    solve), and its normal forces f2. (Dropping a contact whose force is 0 at the solution leaves the
-    solution unchanged, so the removal is continuous.)
+ 2. without the contacts whose linear force at u1 pulls (a speculative contact that another contact
+    stopped first, or one that separates), and with the candidates (below) linearised again about u1:
+    A2, qacc2 (the normal solve), and its normal forces f2. (Dropping a contact whose force is 0 at the
+    solution leaves the solution unchanged, so the removal is continuous.)
  3. Coulomb's forces -mu f2 g2 (g2 the smoothed slip direction of u2) applied to A2 (a back-substitution
     with its factor) predict each contact's slip speed at the end of the step, v = (u2 + h J A2^-1 J^T
     f_c)_t . g2, smoothly clipped at 0 (a slip that would reverse sticks).
@@ -40,10 +41,13 @@ contact's linear force pulls where another contact stops the body first:
     points slip alike; a sticking contact gets eta = mu f2 / eps, the static friction of a stiff
     damper), and drops the speculative contacts whose f2 pulled: A3 = A2 + sum J^T dW J, qacc = A3^-1
     (force + sum J^T dF).
-Steps 1, 2 and 4 factorise, 3 reuses the second factor. A speculative contact is found and
-linearised with the relative velocity at the start of the step: two bodies falling together, the lower
-one stopped within the step, close their gap without it (a stack released with gaps overlaps by up to
-one step's fall at landing; see tests/test_contact.py's 45-degree stack). The passes between the solves (link velocities
+Steps 1, 2 and 4 factorise, 3 reuses the second factor. Candidates: the linearisation at the
+start-of-step velocity misses a gap that closes only because the motion changes within the step (two
+boxes falling together, the lower one stopped: their relative velocity is ~0 at the start). A slot whose
+gap the two bodies' speeds could close within the step is in the system from step 1 with the ~0 force
+and slope of that linearisation; between steps 1 and 2 its law is linearised again at the velocity of
+the first solve (a Newton step), and it acts if the law pushes there. Contacts acting at the start keep
+their first linearisation (linearising them again too left a 30-link chain on the ground swinging). The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse). Friction uses the
 normal forces of a frictionless solve: where friction carries load (legs, chains), the final normal
@@ -77,7 +81,7 @@ import numpy as np
 import taichi as ti
 
 from .inertia import func_factor, func_factor_solve
-from .collision import (SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, ContactBuildError, build_geoms, build_slots, candidate_pairs,
+from .collision import (SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
@@ -312,15 +316,12 @@ def func_contact_clear_cross(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
-def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u):
-    """Normal force and its implicit block of slot i_s (within the contact margin, now or at the end
-    of the step), added onto its two links; the slot's data for the friction passes."""
-    c = s.contact
-    un = u.dot(n)
-    # the normal force is linearised about the depth predicted for the end of the step, so a contact
-    # that closes its gap within the step acts in it (speculative contact, see the module docstring)
+def func_normal_law(c: ti.template(), depth, depth_end, h):
+    """(normal force, slope h * dF/d(approach speed)) of the implicit law for the depth now and the
+    depth predicted for the end of the step, and the force of the current state alone (the spring on
+    the current depth and the damper on the current approach)."""
     z = depth / c.delta
-    zp = (depth - h * un) / c.delta
+    zp = depth_end / c.delta
     # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
     zc = ti.min(ti.max(z, -60.0), 60.0)
     zpc = ti.min(ti.max(zp, -60.0), 60.0)
@@ -328,14 +329,27 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u):
     spp = ti.max(zp, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zpc)))
     sg = 1.0 / (1.0 + ti.exp(-zpc))
     ch = c.d / h
-    fn_pred = (c.k + ch) * c.delta * spp - ch * c.delta * sp
+    fn = (c.k + ch) * c.delta * spp - ch * c.delta * sp
+    return fn, h * (c.d + h * c.k) * sg, c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+
+
+@ti.func
+def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand):
+    """Normal force and its implicit block of slot i_s (within the contact margin, now or at the end
+    of the step), added onto its two links; the slot's data for the friction passes."""
+    c = s.contact
+    # the normal force is linearised about the depth predicted for the end of the step, so a contact
+    # that closes its gap within the step acts in it (speculative contact, see the module docstring)
+    fn_pred, wn, fn_now = func_normal_law(c, depth, depth - h * u.dot(n), h)
     # on while the force of the current state pushes (a contact creeping out of a deep overlap, whose
-    # predicted force sits at ~0) or the predicted one does (a gap closing within the step)
-    fn_now = c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * un
-    on = (fn_now > 0) | (fn_pred > 0)
+    # predicted force sits at ~0), the predicted one does (a gap closing within the step), or the pair
+    # is a candidate (cand: its gap could close within the step if the bodies' motion changes; the
+    # first pass linearises it again at the velocity the first solve gives)
+    acting = (fn_now > 0) | (fn_pred > 0)
+    on = acting | cand
     c.sl_on[i_b, i_s] = ti.select(on, 1, 0)
+    c.sl_cand[i_b, i_s] = ti.select(acting, 0, 1)
     if on:
-        wn = h * (c.d + h * c.k) * sg
         func_bank_add(s, c.bank_n, i_b, i_s, pos, fn_pred * n, wn * n.outer_product(n))
         ga = c.slot_ga[i_s]
         gb = c.slot_gb[i_s]
@@ -344,6 +358,7 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u):
         c.sl_u[i_b, i_s] = u
         c.sl_Fn[i_b, i_s] = fn_pred
         c.sl_wn[i_b, i_s] = wn
+        c.sl_depth[i_b, i_s] = depth
         c.sl_mu[i_b, i_s] = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
         c.c_pos[i_b, i_s] = pos
         c.c_normal[i_b, i_s] = n
@@ -360,10 +375,16 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
             pos, n, depth = func_slot_geometry(s, i_b, i_s)
             la = c.geom_link[c.slot_ga[i_s]]
             lb = c.geom_link[c.slot_gb[i_s]]
-            u = (s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)) - (s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos))
+            ua = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)
+            ub = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos)
+            u = ua - ub
             # within the margin now, or at the end of the step if the velocity stays
-            if ti.max(depth, depth - h * u.dot(n)) > -c.margin:
-                func_contact_normal(s, i_b, i_s, h, pos, n, depth, u)
+            near = ti.max(depth, depth - h * u.dot(n)) > -c.margin
+            # or if either body could turn towards the other within the step (the one below stopped by
+            # a third body while this one falls on): a candidate
+            cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
+            if near | cand:
+                func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand)
             else:
                 c.sl_on[i_b, i_s] = 0
         else:
@@ -442,8 +463,9 @@ def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.t
 
 @ti.func
 def func_normal_after(c: ti.template(), i_b, i_s, u0, u1, n):
-    """The normal force the implicit law gives at the end-of-step relative velocity u1 (u0 at the start)."""
-    return c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / c.eval_h[i_b] * (u1 - u0).dot(n)
+    """The normal force the (first pass's) linear law gives at the end-of-step relative velocity u1 (u0
+    at the start)."""
+    return c.sl_Fn1[i_b, i_s] - c.sl_wn1[i_b, i_s] / c.eval_h[i_b] * (u1 - u0).dot(n)
 
 
 # pass 1 (after the first solve): drop the contacts whose force pulled
@@ -473,11 +495,23 @@ def func_p1_slots(s: ti.template(), i_b):
             pos = c.sl_pos[i_b, i_s]
             n = c.sl_n[i_b, i_s]
             u0 = c.sl_u[i_b, i_s]
-            f1 = func_normal_after(c, i_b, i_s, u0, u0 + func_rel_motion(s, i_b, i_s, pos, c.lv1_w, c.lv1_v), n)
-            keep = f1 > 0
+            h = c.eval_h[i_b]
+            du = func_rel_motion(s, i_b, i_s, pos, c.lv1_w, c.lv1_v).dot(n)
+            depth = c.sl_depth[i_b, i_s]
+            # a contact acting at the start-of-step velocity keeps its linear law (dropped if its force
+            # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
+            # start-of-step velocity, was ~0): it acts if the law pushes there
+            lin = c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / h * du
+            f1, w1, _ = func_normal_law(c, depth, depth - h * (u0.dot(n) + du), h)
+            cand = c.sl_cand[i_b, i_s] == 1
+            keep = ti.select(cand, f1 > 0, lin > 0)
+            F1 = ti.select(keep, ti.select(cand, f1 + w1 / h * du, c.sl_Fn[i_b, i_s]), 0.0)
+            W1 = ti.select(keep, ti.select(cand, w1, c.sl_wn[i_b, i_s]), 0.0)
+            c.sl_Fn1[i_b, i_s] = F1
+            c.sl_wn1[i_b, i_s] = W1
             c.sl_keep1[i_b, i_s] = ti.select(keep, 1, 0)
-            if not keep:
-                func_bank_add(s, c.bank_d, i_b, i_s, pos, -c.sl_Fn[i_b, i_s] * n, -c.sl_wn[i_b, i_s] * n.outer_product(n))
+            func_bank_add(s, c.bank_d, i_b, i_s, pos, (F1 - c.sl_Fn[i_b, i_s]) * n,
+                          (W1 - c.sl_wn[i_b, i_s]) * n.outer_product(n))
 
 
 @ti.func
@@ -591,8 +625,8 @@ def func_p3_slots(s: ti.template(), i_b):
             drop = ti.select(keep, 0.0, 1.0)
             nn = n.outer_product(n)
             u0t = u0 - u0.dot(n) * n
-            dF = -eta * u0t - drop * c.sl_Fn[i_b, i_s] * n
-            dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn[i_b, i_s] * nn
+            dF = -eta * u0t - drop * c.sl_Fn1[i_b, i_s] * n
+            dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn1[i_b, i_s] * nn
             func_bank_add(s, c.bank_t, i_b, i_s, pos, dF, dW)
             c.sl_eta[i_b, i_s] = eta
             c.sl_keep[i_b, i_s] = ti.select(keep, 1, 0)
@@ -914,7 +948,8 @@ class ContactSolver:
         self.sl_pos, self.sl_n, self.sl_u = V3((B, S)), V3((B, S)), V3((B, S))
         self.sl_u2 = V3((B, S))
         self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_f2 = F((B, S)), F((B, S)), F((B, S)), F((B, S))
-        self.sl_keep1 = I((B, S))
+        self.sl_depth, self.sl_Fn1, self.sl_wn1 = F((B, S)), F((B, S)), F((B, S))
+        self.sl_keep1, self.sl_cand = I((B, S)), I((B, S))
         self.bank_n = AccBank(B, L, D, self.n_lp, f, g, True)
         self.bank_d = AccBank(B, L, D, self.n_lp, f, g, True)
         self.bank_c = AccBank(B, L, D, 0, f, g, False)
@@ -966,7 +1001,8 @@ class ContactSolver:
         self.stages = CONTACT_STAGES
         self.pass1, self.pass3 = PASS1, PASS3
         # adjoints cleared before each solve's backward (read from the passes' backward onwards)
-        self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u2, self.sl_Fn,
+        self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u2, self.sl_Fn, self.sl_depth,
+                                     self.sl_Fn1, self.sl_wn1,
                                      self.sl_wn, self.sl_mu, self.sl_f2, self.qacc1, self.qacc2, self.dqc, self.rhs_c,
                                      self.lv1_w, self.lv1_v, self.lv2_w, self.lv2_v, self.lvc_w, self.lvc_v]
                                     + self.bank_d.grad_fields + self.bank_c.grad_fields
