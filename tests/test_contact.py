@@ -100,7 +100,7 @@ def test_sliding_box_stops_after_v2_over_2mug(mu, v0):
     assert float(box.get_vel().abs().max()) < 1e-3  # it has stopped (no creep)
 
 
-@pytest.mark.parametrize("mu", [1.0, 0.05])
+@pytest.mark.parametrize("mu", [1.0, pytest.param(0.05, marks=pytest.mark.slow)])
 def test_sphere_on_incline_rolls_or_slides(mu):
     """On a 30 degree incline a solid sphere rolls without slip (a = 5/7 g sin) when mu > 2/7 tan, and
     slides (a = g (sin - mu cos)) otherwise."""
@@ -129,6 +129,8 @@ def test_sphere_on_incline_rolls_or_slides(mu):
         assert slip > 0.5 * np.linalg.norm(v)
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_stack_of_five_boxes_stands_10s():
     """Five boxes dropped 5 mm onto each other, slightly offset and turned, stand for 10 s."""
     rng = np.random.default_rng(1)
@@ -221,6 +223,8 @@ def mesh_files(tmp_path_factory):
     return d
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_every_supported_pair_comes_to_rest(mesh_files):
     """One scene, cases side by side: each top shape settles on its bottom shape (or the ground) at the
     height the geometry says, within 0.2 mm, and stops."""
@@ -387,6 +391,8 @@ def test_friction_parameter():
 # ------------------------------------------------------------------------------------------------
 # Gradients
 # ------------------------------------------------------------------------------------------------
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_grad_stopping_distance_wrt_mu_and_v():
     """Exact against finite differences; within 3 % of d/dmu, d/dv of v^2 / (2 mu g) (the model's
     friction is smoothed below 1 mm/s and integrated at dt = 0.01 s)."""
@@ -443,6 +449,8 @@ def test_grad_rest_height_wrt_mass():
     assert abs(float(rep.autograd[0]) / analytic - 1) < 1e-6
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_grad_quadruped_base_position_wrt_pd_targets(urdf_path):
     """ANYmal standing on the ground, PD targets held for 50 steps: the final base position against the
     12 targets, exact against finite differences."""
@@ -466,6 +474,8 @@ def test_grad_quadruped_base_position_wrt_pd_targets(urdf_path):
     assert float(rep.autograd[0].norm()) > 1e-2
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_grad_through_contact_between_moving_bodies():
     """A box sliding to rest on another one (the coupled, densely factorised solve): exact against
     finite differences in its mass, its friction and its initial velocity."""
@@ -523,6 +533,8 @@ def test_stress_quadruped_random_pd_targets_10000_steps(urdf_path):
     _quadruped_random_targets(urdf_path, 10000)  # ~8 s
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_stress_heavy_box_on_light_box():
     scene = _scene()
     scene.add_entity(gs.morphs.Plane())
@@ -539,6 +551,8 @@ def test_stress_heavy_box_on_light_box():
     np.testing.assert_allclose(_np(heavy.get_links_net_contact_force()), [[0, 0, 1000 * G]], rtol=1e-4, atol=1e-6)
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_stress_chain30_falls_on_the_ground(assets_dir):
     """The 30-link chain (0.1 kg links, no joint damping) dropped onto the ground. Its free swing alone
     diverges at dt = 0.01 s with one substep (in MuJoCo too), and at 4 substeps once it whips fast (released
@@ -664,8 +678,11 @@ def _morph(kind, pos, quat=(1.0, 0.0, 0.0, 0.0)):
     return gs.morphs.Capsule(radius=0.1, height=0.2, pos=pos, quat=quat)
 
 
-@pytest.mark.parametrize("kind", ["sphere", "box", "capsule"])
-@pytest.mark.parametrize("onto", ["plane", "same"])
+@pytest.mark.parametrize("kind,onto", [("box", "plane"), ("box", "same"),
+                                       pytest.param("sphere", "plane", marks=pytest.mark.slow),
+                                       pytest.param("sphere", "same", marks=pytest.mark.slow),
+                                       pytest.param("capsule", "plane", marks=pytest.mark.slow),
+                                       pytest.param("capsule", "same", marks=pytest.mark.slow)])
 def test_fast_impact_stops_at_the_surface(kind, onto):
     """A body hitting the ground, or a body of its own kind resting on the ground, at 20 m/s (20 cm per
     step at dt = 0.01 s): the deepest overlap over the impact, from the poses, stays below 10 % of its
@@ -827,6 +844,8 @@ def test_stack_of_boxes_turned_45_degrees_rests():
     assert max(float(b.get_vel().abs().max()) for b in boxes) < 1e-3
 
 
+# long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
+@pytest.mark.slow
 def test_grad_crossed_edges_rest_height_wrt_mass():
     """The upper box of test_boxes_crossed_edge_on_edge_rest, its height after 0.4 s against its mass
     (the edge-edge contact carries it): exact against finite differences."""
