@@ -79,9 +79,10 @@ for their own forces.
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl
 
 from .inertia import func_factor, func_factor_solve
-from .collision import (SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
+from .collision import (N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
@@ -265,10 +266,9 @@ def func_bank_project(s: ti.template(), b: ti.template(), i_b):
     """M[i, j] += cdof_j^T S(link(i)) cdof_i for j an ancestor-or-self of i (the composite-inertia
     pattern of func_mass_matrix), over the static list of such (i, j), skipping links with no contact
     below them."""
-    c = s.contact
-    for t in range(c.n_anc):
-        i = c.anc_i[t]
-        j = c.anc_j[t]
+    for t in range(s.n_anc):
+        i = s.anc_i[t]
+        j = s.anc_j[t]
         if b.link_touch[i_b, s.dof_link[i]] == 1:
             func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(b.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(b.dof_Sv[i_b, i]))
 
@@ -359,7 +359,7 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand):
         c.sl_Fn[i_b, i_s] = fn_pred
         c.sl_wn[i_b, i_s] = wn
         c.sl_depth[i_b, i_s] = depth
-        c.sl_mu[i_b, i_s] = ti.max(c.geom_friction[i_b, ga], c.geom_friction[i_b, gb])
+        c.sl_mu[i_b, i_s] = ti.max(c.geom_mu[i_b, ga], c.geom_mu[i_b, gb])
         c.c_pos[i_b, i_s] = pos
         c.c_normal[i_b, i_s] = n
         c.c_depth[i_b, i_s] = depth
@@ -852,13 +852,37 @@ def func_contact_solve(s: ti.template(), i_b, e):
     func_contact_report(s, i_b, e)
 
 
-@ti.data_oriented
-class ContactSolver:
-    """Fields and stages of the contact model of one RigidSolver (see the module docstring)."""
+# run-time sizes of the contact model (indices into ContactSolver.cfg_i): the contact kernels read them
+# from a field, so one compile serves every scene of a contact class. The model's constants (k, d,
+# delta, eps) stay compile-time constants, part of the class: as run-time values they change the
+# rounding of the force law (LLVM folds and reassociates them), and a chaotic rollout (a legged robot
+# landing) then leaves main's trajectory; scenes share them anyway unless their options differ.
+C_GEOMS, C_PAIRS, C_SLOTS, C_LP, C_CROSS, N_CCFG_I = range(6)
+
+
+def _runtime(index):
+    """A size of the scene a ContactSolver holds: that scene's number in Python scope, a read of the
+    solver's cfg field inside a kernel being compiled (as solver._runtime)."""
+
+    def get(self):
+        if impl.inside_kernel():
+            return impl.subscript(None, self.cfg_i, index)
+        return self.plan.cfg_i[index]
+
+    return property(get)
+
+
+def _cap(n: int, least: int) -> int:
+    return max(least, 1 << (max(n, 1) - 1).bit_length())
+
+
+class ContactPlan:
+    """The contact model of one scene in numpy: geoms, pairs, slots, the static flags its kernels are
+    specialised on, and the capacities its fields need (see ContactSolver)."""
 
     @staticmethod
     def create(solver, models, options):
-        """The contact solver of a scene, or None when no two geoms can touch (nothing is compiled or
+        """The contact plan of a scene, or None when no two geoms can touch (nothing is compiled or
         launched for contacts then). Raises ContactBuildError for geometry it cannot simulate."""
         geoms = build_geoms(models, int(options.max_mesh_contact_points))
         if geoms.n == 0:
@@ -867,19 +891,20 @@ class ContactSolver:
                                 bool(getattr(options, "ignore_unsupported_pairs", False)))
         if not pairs:
             return None
-        return ContactSolver(solver, geoms, pairs, options)
+        return ContactPlan(solver, geoms, pairs, options)
 
     def __init__(self, solver, geoms, pairs, options):
         self.geoms = geoms
         self.pairs = pairs
         slots = build_slots(geoms, pairs)
+        self.slots = slots
+        self.n_links = solver.n_links
         self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
         self.k = float(options.contact_stiffness)
         self.d = float(options.contact_damping)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
         self.margin = MARGIN_WIDTHS * self.delta
-        self.dtype = solver.dtype
         # static: code is generated only for the slot kinds and SDF types this scene uses
         self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
         self.has_segseg = any(x[1] == SLOT_SEGSEG for x in slots)
@@ -895,14 +920,15 @@ class ContactSolver:
         self.np_slot_link_b = geoms.link[self.np_slot_gb]
         # contacts between two moving links couple their dofs outside the tree sparsity of M: such
         # link pairs get a 6x6 accumulator, and the dof pairs they couple a static list (see above)
-        dyn_np = link_is_dynamic(solver)
+        self.link_dyn = link_is_dynamic(solver)
         lp_index, slot_lp = {}, []
         for la, lb in zip(self.np_slot_link_a, self.np_slot_link_b):
-            if dyn_np[la] and dyn_np[lb]:
+            if self.link_dyn[la] and self.link_dyn[lb]:
                 key = (min(la, lb), max(la, lb))
                 slot_lp.append(lp_index.setdefault(key, len(lp_index)))
             else:
                 slot_lp.append(-1)
+        self.slot_lp = slot_lp
         self.dense = len(lp_index) > 0
         self.n_lp = len(lp_index)
         cross = []
@@ -912,27 +938,59 @@ class ContactSolver:
                     # (i, j) and (j, i) land on the same lower-triangle entry; on the diagonal (a common
                     # ancestor of a self-collision pair) both terms of J_a^T W J_b + J_b^T W J_a do
                     cross.append((i, j, lp, 2.0 if i == j else 1.0))
+        self.cross = cross
         self.n_cross = len(cross)
+        self.cfg_i = [0] * N_CCFG_I
+        self.cfg_i[C_GEOMS], self.cfg_i[C_PAIRS], self.cfg_i[C_SLOTS] = self.n_geoms, self.n_pairs, self.n_slots
+        self.cfg_i[C_LP], self.cfg_i[C_CROSS] = self.n_lp, self.n_cross
+        # the contact class: capacities rounded up to powers of two, and the static flags
+        self.caps = (_cap(self.n_geoms, 16), _cap(self.n_pairs, 16), _cap(self.n_slots, 64),
+                     _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
+        self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.sdf_types,
+                      (self.k, self.d, self.delta, self.eps))
 
-        B, G, Pn, S, L = solver.n_envs, geoms.n, len(pairs), len(slots), max(solver.n_links, 1)
+
+@ti.data_oriented
+class ContactSolver:
+    """Fields and stages of the contact model of a RigidSolver (see the module docstring).
+
+    The fields are sized by a contact class (the capacities and static flags of a ContactPlan, on one
+    RigidCore) and the scene's sizes and constants are read at run time from cfg_i / cfg_f, so a later
+    scene whose plan fits (same flags, capacities no larger) takes this solver, with the kernels already
+    compiled on it, from the pool (solver.POOL) and compiles nothing: `load` puts its plan in."""
+
+    n_geoms = _runtime(C_GEOMS)
+    n_pairs = _runtime(C_PAIRS)
+    n_slots = _runtime(C_SLOTS)
+    n_lp = _runtime(C_LP)
+    n_cross = _runtime(C_CROSS)
+
+    def __init__(self, core, plan: ContactPlan):
+        self.plan = plan
+        self.caps, self.flags = plan.caps, plan.flags
+        self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.sdf_types, consts = plan.flags
+        self.k, self.d, self.delta, self.eps = consts
+        self.margin = MARGIN_WIDTHS * self.delta
+        self.dtype = core.dtype
+        G, Pn, S, n_lp, n_cross = plan.caps
+        B, L = core.cap_envs, core.cap_elems
         # dof vectors at the core's element capacity: the link-motion pass reads a free joint's six
         # entries at a clamped index even in scenes with fewer dofs (masked out, as in kinematics.py)
-        D = solver.core.cap_elems
-        f, g = solver.dtype, solver.requires_grad
+        D = core.cap_elems
+        f, g = core.dtype, core.requires_grad
         tree = FieldTree(f, g)
         I, V3, M3, F = tree.I, tree.V3, tree.M3, tree.F  # noqa: E741
+        self.cfg_i = I(N_CCFG_I)
         # geoms
         self.geom_type, self.geom_link = I(G), I(G)
         self.geom_pos, self.geom_center, self.geom_size = V3(G, False), V3(G, False), V3(G, False)
         self.geom_R = M3(G, False)
         self.geom_rbound = F(G, False)
         self.geom_beta = F(G, False)
-        self.geom_kdop = F((G, geoms.kdop.shape[1]), False)
-        self.geom_friction = F((B, G))
+        self.geom_kdop = F((G, N_KDOP), False)
+        # the friction parameter [env, geom]; the scene sees its block through geom_friction
+        self.geom_mu = F((B, G))
         self.link_dyn = I(L)
-        anc = [(i, j) for i in range(solver.n_dofs) for j in range(i + 1) if solver.np_dof_anc[i, j]]
-        self.n_anc = max(len(anc), 1)
-        self.anc_i, self.anc_j = I(self.n_anc), I(self.n_anc)
         # pairs and slots
         self.pair_ga, self.pair_gb = I(Pn), I(Pn)
         self.pair_active = I((B, Pn))
@@ -950,10 +1008,10 @@ class ContactSolver:
         self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_f2 = F((B, S)), F((B, S)), F((B, S)), F((B, S))
         self.sl_depth, self.sl_Fn1, self.sl_wn1 = F((B, S)), F((B, S)), F((B, S))
         self.sl_keep1, self.sl_cand = I((B, S)), I((B, S))
-        self.bank_n = AccBank(B, L, D, self.n_lp, f, g, True)
-        self.bank_d = AccBank(B, L, D, self.n_lp, f, g, True)
+        self.bank_n = AccBank(B, L, D, n_lp, f, g, True)
+        self.bank_d = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_c = AccBank(B, L, D, 0, f, g, False)
-        self.bank_t = AccBank(B, L, D, self.n_lp, f, g, True)
+        self.bank_t = AccBank(B, L, D, n_lp, f, g, True)
         self.qacc1, self.qacc2, self.dqc, self.rhs_c = F((1, B, D)), F((1, B, D)), F((1, B, D)), F((B, D))
         self.lv1_w, self.lv1_v, self.lv2_w, self.lv2_v = V3((B, L)), V3((B, L)), V3((B, L)), V3((B, L))
         self.lvc_w, self.lvc_v = V3((B, L)), V3((B, L))
@@ -961,42 +1019,16 @@ class ContactSolver:
         self.sl_eta, self.sl_keep = F((B, S), False), I((B, S))
         self.lvr_w, self.lvr_v = V3((B, L), False), V3((B, L), False)
         self.solve_tmp = F((1, B, D), False)
+        # placeholders where the scene has no pairs of moving links (kernel_load's arguments)
+        self.slot_lp = I(S)
+        self.cross_i, self.cross_j, self.cross_lp = I(max(n_cross, 1)), I(max(n_cross, 1)), I(max(n_cross, 1))
+        self.cross_fac = F(max(n_cross, 1), False)
         if self.dense:
-            self.slot_lp = I(S)
-            self.cross_i, self.cross_j, self.cross_lp = I(self.n_cross), I(self.n_cross), I(self.n_cross)
-            self.cross_fac = F(self.n_cross, False)
             self.mass_cross = F((B, D, D))
         # outputs of the last evaluation (read by the entity API; no gradient)
         self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
         self.c_depth, self.c_fn = F((B, S), False), F((B, S), False)
         self.tree = tree.finalize()
-
-        npf = solver.np_dtype
-        self.geom_type.from_numpy(geoms.type)
-        self.geom_link.from_numpy(geoms.link)
-        self.geom_pos.from_numpy(geoms.pos.astype(npf))
-        self.geom_center.from_numpy(geoms.center.astype(npf))
-        self.geom_size.from_numpy(geoms.size.astype(npf))
-        self.geom_R.from_numpy(geom_rotations(geoms.quat / np.linalg.norm(geoms.quat, axis=1, keepdims=True)).astype(npf))
-        self.geom_rbound.from_numpy(np.minimum(geoms.rbound, np.finfo(npf).max).astype(npf))
-        self.geom_beta.from_numpy(geoms.beta.astype(npf))
-        self.geom_kdop.from_numpy(geoms.kdop.astype(npf))
-        self.geom_friction.from_numpy(np.ascontiguousarray(np.broadcast_to(geoms.friction, (B, G))).astype(npf))
-        dyn = np.zeros(L, dtype=np.int32)
-        dyn[: solver.n_links] = dyn_np
-        self.link_dyn.from_numpy(dyn)
-        anc_arr = np.array(anc if anc else [(0, 0)], dtype=np.int32).reshape(-1, 2)
-        self.anc_i.from_numpy(np.ascontiguousarray(anc_arr[:, 0]))
-        self.anc_j.from_numpy(np.ascontiguousarray(anc_arr[:, 1]))
-        self.pair_ga.from_numpy(np.array([p[0] for p in pairs], dtype=np.int32))
-        self.pair_gb.from_numpy(np.array([p[1] for p in pairs], dtype=np.int32))
-        self.slot_pair.from_numpy(self.np_slot_pair)
-        self.slot_kind.from_numpy(np.array([x[1] for x in slots], dtype=np.int32))
-        self.slot_ga.from_numpy(self.np_slot_ga)
-        self.slot_gb.from_numpy(self.np_slot_gb)
-        self.slot_p.from_numpy(np.array([x[4] for x in slots], dtype=npf).reshape(S, 3))
-        self.slot_r.from_numpy(np.array([x[5] for x in slots], dtype=npf))
-        self.slot_aux.from_numpy(np.array([x[6] for x in slots], dtype=npf))
 
         self.stages = CONTACT_STAGES
         self.pass1, self.pass3 = PASS1, PASS3
@@ -1009,17 +1041,100 @@ class ContactSolver:
                                     + self.bank_t.grad_fields) if g else []
         # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
         # are zeroed before every solve's adjoint instead
-        self.grad_fields = ([self.geom_friction, self.geom_xpos, self.geom_xR] + self.bank_n.grad_fields) if g else []
+        self.grad_fields = ([self.geom_mu, self.geom_xpos, self.geom_xR] + self.bank_n.grad_fields) if g else []
         if self.dense:
-            self.slot_lp.from_numpy(np.array(slot_lp, dtype=np.int32))
-            self.cross_i.from_numpy(np.array([x[0] for x in cross], dtype=np.int32))
-            self.cross_j.from_numpy(np.array([x[1] for x in cross], dtype=np.int32))
-            self.cross_lp.from_numpy(np.array([x[2] for x in cross], dtype=np.int32))
-            self.cross_fac.from_numpy(np.array([x[3] for x in cross], dtype=npf))
             self.stages = CROSS_STAGES
             self.pass1, self.pass3 = PASS1_CROSS, PASS3_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
+
+    def fits(self, plan: ContactPlan) -> bool:
+        """Whether a scene's plan can run on this solver's fields and kernels."""
+        return plan.flags == self.flags and all(a <= b for a, b in zip(plan.caps, self.caps))
+
+    def load(self, plan: ContactPlan, n_envs: int, np_dtype):
+        """Make `plan` (a scene of n_envs envs) the model this solver's kernels run."""
+        self.plan = plan
+        self.n_envs = n_envs
+        for name in ("geoms", "pairs", "entity_geom_start", "entity_geom_count", "np_slot_ga", "np_slot_gb",
+                     "np_slot_pair", "np_slot_link_a", "np_slot_link_b"):
+            setattr(self, name, getattr(plan, name))
+        geoms, slots, npf = plan.geoms, plan.slots, np_dtype
+        G, S = plan.n_geoms, plan.n_slots
+        R = geom_rotations(geoms.quat / np.linalg.norm(geoms.quat, axis=1, keepdims=True)).reshape(G, 9)
+        geom_f = np.concatenate([geoms.pos, geoms.center, geoms.size, R,
+                                 np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None]], -1)
+        dyn = np.zeros(max(plan.n_links, 1), dtype=np.int32)
+        dyn[: plan.n_links] = plan.link_dyn
+        slot_i = np.array([[x[0], x[1], x[2], x[3], lp] for x, lp in zip(slots, plan.slot_lp)], dtype=np.int32)
+        slot_f = np.array([list(x[4]) + [x[5], x[6]] for x in slots], dtype=float).reshape(S, 5)
+        cross = plan.cross if plan.cross else [(0, 0, 0, 0.0)]
+        c = lambda a, t: np.ascontiguousarray(np.asarray(a, dtype=t))  # noqa: E731
+        self.kernel_load(c(plan.cfg_i, np.int32),
+                         c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf),
+                         c(np.broadcast_to(geoms.friction, (n_envs, G)), npf), dyn,
+                         c([[p[0], p[1]] for p in plan.pairs], np.int32), slot_i, c(slot_f, npf),
+                         c([x[:3] for x in cross], np.int32), c([x[3] for x in cross], npf))
+
+    @ti.kernel
+    def kernel_load(self, cfg_i: ti.types.ndarray(), geom_i: ti.types.ndarray(),
+                    geom_f: ti.types.ndarray(), kdop: ti.types.ndarray(), mu: ti.types.ndarray(),
+                    dyn: ti.types.ndarray(), pair: ti.types.ndarray(), slot_i: ti.types.ndarray(),
+                    slot_f: ti.types.ndarray(), cross_i: ti.types.ndarray(), cross_f: ti.types.ndarray()):
+        """A scene's contact model into the fields (one kernel rather than a copy kernel per field). The
+        dof vectors of the passes are zeroed over their whole capacity: the link-motion pass reads
+        entries past the scene's dofs (multiplied by 0), and an earlier scene may have left NaN there."""
+        for k in range(N_CCFG_I):
+            self.cfg_i[k] = cfg_i[k]
+        for g in range(geom_i.shape[0]):
+            self.geom_type[g] = geom_i[g, 0]
+            self.geom_link[g] = geom_i[g, 1]
+            for k in ti.static(range(3)):
+                self.geom_pos[g][k] = geom_f[g, k]
+                self.geom_center[g][k] = geom_f[g, 3 + k]
+                self.geom_size[g][k] = geom_f[g, 6 + k]
+            for k, l in ti.static(ti.ndrange(3, 3)):
+                self.geom_R[g][k, l] = geom_f[g, 9 + 3 * k + l]
+            self.geom_rbound[g] = geom_f[g, 18]
+            self.geom_beta[g] = geom_f[g, 19]
+            for k in range(kdop.shape[1]):
+                self.geom_kdop[g, k] = kdop[g, k]
+        for i_b, g in ti.ndrange(mu.shape[0], mu.shape[1]):
+            self.geom_mu[i_b, g] = mu[i_b, g]
+        for i in range(dyn.shape[0]):
+            self.link_dyn[i] = dyn[i]
+        for p in range(pair.shape[0]):
+            self.pair_ga[p] = pair[p, 0]
+            self.pair_gb[p] = pair[p, 1]
+        for i_s in range(slot_i.shape[0]):
+            self.slot_pair[i_s] = slot_i[i_s, 0]
+            self.slot_kind[i_s] = slot_i[i_s, 1]
+            self.slot_ga[i_s] = slot_i[i_s, 2]
+            self.slot_gb[i_s] = slot_i[i_s, 3]
+            self.slot_lp[i_s] = slot_i[i_s, 4]
+            for k in ti.static(range(3)):
+                self.slot_p[i_s][k] = slot_f[i_s, k]
+            self.slot_r[i_s] = slot_f[i_s, 3]
+            self.slot_aux[i_s] = slot_f[i_s, 4]
+        for t in range(cross_i.shape[0]):
+            self.cross_i[t] = cross_i[t, 0]
+            self.cross_j[t] = cross_i[t, 1]
+            self.cross_lp[t] = cross_i[t, 2]
+            self.cross_fac[t] = cross_f[t]
+        for I in ti.grouped(self.qacc1):
+            self.qacc1[I] = 0.0
+            self.qacc2[I] = 0.0
+            self.dqc[I] = 0.0
+
+    @property
+    def geom_friction(self):
+        """The friction parameter as the scene's (n_envs, n_geoms) block (to_torch / from_torch)."""
+        return _FrictionBlock(self)
+
+    @ti.kernel
+    def kernel_set_friction(self, v: ti.types.ndarray()):
+        for i, j in ti.ndrange(v.shape[0], v.shape[1]):
+            self.geom_mu[i, j] = v[i, j]
 
     # ------------------------------------------------------------------ the solve op
     # With contacts, the solve of an evaluation is a sequence of launches (see func_contact_solve, which
@@ -1140,17 +1255,48 @@ class ContactSolver:
                     x.grad[I] = ti.Matrix.zero(s.dtype, x.n, x.m)
 
     def longest_loop(self) -> int:
-        """Iterations of the longest loop in the contact stages (for the autodiff stack, adstack.py)."""
-        return max(self.n_slots, self.n_pairs, self.n_geoms, self.n_anc, self.n_cross)
+        """Iterations of the longest loop the contact stages may run in any scene of this solver's class
+        (for the autodiff stack, adstack.py): its kernels serve every such scene."""
+        G, Pn, S, _, n_cross = self.caps
+        D = self.fac1.shape[1]
+        return max(S, Pn, G, D * (D + 1) // 2, n_cross)
 
     # ------------------------------------------------------------------ readers
     def read(self):
         """numpy views of the last evaluation: dict of position, normal, force (on the point side),
         depth, fn (normal force magnitude, 0 when not touching), each (B, n_slots[, 3])."""
-        active = self.pair_active.to_numpy()[:, self.np_slot_pair] == 1
-        return {"position": self.c_pos.to_numpy(), "normal": self.c_normal.to_numpy(),
-                "force": self.c_force.to_numpy(), "depth": self.c_depth.to_numpy(),
-                "fn": np.where(active, self.c_fn.to_numpy(), 0.0)}
+        B, S = self.n_envs, self.plan.n_slots
+        active = self.pair_active.to_numpy()[:B][:, self.np_slot_pair] == 1
+        return {"position": self.c_pos.to_numpy()[:B, :S], "normal": self.c_normal.to_numpy()[:B, :S],
+                "force": self.c_force.to_numpy()[:B, :S], "depth": self.c_depth.to_numpy()[:B, :S],
+                "fn": np.where(active, self.c_fn.to_numpy()[:B, :S], 0.0)}
+
+
+class _FrictionBlock:
+    """The friction parameter of a ContactSolver as its scene's (n_envs, n_geoms) block of the
+    capacity-sized field (what the scene's parameter code reads and writes)."""
+
+    def __init__(self, contact):
+        self.contact = contact
+        self.field = contact.geom_mu
+        self.shape = (contact.n_envs, contact.plan.n_geoms)
+
+    @property
+    def grad(self):
+        return self.field.grad
+
+    def to_torch(self, device=None):
+        B, G = self.shape
+        return self.field.to_torch(device=device)[:B, :G].contiguous()
+
+    def to_numpy(self):
+        B, G = self.shape
+        return self.field.to_numpy()[:B, :G]
+
+    def from_torch(self, x):
+        if x.shape != self.shape:
+            raise ValueError(f"contact friction: expected shape {self.shape}, got {tuple(x.shape)}")
+        self.contact.kernel_set_friction(x.contiguous())
 
 
 def _link_dofs(solver, l):
@@ -1163,5 +1309,5 @@ def _link_dofs(solver, l):
     return out
 
 
-__all__ = ["ContactSolver", "ContactBuildError", "CONTACT_STAGES", "func_contact_solve", "func_factor_solve_dense",
+__all__ = ["ContactPlan", "ContactSolver", "ContactBuildError", "CONTACT_STAGES", "func_contact_solve", "func_factor_solve_dense",
            "func_solve_grad_dense"]

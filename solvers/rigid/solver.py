@@ -511,8 +511,9 @@ class _Kernels:
 
     @ti.kernel
     def kernel_param_grad(self, x: ti.template(), g: ti.types.ndarray()):
-        """Adjoint of a (B, n) scalar parameter field that is not the core's (contact friction)."""
-        for i, j in x:
+        """Adjoint of a scalar parameter field that is not the core's (contact friction), the scene's
+        (B, n) block of it (the field may be larger: pooled by capacity)."""
+        for i, j in ti.ndrange(g.shape[0], g.shape[1]):
             g[i, j] = x.grad[i, j]
 
     # ------------------------------------------------------------------ getters
@@ -708,6 +709,9 @@ class _Pool:
     def __init__(self):
         self.free = {}
         self.taken = {}  # key -> number of cores held by live scenes
+        # scene owners with a contact solver, by core key: each keeps its core and its compiled kernels
+        self.owners_free = {}
+        self.owners_taken = 0
 
     def acquire(self, key):
         free = self.free.setdefault(key, [])
@@ -721,10 +725,36 @@ class _Pool:
         self.taken[core.key] -= 1
         self.free.setdefault(core.key, []).append(core)
 
+    def acquire_owner(self, key, plan):
+        """(owner, reused) for a scene of core class `key` with a contact plan: a free _SceneOwner whose
+        contact solver fits the plan (its kernels already compiled), else a new one on a core of the
+        class. The owner keeps that core for good (its kernels are compiled on the core's fields)."""
+        for attempt in range(2):
+            free = self.owners_free.get(key, [])
+            fit = [o for o in free if o.contact.fits(plan)]
+            if fit:
+                # the smallest that fits: a later, larger scene may still find the larger ones
+                o = min(fit, key=lambda o: o.contact.caps)
+                free.remove(o)
+                self.owners_taken += 1
+                return o, True
+            if attempt == 0 and self.owners_taken:
+                gc.collect()  # dead scenes still holding owners give them back
+        from .contact import ContactSolver
+
+        core, _ = self.acquire(key)
+        self.owners_taken += 1
+        return _SceneOwner(core, ContactSolver(core, plan), None), False
+
+    def release_owner(self, owner):
+        self.owners_taken -= 1
+        self.owners_free.setdefault(owner.core.key, []).append(owner)
+
     def clear(self):
-        """Forget the free cores (their fields stay allocated until Taichi is reset): the next scene of
-        every class allocates a new core."""
+        """Forget the free cores and owners (their fields stay allocated until Taichi is reset): the next
+        scene of every class allocates a new core."""
         self.free.clear()
+        self.owners_free.clear()
 
 
 POOL = _Pool()
@@ -799,28 +829,43 @@ class RigidSolver:
         # n_links + 1: a root link reads its parent from a slot no link occupies (kinematics.func_parent_slot)
         key = (dtype, bool(requires_grad), _cap_envs(n_envs), _cap_elems(max(self.n_links + 1, self.n_dofs, self.n_qs)),
                self.n_slots, self.n_evals, len(self.ops))
-        self.core, self.reused_core = POOL.acquire(key)
-        weakref.finalize(self, POOL.release, self.core)
+        # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
+        # `force`); no plan when the scene has no collision pairs, so nothing is compiled for them.
+        plan = None
+        if contact_options is not None:
+            from .contact import ContactPlan
+
+            plan = ContactPlan.create(self, models, contact_options)
+        self.contact = None
+        self.external = None
+        if plan is not None and not external_wrench:
+            # the scene's owner (core + contact solver) from the pool: a scene of the same contact class
+            # reuses the kernels compiled on it
+            self.owner, self.reused_core = POOL.acquire_owner(key, plan)
+            self.core = self.owner.core
+            self.contact = self.owner.contact
+            weakref.finalize(self, POOL.release_owner, self.owner)
+        else:
+            self.core, self.reused_core = POOL.acquire(key)
+            weakref.finalize(self, POOL.release, self.core)
+            if plan is not None:
+                from .contact import ContactSolver
+
+                self.contact = ContactSolver(self.core, plan)
+            # external wrenches per substep (written by the rigid-MPM coupler), see external.py
+            if external_wrench:
+                from .external import ExternalWrench
+
+                self.external = ExternalWrench(self.n_envs, self.substeps, self.np_link_parent,
+                                               self.evals_per_substep, self.dtype, self.requires_grad)
+            if self.contact is None and self.external is None:
+                self.owner = self.core
+            else:
+                self.owner = _SceneOwner(self.core, self.contact, self.external)
         self.serial = self.core.serial
         self.core.scene_cfg = self._cfg()
-        # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
-        # `force`); None when the scene has no collision pairs, so nothing is compiled for them.
-        self.contact = None
-        if contact_options is not None:
-            from .contact import ContactSolver
-
-            self.contact = ContactSolver.create(self, models, contact_options)
-        # external wrenches per substep (written by the rigid-MPM coupler), see external.py
-        self.external = None
-        if external_wrench:
-            from .external import ExternalWrench
-
-            self.external = ExternalWrench(self.n_envs, self.substeps, self.np_link_parent, self.evals_per_substep,
-                                           self.dtype, self.requires_grad)
-        if self.contact is None and self.external is None:
-            self.owner = self.core
-        else:
-            self.owner = _SceneOwner(self.core, self.contact, self.external)
+        if self.contact is not None:
+            self.contact.load(plan, self.n_envs, self.np_dtype)
         if requires_grad:
             # reverse-mode loops run over the core's element capacity and the contact tables (adstack.py)
             loops = [self.core.cap_elems] + ([self.contact.longest_loop()] if self.contact is not None else [])
@@ -1110,4 +1155,4 @@ class RigidSolver:
 
     def get_param_grad(self, x, g):
         """Adjoint of a (B, n) parameter field outside the core (contact friction) into the tensor g."""
-        self.core.kernel_param_grad(x, g)
+        self.core.kernel_param_grad(getattr(x, "field", x), g)
