@@ -71,6 +71,26 @@ def _runtime(index, floating=False):
     return property(get)
 
 
+class _ForwardCompile:
+    """Compile the kernels launched inside it without Taichi's advanced IR optimisation.
+
+    Its whole-kernel passes cost time superlinear in a kernel's size: the fused step of a scene with
+    contacts (dynamics, the contact stages, the three contact solves with their passes, integration:
+    one loop body) compiled in ~45 s with them and ~6 s without, at the same run time
+    (benchmarks/bench_build.py). float64 runs without them anyway (gs.init); float32 keeps them for the
+    kernels that Taichi differentiates, whose adjoints need them (see gs.init), hence this is set around
+    forward launches only: the option is read when a kernel compiles (and is part of the offline
+    cache's key), so an adjoint compiled later, outside, gets gs.init's setting."""
+
+    def __enter__(self):
+        cfg = impl.current_cfg()
+        self.was = cfg.advanced_optimization
+        cfg.advanced_optimization = False
+
+    def __exit__(self, *exc):
+        impl.current_cfg().advanced_optimization = self.was
+
+
 def _cap_envs(n_envs: int) -> int:
     return SERIAL_MAX_ENVS if n_envs <= SERIAL_MAX_ENVS else 1 << (n_envs - 1).bit_length()
 
@@ -236,6 +256,27 @@ class _Kernels:
             for i_b in range(self.cap_envs):
                 if i_b < self.n_envs:
                     stage(self, i_b, e, src, h)
+
+    @ti.kernel
+    def kernel_dynamics_part(self, k0: ti.template(), k1: ti.template(), e: ti.i32, src: ti.i32, h: float):
+        """Stages k0..k1-1 of kernel_dynamics (the gradient path's backward runs their adjoints as
+        separate kernels: see _evaluation_unit)."""
+        for stage in ti.static(self.dynamics_stages[k0:k1]):
+            if ti.static(self.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(self.cap_envs):
+                if i_b < self.n_envs:
+                    stage(self, i_b, e, src, h)
+
+    @ti.kernel
+    def kernel_link_state_part(self, k0: ti.template(), k1: ti.template(), src: ti.i32):
+        """Stages k0..k1-1 of kernel_kinematics (whose adjoint runs stage by stage, as the dynamics')."""
+        for stage in ti.static(LINK_STATE[k0:k1]):
+            if ti.static(self.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(self.cap_envs):
+                if i_b < self.n_envs:
+                    stage(self, i_b, 0, src, 0.0)
 
     has_contact = False
 
@@ -880,7 +921,9 @@ class RigidSolver:
         self.dof_tau = _SceneBlock(self, self.core.dof_tau, 2)
         self._fill_info(gravity)
         self._scratch = None  # the (e, src, h) whose evaluation the scratch fields hold, if any
+        self._fused_ready = False  # kernel_step_fused compiled (see _ForwardCompile)
         self.evaluate = self._evaluation_unit()
+        self.kernel_kinematics = self._kinematics_unit()
 
     def __getattr__(self, name):
         # the core's fields (qpos, qvel, link_pos, ...) read as the solver's, as before pooling
@@ -1089,33 +1132,45 @@ class RigidSolver:
         self.core.kernel_reset_state(np.ascontiguousarray(np.pad(self.np_qpos0, (0, 1)).astype(self.np_dtype)))
 
     # ------------------------------------------------------------------ python entry points
+    def _fused(self, step, k0, k1, finish):
+        if self._fused_ready:
+            self.owner.kernel_step_fused(step, k0, k1, finish)
+        else:
+            with _ForwardCompile():
+                self.owner.kernel_step_fused(step, k0, k1, finish)
+            self._fused_ready = True
+
     def step(self, step: int = 0):
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
         self._scratch = None
-        self.owner.kernel_step_fused(step, 0, self.n_ops, 1)
+        self._fused(step, 0, self.n_ops, 1)
 
     def substep_fused(self, step: int, i: int):
         """Substep i without gradient bookkeeping (scenes where another solver steps between
         substeps); the last substep makes its result the current state (slot 0)."""
         self._scratch = None
-        self.owner.kernel_step_fused(step, self.substep_first_op[i], self.substep_first_op[i + 1],
-                                     int(i == self.substeps - 1))
+        self._fused(step, self.substep_first_op[i], self.substep_first_op[i + 1], int(i == self.substeps - 1))
 
     def substep(self, i: int):
         """Substep i's ops one launch each, the form a ti.ad.Tape records (gradient path). The state
         moves from slot i (or the substep's first RK slot) to the substep's last slot."""
-        for kind_op, kind, e, base, src, dst, h in self.substep_ops[i]:
-            if kind_op == OP_DYN:
-                self.evaluate(e, src, h)
-            elif kind_op == OP_INT:
-                self.core.kernel_integrate(kind, e, base, src, dst, h)
+        with _ForwardCompile():
+            for kind_op, kind, e, base, src, dst, h in self.substep_ops[i]:
+                if kind_op == OP_DYN:
+                    self.evaluate(e, src, h)
+                elif kind_op == OP_INT:
+                    self.core.kernel_integrate(kind, e, base, src, dst, h)
 
     def _evaluation_unit(self):
         """Dynamics at slot src + factor-solve into qacc[e], as one call on the tape. Its adjoint
         recomputes the evaluation first when the scratch fields (poses, M, its factor) hold another
         one, then runs the adjoint of the solve (hand-written: for qacc = M^-1 f, f_bar = M^-1 qacc_bar
-        and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel."""
+        and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, one stage per kernel in
+        reverse order: the same computation as kernel_dynamics.grad, whose tasks are the stages, but
+        Taichi compiles an adjoint in time superlinear in its size (a robot's 13 stages compiled in 9 s as
+        separate kernels, 24 s as one)."""
         owner = self.owner
+        stages = range(len(owner.dynamics_stages) - 1, -1, -1)
 
         @ti.ad.grad_replaced
         def evaluate(e, src, h):
@@ -1130,9 +1185,28 @@ class RigidSolver:
                 owner.kernel_factor_solve(e)
                 self._scratch = (e, src, h)
             owner.kernel_solve_grad(e)
-            owner.kernel_dynamics.grad(e, src, h)
+            for k in stages:
+                owner.kernel_dynamics_part.grad(k, k + 1, e, src, h)
 
         return evaluate
+
+    def _kinematics_unit(self):
+        """kernel_kinematics(src) as one call on a tape (the getters' and the coupler's), its adjoint
+        stage by stage in reverse order (see _evaluation_unit)."""
+        core = self.core
+        stages = range(len(LINK_STATE) - 1, -1, -1)
+
+        @ti.ad.grad_replaced
+        def kinematics(src):
+            with _ForwardCompile():
+                core.kernel_kinematics(src)
+
+        @ti.ad.grad_for(kinematics)
+        def kinematics_grad(src):
+            for k in stages:
+                core.kernel_link_state_part.grad(k, k + 1, src)
+
+        return kinematics
 
     def scratch_overwritten(self):
         """Called by every launch outside `evaluate` that writes the scratch fields (getters' kinematics,
