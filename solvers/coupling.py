@@ -83,7 +83,7 @@ class RigidMPMCoupler:
         its no_grad wrapper there and is a plain launch otherwise (see MPMSolver._substep_launches)."""
         r = self.rigid
         r.scratch_overwritten()
-        r.kernel_kinematics(r.substep_slot[i])
+        r.core.kernel_kinematics(r.substep_slot[i])
         if taped:
             self.select(i, region)
         else:

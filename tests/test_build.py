@@ -225,3 +225,47 @@ def test_core_of_a_diverged_scene_gives_a_clean_start():
     assert not fresh.rigid_solver.reused_core
     assert torch.isfinite(traj).all()
     torch.testing.assert_close(traj, ref, rtol=0, atol=0)
+
+
+def test_second_robot_over_a_plane_compiles_nothing(compiled):
+    """Scenes with collision pairs: the contact kernels are pooled by contact class (capacities and
+    flags) and read their sizes at run time, so a different robot over a plane, built after the first
+    one is dropped, compiles no kernel; its contacts give the results of a fresh pool."""
+
+    def pendulum():
+        scene, robot = _scene(PENDULUM, collision=True, plane=True)
+        scene.reset()
+        robot.set_dofs_position(torch.tensor([1.2, -0.4], **F64))
+        out = []
+        for _ in range(60):
+            scene.step()
+            out.append(robot.get_dofs_position().clone())
+        return scene, torch.stack(out)
+
+    def ball():
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+        scene.add_entity(gs.morphs.Plane())
+        ball = scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(0.0, 0.0, 0.3)))
+        scene.build()
+        ball.set_dofs_velocity(torch.tensor([1.0, 0.5, 0.0, 0.0, 0.0, 2.0], **F64))
+        out = []
+        for _ in range(60):
+            scene.step()
+            out.append(ball.get_qpos().clone())
+        return scene, torch.stack(out)
+
+    _fresh()
+    first, _ = pendulum()
+    assert first.rigid_solver.contact is not None
+    del first
+    gc.collect()  # the first scene dies: its core and contact kernels go back to the pool
+    compiled.clear()
+    scene, got = ball()
+    assert scene.rigid_solver.reused_core
+    assert compiled == [], f"the second robot compiled {compiled}"
+    z = got[:, 2]
+    assert z.min() > 0.09 and abs(float(z[-1]) - 0.1) < 2e-3  # it landed and rests on the plane
+    _fresh()
+    fresh, ref = ball()
+    assert not fresh.rigid_solver.reused_core
+    torch.testing.assert_close(got, ref, rtol=0, atol=0)

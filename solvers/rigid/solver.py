@@ -1165,12 +1165,16 @@ class RigidSolver:
         """Dynamics at slot src + factor-solve into qacc[e], as one call on the tape. Its adjoint
         recomputes the evaluation first when the scratch fields (poses, M, its factor) hold another
         one, then runs the adjoint of the solve (hand-written: for qacc = M^-1 f, f_bar = M^-1 qacc_bar
-        and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, one stage per kernel in
-        reverse order: the same computation as kernel_dynamics.grad, whose tasks are the stages, but
-        Taichi compiles an adjoint in time superlinear in its size (a robot's 13 stages compiled in 9 s as
-        separate kernels, 24 s as one)."""
+        and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, stage by stage in reverse
+        order: the same computation as kernel_dynamics.grad, whose tasks are the stages, but Taichi
+        compiles an adjoint in time superlinear in its size (the Panda's 13 stages: 9 s as separate
+        kernels, 24 s as one). The generalised force shares the kernel of the stage before it: its
+        adjoint alone left ~1e-250 (not 0) in the gradient of an env outside the loss
+        (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient)."""
         owner = self.owner
-        stages = range(len(owner.dynamics_stages) - 1, -1, -1)
+        bounds = [k for k, f in enumerate(owner.dynamics_stages) if f is not func_generalized_force or k == 0]
+        bounds.append(len(owner.dynamics_stages))
+        parts = [(bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1)]
 
         @ti.ad.grad_replaced
         def evaluate(e, src, h):
@@ -1185,14 +1189,15 @@ class RigidSolver:
                 owner.kernel_factor_solve(e)
                 self._scratch = (e, src, h)
             owner.kernel_solve_grad(e)
-            for k in stages:
-                owner.kernel_dynamics_part.grad(k, k + 1, e, src, h)
+            for k0, k1 in parts:
+                owner.kernel_dynamics_part.grad(k0, k1, e, src, h)
 
         return evaluate
 
     def _kinematics_unit(self):
-        """kernel_kinematics(src) as one call on a tape (the getters' and the coupler's), its adjoint
-        stage by stage in reverse order (see _evaluation_unit)."""
+        """kernel_kinematics(src) as one call on a tape (the getters'), its adjoint stage by stage in
+        reverse order (see _evaluation_unit). The coupler launches the core's kernel itself: its calls
+        run inside the MPM substep's own grad_replaced adjoint, where a nested one is not recorded."""
         core = self.core
         stages = range(len(LINK_STATE) - 1, -1, -1)
 
