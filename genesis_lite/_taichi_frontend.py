@@ -10,10 +10,11 @@ do with the kernel and grow with the number of modules loaded (torch brings ~2,0
   functions when a scene is built, after torch is loaded. Here the line comes from `linecache`
   directly (the same line: the frame's file and current line).
 - `_get_tree_and_ctx`, run for every call of a `@ti.func` inside every kernel being compiled (hundreds
-  per kernel), finds the function's source with `inspect` (another `sys.modules` scan), normalises
-  every line with `textwrap.fill` and dedents it. Here that text is computed once per function per
-  process and only parsed again (`ast.parse`: the transformer annotates the tree, so each compile
-  needs a fresh one).
+  per kernel), finds the function's source with `inspect` (another `sys.modules` scan, then a
+  tokenisation of the function), normalises every line with `textwrap.fill` and dedents it. Here that
+  text is computed once per function and kept in memory and on disk (per source file, valid while the
+  file's mtime and size are unchanged: `_SourceStore`), and only parsed again (`ast.parse`: the
+  transformer annotates the tree, so each compile needs a fresh one).
 
 - `get_traceback`, run for every field, SNode and ndarray Taichi creates (and a field with gradients
   is two), formats the whole Python stack with `traceback`, whose Python 3.11 formatting re-parses
@@ -74,10 +75,13 @@ def install() -> bool:
         fn = self.func
         hit = sources.get(fn)
         if hit is None:
-            file = K.getsourcefile(fn)
-            src, start_lineno = K.getsourcelines(fn)
-            src = [textwrap.fill(line, tabsize=4, width=9999) for line in src]
-            hit = (file, src, start_lineno, textwrap.dedent("\n".join(src)))
+            hit = _STORE.get(fn)
+            if hit is None:
+                file = K.getsourcefile(fn)
+                src, start_lineno = K.getsourcelines(fn)
+                src = [textwrap.fill(line, tabsize=4, width=9999) for line in src]
+                hit = (file, src, start_lineno, textwrap.dedent("\n".join(src)))
+                _STORE.put(fn, hit)
             sources[fn] = hit
         file, src, start_lineno, text = hit
         tree = ast.parse(text)
@@ -97,6 +101,102 @@ def install() -> bool:
     K._inside_class, K._get_tree_and_ctx = _inside_class, _get_tree_and_ctx
     _install_light_traceback()
     return True
+
+
+class _SourceStore:
+    """The normalised source of each function, kept on disk across processes: finding it (inspect
+    tokenises the file from the function's first line to the end of its block) costs ~0.5 ms a
+    function, and a scene's kernels call a hundred or more. One entry per source file, under
+    $GS_CACHE_DIR/taichi_source (default ~/.cache/genesis_lite), valid while the file's mtime and
+    size are those it was read with: an edited file is read again, as inspect would. Written at exit
+    when it gained functions; GS_MODEL_CACHE=0 keeps it off like the model cache."""
+
+    def __init__(self):
+        self.files = {}  # path -> [(mtime_ns, size), {(first line, name): value}, dirty]
+        self.registered = False
+
+    @staticmethod
+    def _key(fn):
+        code = getattr(fn, "__code__", None)
+        if code is None or not os.path.isabs(code.co_filename):
+            return None, None
+        try:
+            st = os.stat(code.co_filename)
+        except OSError:
+            return None, None
+        return (code.co_filename, (st.st_mtime_ns, st.st_size)), (code.co_firstlineno, code.co_name)
+
+    def _entry_path(self, path):
+        import hashlib
+
+        from .loaders.cache import cache_root
+
+        return os.path.join(cache_root(), "taichi_source", hashlib.sha256(path.encode()).hexdigest()[:32] + ".pkl")
+
+    def _file(self, path, state):
+        rec = self.files.get(path)
+        if rec is None or rec[0] != state:
+            funcs = {}
+            try:
+                import pickle
+
+                with open(self._entry_path(path), "rb") as f:
+                    stored = pickle.load(f)
+                if stored.get("path") == path and stored.get("state") == state:
+                    funcs = stored["funcs"]
+            except Exception:  # none yet, or unreadable: start afresh
+                pass
+            rec = self.files[path] = [state, funcs, False]
+        return rec
+
+    def get(self, fn):
+        if os.environ.get("GS_MODEL_CACHE", "1") == "0":
+            return None
+        (path, state), key = self._key(fn)
+        if path is None:
+            return None
+        return self._file(path, state)[1].get(key)
+
+    def put(self, fn, value):
+        if os.environ.get("GS_MODEL_CACHE", "1") == "0":
+            return
+        (path, state), key = self._key(fn)
+        if path is None:
+            return
+        rec = self._file(path, state)
+        rec[1][key] = value
+        rec[2] = True
+        if not self.registered:
+            import atexit
+
+            atexit.register(self.flush)
+            self.registered = True
+
+    def flush(self):
+        import pickle
+        import tempfile
+
+        for path, rec in self.files.items():
+            if not rec[2]:
+                continue
+            tmp = None
+            try:
+                entry = self._entry_path(path)
+                os.makedirs(os.path.dirname(entry), exist_ok=True)
+                fd, tmp = tempfile.mkstemp(dir=os.path.dirname(entry), suffix=".tmp")
+                with os.fdopen(fd, "wb") as f:
+                    pickle.dump({"path": path, "state": rec[0], "funcs": rec[1]}, f, protocol=pickle.HIGHEST_PROTOCOL)
+                os.replace(tmp, entry)
+                rec[2] = False
+            except Exception:
+                if tmp is not None:
+                    try:
+                        os.unlink(tmp)
+                    except OSError:
+                        pass
+
+
+_STORE = _SourceStore()
 
 
 def light_traceback(stacklevel=1):

@@ -117,6 +117,53 @@ def test_tree_and_context_equal_taichi_s():
     assert _kernel_templated(a, 0.5) == pytest.approx(expected)
 
 
+def test_source_store_keeps_taichi_s_source_across_processes(tmp_path, monkeypatch):
+    """The on-disk store gives back what Taichi's own helper computes, from a new store (a new process
+    reads it from disk), and forgets a function whose file changed."""
+    import importlib.util
+    import textwrap
+
+    from genesis_lite import _taichi_frontend as F
+
+    monkeypatch.setenv("GS_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("GS_MODEL_CACHE", raising=False)
+    mod_file = tmp_path / "gl_store_probe.py"
+    mod_file.write_text(textwrap.dedent('''
+        import taichi as ti
+
+
+        @ti.func
+        def probe(x):
+            y = x * 2  # a comment
+            return y + 1
+    '''))
+    spec = importlib.util.spec_from_file_location("gl_store_probe", mod_file)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    fn = mod.probe.func.func
+    tree, ctx = K._taichi_get_tree_and_ctx(mod.probe.func, is_kernel=False, args=[1.0])
+    expected = (ctx.file, ctx.src, ctx.lineno_offset + 1, ast.dump(tree))
+
+    def as_expected(value):
+        file, src, start, text = value
+        t = ast.parse(text)
+        t.body[0].decorator_list = []
+        return (file, src, start, ast.dump(t)) == expected
+
+    assert F._SourceStore().get(fn) is None
+    K._get_tree_and_ctx(mod.probe.func, is_kernel=False, args=[1.0])  # computes it, into the store
+    F._STORE.flush()  # what the process does at exit
+    reader = F._SourceStore()  # a new process' store reads it from disk
+    got = reader.get(fn)
+    assert got is not None and as_expected(got)
+    monkeypatch.setenv("GS_MODEL_CACHE", "0")
+    assert reader.get(fn) is None  # turned off
+    monkeypatch.delenv("GS_MODEL_CACHE")
+    # an edit of the file (another size) voids its entries
+    mod_file.write_text(mod_file.read_text() + "\n# edited\n")
+    assert F._SourceStore().get(fn) is None and reader.get(fn) is None
+
+
 def _both_tracebacks(stacklevel):
     from taichi.lang import util
 

@@ -36,10 +36,14 @@ def enabled() -> bool:
     return os.environ.get("GS_MODEL_CACHE", "1") != "0"
 
 
-def cache_dir() -> str:
-    base = os.environ.get("GS_CACHE_DIR") or os.path.join(
+def cache_root() -> str:
+    """genesis_lite's on-disk caches: $GS_CACHE_DIR, else ~/.cache/genesis_lite ($XDG_CACHE_HOME honoured)."""
+    return os.environ.get("GS_CACHE_DIR") or os.path.join(
         os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "genesis_lite")
-    return os.path.join(base, "models")
+
+
+def cache_dir() -> str:
+    return os.path.join(cache_root(), "models")
 
 
 def _file_state(path: str):
