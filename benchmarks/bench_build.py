@@ -4,13 +4,17 @@ empty and with a warm Taichi kernel cache.
     python benchmarks/bench_build.py [--quick] [--repeats 3] [--cold-repeats 1] [--precision 32] [--json out.json]
 
 Every measurement runs in its own child process (`python -c ...`, so the import is timed from a bare
-interpreter). "cold": TI_OFFLINE_CACHE_FILE_PATH points to a new, empty folder; "warm": later processes
-reuse the folder the cold one left (Taichi writes its cache when the process exits). Reported are the
+interpreter). "cold": TI_OFFLINE_CACHE_FILE_PATH (Taichi's kernels) and GS_CACHE_DIR (genesis_lite's
+loaded URDF models, genesis_lite/loaders/cache.py) point to new, empty folders; "warm": later processes
+reuse the folders the cold one left (Taichi writes its cache when the process exits). Reported are the
 medians over the repeats and, for each quantity, the spread (min..max).
 
 1. Import floor: `import torch` and then `import taichi` alone (what genesis_lite cannot go below).
 2. Build: import genesis_lite, gs.init, a plane and example-robot-data's full Panda URDF (meshes),
-   build(), first step(); then in the same process a second, different robot (UR5, full URDF) over a
+   build(), first step() (build and step split into Taichi's front end -- Python AST to IR, which runs
+   at every first launch in a process, cached or not --, the first launches -- offline-cache load or
+   compile, LLVM JIT, run -- and the rest); then in the same process a second, different robot (UR5,
+   full URDF) over a
    plane, then the Panda and the UR5 without a plane (no collision pairs), each add_entity + build +
    first step. (A scene with collision pairs compiles its contact kernels anew; one without reuses
    the kernels of the first scene of its capacity class: the UR5 row after the Panda row.)
@@ -56,20 +60,50 @@ gs.init(backend=gs.cpu, precision={precision!r})
 t2 = time.perf_counter()
 out = {{"import": t1 - t0, "init": t2 - t1}}
 
-def scene_of(urdf, plane):
+# time spent in Taichi's front end (Kernel.materialize: Python AST -> IR) and in kernel launches (a first
+# launch loads the kernel from the offline cache or compiles it, JITs it, then runs it)
+from taichi.lang import kernel_impl as _K
+acc = {{"frontend": 0.0, "launch": 0.0}}
+_materialize, _launch = _K.Kernel.materialize, _K.Kernel.launch_kernel
+
+def _timed_materialize(self, key=None, args=None, arg_features=None):
+    t = time.perf_counter()
+    try:
+        return _materialize(self, key, args, arg_features)
+    finally:
+        acc["frontend"] += time.perf_counter() - t
+
+def _timed_launch(self, t_kernel, *args):
+    t = time.perf_counter()
+    try:
+        return _launch(self, t_kernel, *args)
+    finally:
+        acc["launch"] += time.perf_counter() - t
+
+_K.Kernel.materialize, _K.Kernel.launch_kernel = _timed_materialize, _timed_launch
+
+def scene_of(urdf, plane, parts=None):
     ta = time.perf_counter()
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
     if plane:
         scene.add_entity(gs.morphs.Plane())
     scene.add_entity(gs.morphs.URDF(file=urdf, fixed=True))
     tb = time.perf_counter()
+    a0 = dict(acc)
     scene.build()
     tc = time.perf_counter()
+    a1 = dict(acc)
     scene.step()
     td = time.perf_counter()
+    if parts is not None:
+        for k in acc:
+            parts["build_" + k] = a1[k] - a0[k]
+            parts["step_" + k] = acc[k] - a1[k]
+        parts["build_python"] = (tc - tb) - parts["build_frontend"] - parts["build_launch"]
+        parts["step_python"] = (td - tc) - parts["step_frontend"] - parts["step_launch"]
     return scene, (tb - ta, tc - tb, td - tc, td - ta)
 
-scene, (out["load"], out["build"], out["step"], _) = scene_of({panda!r}, True)
+scene, (out["load"], out["build"], out["step"], _) = scene_of({panda!r}, True, out)
 out["first_step"] = time.perf_counter() - t0
 del scene
 _, (_, _, _, out["second_robot"]) = scene_of({ur5!r}, True)
@@ -108,7 +142,8 @@ print(json.dumps({{"import_build": t1 - t0, "first_fwd": t2 - t1, "first_bwd": t
 
 
 def _run(code: str, cache: str | None):
-    env = {"TI_OFFLINE_CACHE_FILE_PATH": cache} if cache else {}
+    env = {"TI_OFFLINE_CACHE_FILE_PATH": os.path.join(cache, "taichi"), "GS_CACHE_DIR": os.path.join(cache, "gs")} \
+        if cache else {}
     t = time.perf_counter()
     res, err = run_python(["-c", code], env=env, timeout=1800)
     if res is not None:
@@ -180,7 +215,8 @@ def main():
 
     print("2. build ...", flush=True)
     cold, warm, err = measure(BUILD_CODE.format(precision=args.precision, panda=panda, ur5=ur5), cold_n, warm_n, "build")
-    keys = ("import", "init", "load", "build", "step", "first_step", "second_robot", "first_noplane",
+    keys = ("import", "init", "load", "build", "build_frontend", "build_launch", "build_python", "step",
+            "step_frontend", "step_launch", "step_python", "first_step", "second_robot", "first_noplane",
             "second_robot_noplane", "process")
     data["build"] = {"cold": {k: summary(cold, k) for k in keys}, "warm": {k: summary(warm, k) for k in keys},
                      "errors": err}
@@ -199,7 +235,12 @@ def main():
                 [("what", "import alone", ""), ("s", "seconds", "")], title="1. Import floor (fresh process)")
     rows = []
     names = {"import": "import genesis_lite", "init": "gs.init", "load": "plane + Panda URDF (add_entity)",
-             "build": "scene.build()", "step": "first scene.step()", "first_step": "import to end of first step",
+             "build": "scene.build()", "build_frontend": "  of which Taichi front end (AST -> IR)",
+             "build_launch": "  of which first launches (cache load / compile, JIT, run)",
+             "build_python": "  of which the rest (Python, field allocation)",
+             "step": "first scene.step()", "step_frontend": "  of which Taichi front end (AST -> IR)",
+             "step_launch": "  of which first launches (cache load / compile, JIT, run)",
+             "step_python": "  of which the rest (Python)", "first_step": "import to end of first step",
              "second_robot": "UR5 + plane next in the same process (load+build+step)",
              "first_noplane": "then Panda alone (no collision pairs)",
              "second_robot_noplane": "then UR5 alone (no collision pairs)", "process": "whole process"}

@@ -11,6 +11,10 @@ import os
 
 import numpy as np
 
+# Lighter Taichi front-end bookkeeping (same IR; see _taichi_frontend.py), before any kernel is decorated.
+from . import _taichi_frontend  # noqa: E402  (isort: skip)
+
+_taichi_frontend.install()
 # The solvers (and Taichi) before torch: decorating a Taichi function looks its frame's module up in
 # sys.modules (inspect.getframeinfo), a scan that torch's ~2,000 modules make several times longer.
 import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)

@@ -8,11 +8,13 @@ Every body here is one link whose frame is the shape's own frame: primitives are
 from __future__ import annotations
 
 import os
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, VisualDesc
+
+from .cache import note_file
 
 ROOT_JOINT_NAME = "root_joint"  # what Pinocchio calls the free-flyer it adds; entity-scoped
 
@@ -136,6 +138,23 @@ def convex_hull(vertices, what: str):
     return hull
 
 
+def mesh_hull(vertices) -> Optional[dict]:
+    """GeomDesc.hull of a collision mesh: its convex hull computed exactly as the contact builder
+    (solvers/rigid/collision.py) computes it, so that the builder can take it from the model. None when
+    qhull rejects the points; the builder then reports the degenerate mesh itself."""
+    import trimesh
+
+    V = np.asarray(vertices, dtype=float).reshape(-1, 3)
+    if len(V) < 4 or not np.all(np.isfinite(V)):
+        return None
+    try:
+        hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
+        return {"vertices": np.asarray(hull.vertices, dtype=float), "centroid": np.asarray(hull.centroid, dtype=float),
+                "volume": float(hull.volume), "is_volume": bool(hull.is_volume)}
+    except Exception:
+        return None
+
+
 def geom_mass_properties(g: GeomDesc, rho: float, what: str):
     """(mass, com, inertia about com) of a geom at density rho, expressed in the geom's parent link frame."""
     if g.type == "box":
@@ -189,6 +208,7 @@ def load_mesh_file(path: str, what: str) -> Tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     path = os.path.realpath(path)
+    note_file(path)  # a dependency of the cached model being loaded, if any (loaders/cache.py)
     try:
         st = os.stat(path)
     except OSError as e:
@@ -280,7 +300,15 @@ def load_primitive(morph, material, name) -> EntityModel:
 
 def load_mesh(morph, material, name) -> EntityModel:
     """gs.morphs.Mesh -> one link in the file's frame (scaled); its convex hull is both the
-    collision shape and the body whose uniform density gives mass and inertia."""
+    collision shape and the body whose uniform density gives mass and inertia. A file loaded before,
+    with the same morph and density, comes from the on-disk cache (loaders/cache.py)."""
+    from .cache import cached
+
+    path = os.path.abspath(morph.file)
+    return cached(path, morph, material, name, lambda: _load_mesh(morph, material, name))
+
+
+def _load_mesh(morph, material, name) -> EntityModel:
     path = os.path.abspath(morph.file)
     what = f"gs.morphs.Mesh(file='{path}') for entity '{name}'"
     if not os.path.isfile(path):
@@ -294,6 +322,7 @@ def load_mesh(morph, material, name) -> EntityModel:
         vertices=np.array(hull.vertices, dtype=np.float64),
         faces=np.array(hull.faces, dtype=np.int64),
     )
+    g.hull = mesh_hull(g.vertices)
     model = _root_link(morph, name, hull.mass, hull.center_mass, hull.moment_inertia, [g])
     # cameras draw the file's own surface, not the hull that stands in for it in the physics
     scale = np.broadcast_to(np.asarray(morph.scale, dtype=float), (3,)).copy()

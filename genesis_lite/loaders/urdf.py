@@ -24,12 +24,14 @@ import numpy as np
 
 from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, MimicDesc, VisualDesc
 
+from . import cache as model_cache
 from .primitives import (
     ROOT_JOINT_NAME,
     combine_inertias,
     geom_mass_properties,
     load_mesh_file,
     mat_to_quat,
+    mesh_hull,
     pose_matrix,
     scale_mesh,
 )
@@ -165,7 +167,7 @@ def _mesh_candidates(filename: str, urdf_path: str) -> List[str]:
 def _resolve_mesh(filename: str, urdf_path: str, link: str) -> str:
     tried = _mesh_candidates(filename, urdf_path)
     for p in tried:
-        if os.path.isfile(p):
+        if model_cache.note_file(p):
             return p
     shown = "\n  ".join(tried[:12]) + ("\n  ..." if len(tried) > 12 else "")
     raise FileNotFoundError(
@@ -217,7 +219,7 @@ def _collision_geoms(path, link, s, capsules) -> List[GeomDesc]:
             V, F = load_mesh_file(file, f"URDF '{path}', link '{link.name}' (mesh '{g.mesh.filename}')")
             mscale = 1.0 if g.mesh.scale is None else np.asarray(g.mesh.scale, dtype=float)
             V, F = scale_mesh(V, F, mscale * s)
-            geoms.append(GeomDesc("mesh", pos, quat, (), vertices=V, faces=F))
+            geoms.append(GeomDesc("mesh", pos, quat, (), vertices=V, faces=F, hull=mesh_hull(V)))
         else:
             raise _err(path, f"{where}: empty <geometry>")
     return geoms
@@ -252,7 +254,7 @@ def _visual_descs(path, link, s, capsules, materials) -> List[VisualDesc]:
                 v = VisualDesc("cylinder", pos, quat,
                                (float(g.cylinder.radius) * s, float(g.cylinder.length) * s / 2.0))
             elif g.mesh is not None:
-                file = next((p for p in _mesh_candidates(g.mesh.filename, path) if os.path.isfile(p)), None)
+                file = next((p for p in _mesh_candidates(g.mesh.filename, path) if model_cache.note_file(p)), None)
                 mscale = np.broadcast_to(np.asarray(1.0 if g.mesh.scale is None else g.mesh.scale, dtype=float), (3,))
                 v = VisualDesc("mesh", pos, quat, (), file=file, filename=g.mesh.filename, scale=mscale * s)
             else:
@@ -342,7 +344,13 @@ def _check_tree(path, robot):
 
 
 def load_urdf(morph, material, name) -> EntityModel:
-    """gs.morphs.URDF -> EntityModel (fixed links merged into their parents)."""
+    """gs.morphs.URDF -> EntityModel (fixed links merged into their parents). A URDF loaded before, with
+    the same morph, material density and files, comes from the on-disk cache (loaders/cache.py)."""
+    path = os.path.abspath(os.fspath(morph.file))
+    return model_cache.cached(path, morph, material, name, lambda: _load_urdf(morph, material, name))
+
+
+def _load_urdf(morph, material, name) -> EntityModel:
     path = os.path.abspath(os.fspath(morph.file))
     s = float(getattr(morph, "scale", 1.0))
     rho = float(material.rho)

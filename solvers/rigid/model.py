@@ -38,7 +38,11 @@ class GeomDesc:
 
     size: plane () [normal is the geom's +z], sphere (radius,), box (half_x, half_y, half_z),
     capsule (radius, half_length) and cylinder (radius, half_length), both along the geom's z axis.
-    mesh: `vertices` (n, 3) and `faces` (m, 3) in the geom frame (scale already applied).
+    mesh: `vertices` (n, 3) and `faces` (m, 3) in the geom frame (scale already applied), and `hull`,
+    when a loader computed it: the convex hull of `vertices` as trimesh makes it, {"vertices": (k, 3),
+    "centroid": (3,), "volume": m^3, "is_volume": bool}. The contact builder needs only that hull; a
+    model that carries it (and comes from the loaders' on-disk cache) builds without importing trimesh.
+    Whoever changes `vertices` afterwards sets `hull` to None.
     """
 
     type: str
@@ -48,6 +52,7 @@ class GeomDesc:
     vertices: Optional[np.ndarray] = None
     faces: Optional[np.ndarray] = None
     friction: Optional[float] = None  # None: the entity material's friction
+    hull: Optional[dict] = None
 
 
 @dataclass

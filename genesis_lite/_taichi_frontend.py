@@ -1,0 +1,245 @@
+"""Lighter Python-side bookkeeping in Taichi 1.7's kernel front end: the same IR, fewer seconds.
+
+Taichi compiles a kernel from its Python source at the first launch of every process, even when the
+compiled kernel then comes from the offline cache (the cache key is a hash of the IR the front end
+builds), so the front end's Python time is paid on every warm start. Two of its costs have nothing to
+do with the kernel and grow with the number of modules loaded (torch brings ~2,000):
+
+- `_inside_class`, run once per `@ti.func` / `@ti.kernel` decoration, reads one source line through
+  `inspect.getframeinfo`, whose module lookup scans `sys.modules`; the contact stages decorate their
+  functions when a scene is built, after torch is loaded. Here the line comes from `linecache`
+  directly (the same line: the frame's file and current line).
+- `_get_tree_and_ctx`, run for every call of a `@ti.func` inside every kernel being compiled (hundreds
+  per kernel), finds the function's source with `inspect` (another `sys.modules` scan, then a
+  tokenisation of the function), normalises every line with `textwrap.fill` and dedents it. Here that
+  text is computed once per function and kept in memory and on disk (per source file, valid while the
+  file's mtime and size are unchanged: `_SourceStore`), and only parsed again (`ast.parse`: the
+  transformer annotates the tree, so each compile needs a fresh one).
+
+- `get_traceback`, run for every field, SNode and ndarray Taichi creates (and a field with gradients
+  is two), formats the whole Python stack with `traceback`, whose Python 3.11 formatting re-parses
+  every source line to draw carets. The text is kept only for error messages (a field declared but
+  never placed). Here: the same frames, files, lines and source lines, without the caret lines.
+
+The first two return exactly what Taichi's own functions return, so the IR, the offline-cache keys and
+the compiled kernels are unchanged (tests/test_build_overheads.py compares them).
+GS_TAICHI_FAST_FRONTEND=0 keeps Taichi's own functions.
+"""
+from __future__ import annotations
+
+import ast
+import inspect
+import linecache
+import os
+import sys
+import textwrap
+import weakref
+
+
+def install() -> bool:
+    """Replace the two front-end helpers in taichi.lang.kernel_impl; True if installed (or already)."""
+    if os.environ.get("GS_TAICHI_FAST_FRONTEND") == "0":
+        return False
+    try:
+        from taichi.lang import kernel_impl as K
+    except ImportError:
+        return False
+    if getattr(K._get_tree_and_ctx, "_gs_fast", False):
+        return True
+    needed = ("_inside_class", "_get_tree_and_ctx", "_get_global_vars", "_KERNEL_CLASS_STACKFRAME_STMT_RES",
+              "getsourcefile", "getsourcelines", "ASTTransformerContext")
+    if not all(hasattr(K, n) for n in needed):  # another Taichi layout: leave it alone
+        return False
+    patterns = K._KERNEL_CLASS_STACKFRAME_STMT_RES
+    code_position = getattr(inspect, "_get_code_position", None)
+
+    def _inside_class(level_of_class_stackframe):
+        # Taichi's: the first statement of inspect.getframeinfo(frame)[3] matched against `class ` /
+        # `@data_oriented`. getframeinfo's line is the start line of the frame's current instruction.
+        try:
+            frame = sys._getframe(level_of_class_stackframe)
+            lineno = frame.f_lineno
+            if code_position is not None:
+                pos = code_position(frame.f_code, frame.f_lasti)
+                if pos[0] is not None:
+                    lineno = pos[0]
+            line = linecache.getline(frame.f_code.co_filename, lineno, frame.f_globals).strip()
+            return any(p.match(line) for p in patterns)
+        except Exception:
+            return False
+
+    sources = weakref.WeakKeyDictionary()  # python function -> (file, normalised lines, first line, text)
+
+    def _get_tree_and_ctx(self, excluded_parameters=(), is_kernel=True, arg_features=None, args=None,
+                          ast_builder=None, is_real_function=False):
+        fn = self.func
+        hit = sources.get(fn)
+        if hit is None:
+            hit = _STORE.get(fn)
+            if hit is None:
+                file = K.getsourcefile(fn)
+                src, start_lineno = K.getsourcelines(fn)
+                src = [textwrap.fill(line, tabsize=4, width=9999) for line in src]
+                hit = (file, src, start_lineno, textwrap.dedent("\n".join(src)))
+                _STORE.put(fn, hit)
+            sources[fn] = hit
+        file, src, start_lineno, text = hit
+        tree = ast.parse(text)
+        tree.body[0].decorator_list = []
+        global_vars = K._get_global_vars(fn)
+        if is_kernel or is_real_function:
+            for i in self.template_slot_locations:
+                global_vars[self.arguments[i].name] = args[i]
+        return tree, K.ASTTransformerContext(
+            excluded_parameters=excluded_parameters, is_kernel=is_kernel, func=self, arg_features=arg_features,
+            global_vars=global_vars, argument_data=args, src=src, start_lineno=start_lineno, file=file,
+            ast_builder=ast_builder, is_real_function=is_real_function)
+
+    _get_tree_and_ctx._gs_fast = True
+    _inside_class._gs_fast = True
+    K._taichi_inside_class, K._taichi_get_tree_and_ctx = K._inside_class, K._get_tree_and_ctx
+    K._inside_class, K._get_tree_and_ctx = _inside_class, _get_tree_and_ctx
+    _install_light_traceback()
+    return True
+
+
+class _SourceStore:
+    """The normalised source of each function, kept on disk across processes: finding it (inspect
+    tokenises the file from the function's first line to the end of its block) costs ~0.5 ms a
+    function, and a scene's kernels call a hundred or more. One entry per source file, under
+    $GS_CACHE_DIR/taichi_source (default ~/.cache/genesis_lite), valid while the file's mtime and
+    size are those it was read with: an edited file is read again, as inspect would. Written at exit
+    when it gained functions; GS_MODEL_CACHE=0 keeps it off like the model cache."""
+
+    def __init__(self):
+        self.files = {}  # path -> [(mtime_ns, size), {(first line, name): value}, dirty]
+        self.registered = False
+
+    @staticmethod
+    def _key(fn):
+        code = getattr(fn, "__code__", None)
+        if code is None or not os.path.isabs(code.co_filename):
+            return None, None
+        try:
+            st = os.stat(code.co_filename)
+        except OSError:
+            return None, None
+        return (code.co_filename, (st.st_mtime_ns, st.st_size)), (code.co_firstlineno, code.co_name)
+
+    def _entry_path(self, path):
+        import hashlib
+
+        from .loaders.cache import cache_root
+
+        return os.path.join(cache_root(), "taichi_source", hashlib.sha256(path.encode()).hexdigest()[:32] + ".pkl")
+
+    def _file(self, path, state):
+        rec = self.files.get(path)
+        if rec is None or rec[0] != state:
+            funcs = {}
+            try:
+                import pickle
+
+                with open(self._entry_path(path), "rb") as f:
+                    stored = pickle.load(f)
+                if stored.get("path") == path and stored.get("state") == state:
+                    funcs = stored["funcs"]
+            except Exception:  # none yet, or unreadable: start afresh
+                pass
+            rec = self.files[path] = [state, funcs, False]
+        return rec
+
+    def get(self, fn):
+        if os.environ.get("GS_MODEL_CACHE", "1") == "0":
+            return None
+        (path, state), key = self._key(fn)
+        if path is None:
+            return None
+        return self._file(path, state)[1].get(key)
+
+    def put(self, fn, value):
+        if os.environ.get("GS_MODEL_CACHE", "1") == "0":
+            return
+        (path, state), key = self._key(fn)
+        if path is None:
+            return
+        rec = self._file(path, state)
+        rec[1][key] = value
+        rec[2] = True
+        if not self.registered:
+            import atexit
+
+            atexit.register(self.flush)
+            self.registered = True
+
+    def flush(self):
+        import pickle
+        import tempfile
+
+        for path, rec in self.files.items():
+            if not rec[2]:
+                continue
+            tmp = None
+            try:
+                entry = self._entry_path(path)
+                os.makedirs(os.path.dirname(entry), exist_ok=True)
+                fd, tmp = tempfile.mkstemp(dir=os.path.dirname(entry), suffix=".tmp")
+                with os.fdopen(fd, "wb") as f:
+                    pickle.dump({"path": path, "state": rec[0], "funcs": rec[1]}, f, protocol=pickle.HIGHEST_PROTOCOL)
+                os.replace(tmp, entry)
+                rec[2] = False
+            except Exception:
+                if tmp is not None:
+                    try:
+                        os.unlink(tmp)
+                    except OSError:
+                        pass
+
+
+_STORE = _SourceStore()
+
+
+def light_traceback(stacklevel=1):
+    """taichi.lang.util.get_traceback without caret lines: the caller's stack, outermost first, less
+    the `stacklevel` innermost frames, in traceback's "  File ..., line ..., in ...\n    source\n" form."""
+    frames = []
+    f = sys._getframe(1)
+    while f is not None:
+        frames.append(f)
+        f = f.f_back
+    frames.reverse()
+    if stacklevel > 0:
+        frames = frames[: len(frames) - stacklevel]
+    out = []
+    for f in frames:
+        code = f.f_code
+        out.append(f'  File "{code.co_filename}", line {f.f_lineno}, in {code.co_name}\n')
+        line = linecache.getline(code.co_filename, f.f_lineno).strip()
+        if line:
+            out.append(f"    {line}\n")
+    return "".join(out)
+
+
+light_traceback._gs_fast = True
+
+
+def _install_light_traceback():
+    import importlib
+
+    try:
+        from taichi.lang import util
+    except ImportError:
+        return
+    original = getattr(util, "get_traceback", None)
+    if original is None or getattr(original, "_gs_fast", False):
+        return
+    util._taichi_get_traceback = original
+    # every module that imported the function by name holds its own reference
+    for name in ("taichi.lang.util", "taichi.lang.impl", "taichi.lang.matrix", "taichi.lang.snode",
+                 "taichi.lang._ndarray"):
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        if getattr(mod, "get_traceback", None) is original:
+            mod.get_traceback = light_traceback
