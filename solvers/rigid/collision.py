@@ -109,23 +109,30 @@ def _farthest_points(V: np.ndarray, k: int) -> np.ndarray:
 
 
 def _mesh_hull_points(g, what: str, max_points: int):
-    import trimesh
-
     V = np.asarray(g.vertices, dtype=float).reshape(-1, 3) if g.vertices is not None else np.zeros((0, 3))
     if len(V) < 4 or not np.all(np.isfinite(V)):
         raise ContactBuildError(f"{what}: a collision mesh needs at least 4 finite vertices that enclose a volume "
                                 f"(it has {len(V)}); fix the mesh or use a primitive collision shape")
-    try:
-        hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
-        ok = hull.is_volume and hull.volume > 1e-12 * max(np.ptp(V, 0).max(), 1e-9) ** 3
-    except Exception:  # qhull rejects flat or degenerate point sets
-        ok = False
+    h = getattr(g, "hull", None)
+    if h is not None:
+        # the loader computed the same hull (model.GeomDesc.hull): no trimesh import on a warm start
+        hv, hc = np.asarray(h["vertices"], dtype=float), np.asarray(h["centroid"], dtype=float)
+        ok = bool(h["is_volume"]) and h["volume"] > 1e-12 * max(np.ptp(V, 0).max(), 1e-9) ** 3
+    else:
+        import trimesh
+
+        try:
+            hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
+            ok = hull.is_volume and hull.volume > 1e-12 * max(np.ptp(V, 0).max(), 1e-9) ** 3
+            hv, hc = np.asarray(hull.vertices, dtype=float), np.asarray(hull.centroid, dtype=float)
+        except Exception:  # qhull rejects flat or degenerate point sets
+            ok = False
     if not ok:
         raise ContactBuildError(f"{what}: the collision mesh has no volume (its points are flat or degenerate), so "
                                 "it has no inside to push out of; use a closed mesh that encloses a volume, a "
                                 "primitive shape, or remove the <collision> element")
-    P = _farthest_points(np.asarray(hull.vertices, dtype=float), max_points)
-    return P, np.asarray(hull.vertices, dtype=float), np.asarray(hull.centroid, dtype=float)
+    P = _farthest_points(hv, max_points)
+    return P, hv, hc
 
 
 def link_is_dynamic(solver) -> np.ndarray:
