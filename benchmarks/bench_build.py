@@ -16,8 +16,9 @@ medians over the repeats and, for each quantity, the spread (min..max).
    compile, LLVM JIT, run -- and the rest); then in the same process a second, different robot (UR5,
    full URDF) over a
    plane, then the Panda and the UR5 without a plane (no collision pairs), each add_entity + build +
-   first step. (A scene with collision pairs compiles its contact kernels anew; one without reuses
-   the kernels of the first scene of its capacity class: the UR5 row after the Panda row.)
+   first step. (A scene reuses the kernels of an earlier, dropped scene of its class: the UR5 over a
+   plane those of the Panda over a plane, whose contact kernels keep their core; the Panda alone then
+   takes a new core of the class, the UR5 alone that one.)
 3. First backward: a fresh process builds the full Panda without collision, requires_grad, runs 50
    steps under control_dofs_force from a leaf tensor, loss = |hand position|^2, and times the
    forward (compile included) and loss.backward().

@@ -12,10 +12,12 @@ links/dofs/qs, state slots) rather than by the scene, and the scene's sizes (n_e
 n_qs) and options (joint-limit springs, implicit terms) are read at run time from its small `cfg`
 fields (see `_runtime`). A scene takes a core of its class from a pool and gives it back when it dies,
 so a second scene of that class, any robot, compiles nothing. Two scenes alive at once hold two
-cores. The contact stages (contact.py) still bake their scene's sizes and constants, so a scene with
-collision pairs (or with external wrenches, external.py) runs its dynamics through a `_SceneOwner`, a
-per-scene view of the core that also owns those stages: those kernels compile per scene, everything
-else is the core's.
+cores. A scene with collision pairs (or with external wrenches, external.py) runs its dynamics through a
+`_SceneOwner`, a view of the core that also owns those stages. The contact solver's fields are sized by
+a contact class too (capacities of geoms, pairs, slots; static flags: slot kinds, SDF types, dense
+factorisation, the model's constants) and read the scene's sizes at run time, so owners with a contact
+solver are pooled as well, each keeping its core: a later scene whose contacts fit one compiles nothing
+(a robot over a plane after another). Owners with external wrenches stay per scene.
 
 A step is a schedule of ops per substep (dynamics + factor-solve at a slot, integrate, copy-back).
 Without gradients it runs as one fused kernel. With gradients each substep runs op by op
@@ -27,6 +29,7 @@ integration kernels are recorded as they are.
 """
 
 import gc
+import os
 import weakref
 from typing import List
 
@@ -76,19 +79,24 @@ class _ForwardCompile:
 
     Its whole-kernel passes cost time superlinear in a kernel's size: the fused step of a scene with
     contacts (dynamics, the contact stages, the three contact solves with their passes, integration:
-    one loop body) compiled in ~45 s with them and ~6 s without, at the same run time
-    (benchmarks/bench_build.py). float64 runs without them anyway (gs.init); float32 keeps them for the
-    kernels that Taichi differentiates, whose adjoints need them (see gs.init), hence this is set around
-    forward launches only: the option is read when a kernel compiles (and is part of the offline
-    cache's key), so an adjoint compiled later, outside, gets gs.init's setting."""
+    one loop body) compiled in ~45 s with them and ~6 s without (benchmarks/bench_build.py), and steps
+    ~10 % slower in float32 (ANYmal on the ground 61 -> 69 us, four stacked boxes 95 -> 105 us, the
+    Panda over a plane unchanged; GS_FORWARD_ADVANCED_OPTIMIZATION=1 keeps gs.init's setting, for long
+    runs where that matters more than the compile). float64 runs without them anyway (gs.init); float32
+    keeps them for the kernels that Taichi differentiates, whose adjoints need them (see gs.init), hence
+    this is set around forward launches only: the option is read when a kernel compiles (and is part
+    of the offline cache's key), so an adjoint compiled later, outside, gets gs.init's setting."""
 
     def __enter__(self):
         cfg = impl.current_cfg()
         self.was = cfg.advanced_optimization
-        cfg.advanced_optimization = False
+        cfg.advanced_optimization = self.was and KEEP_FORWARD_ADVANCED_OPTIMIZATION
 
     def __exit__(self, *exc):
         impl.current_cfg().advanced_optimization = self.was
+
+
+KEEP_FORWARD_ADVANCED_OPTIMIZATION = os.environ.get("GS_FORWARD_ADVANCED_OPTIMIZATION") == "1"
 
 
 def _cap_envs(n_envs: int) -> int:
@@ -721,9 +729,9 @@ class RigidCore(_Kernels):
 @ti.data_oriented
 class _SceneOwner(_Kernels):
     """A scene's view of its core that also owns the scene's own dynamics stages: its contact solver
-    and/or its external wrenches (their code bakes the scene's sizes and constants). The kernels that
-    include them compile on this object, once per scene; every other field and size read goes to the
-    core."""
+    and/or its external wrenches. The kernels that include them compile on this object; every other
+    field and size read goes to the core. With a contact solver alone it is pooled (_Pool.acquire_owner)
+    and serves later scenes of its contact class; with external wrenches it is the scene's own."""
 
     dense_solve = False
 
