@@ -368,9 +368,13 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand):
 @ti.func
 def func_contact_slots(s: ti.template(), i_b, e, src, h):
     """Geometry and normal force of every slot of an active pair. Single-assignment form (see
-    kinematics.py): the contact's on/off is a 0/1 mask."""
+    kinematics.py): the contact's on/off is a 0/1 mask. The mask is cleared first and set only in the
+    innermost branch: with `else` branches that write it, Taichi 1.7.4's reverse mode built an invalid
+    IR for this loop in float32 (verify.cpp: block parent mismatch), so no float32 scene with contacts
+    could take a gradient."""
     c = s.contact
     for i_s in range(c.n_slots):
+        c.sl_on[i_b, i_s] = 0
         if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
             pos, n, depth = func_slot_geometry(s, i_b, i_s)
             la = c.geom_link[c.slot_ga[i_s]]
@@ -385,10 +389,6 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
             cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
             if near | cand:
                 func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand)
-            else:
-                c.sl_on[i_b, i_s] = 0
-        else:
-            c.sl_on[i_b, i_s] = 0
 
 
 @ti.func
