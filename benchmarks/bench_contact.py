@@ -1,7 +1,7 @@
 """Contact: stepping speed of a quadruped on the ground against MuJoCo, the cost of collision in a scene
 without collision pairs, and a stability stress table.
 
-    python benchmarks/bench_contact.py [--quick] [--envs 1024] [--plot out.png] [--json out.json]
+    python benchmarks/bench_contact.py [--quick] [--envs 1024] [--precision 64] [--skip-stress] [--plot out.png] [--json out.json]
 
 Speed scene (same for both engines): example-robot-data's ANYmal B (URDF with its box, cylinder and
 sphere collision shapes, 41 geoms) with a free base on a ground plane, every robot geom against the
@@ -194,14 +194,14 @@ def _gl_quadruped(gs, n_envs, plane=True, collision=True):
     return scene, robot, dofs, q0
 
 
-def worker_speed(n_envs, steps_1, steps_b, repeats, paired_threads=0):
+def worker_speed(n_envs, steps_1, steps_b, repeats, paired_threads=0, precision="64"):
     """genesis_lite's rates; with paired_threads > 0 the batched one alternates run for run with MuJoCo's
     rollout on that many threads in this process (both under the same load; see bench_rigid.py)."""
     import statistics
 
     import genesis_lite as gs
 
-    gs.init(backend=gs.cpu, precision="64")
+    gs.init(backend=gs.cpu, precision=precision)
     out = {}
     with Timer() as tb:
         scene, robot, dofs, q0 = _gl_quadruped(gs, 0)
@@ -351,9 +351,10 @@ def _worker_main(argv):
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--qsteps", type=int, default=10000)
     ap.add_argument("--paired-threads", type=int, default=0)
+    ap.add_argument("--precision", default="64")
     a = ap.parse_args(argv)
     if a.worker == "speed":
-        res = worker_speed(a.envs, a.steps1, a.stepsb, a.repeats, a.paired_threads)
+        res = worker_speed(a.envs, a.steps1, a.stepsb, a.repeats, a.paired_threads, a.precision)
     else:
         res = worker_stress(a.qsteps)
     print(json.dumps(res), flush=True)
@@ -373,6 +374,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="fewer steps (a smoke run)")
     ap.add_argument("--envs", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=2, help="MuJoCo rollout threads")
+    ap.add_argument("--precision", default="64", choices=["32", "64"], help="genesis_lite float precision (speed table)")
     ap.add_argument("--skip-stress", action="store_true")
     ap.add_argument("--plot", type=Path, default=None, help="write a bar chart PNG (needs matplotlib)")
     ap.add_argument("--json", type=Path, default=None, help="write the results as JSON")
@@ -386,7 +388,7 @@ def main():
     mj = mujoco_rates(urdf, args.envs, steps_1 * 5, steps_b, args.threads, repeats)
     print("genesis_lite ...", flush=True)
     gl, err = _child("speed", envs=args.envs, steps1=steps_1, stepsb=steps_b, repeats=repeats,
-                     **{"paired-threads": args.threads})
+                     precision=args.precision, **{"paired-threads": args.threads})
     rows = [
         {"engine": f"MuJoCo {mj['version']} mj_step loop", "envs": 1, "rate": mj["rate_1"], "ratio": 1.0,
          "note": f"{mj['ncon']} contacts"},
@@ -394,9 +396,9 @@ def main():
     ]
     if gl:
         rows += [
-            {"engine": "genesis_lite (f64, CPU)", "envs": 1, "rate": gl["rate_1"], "ratio": gl["rate_1"] / mj["rate_1"],
+            {"engine": f"genesis_lite (f{args.precision}, CPU)", "envs": 1, "rate": gl["rate_1"], "ratio": gl["rate_1"] / mj["rate_1"],
              "note": f"{gl['ncon']} contacts of {gl['slots']} slots; build {gl['build_1']:.1f} s"},
-            {"engine": "genesis_lite (f64, CPU)", "envs": args.envs, "rate": gl["rate_b"],
+            {"engine": f"genesis_lite (f{args.precision}, CPU)", "envs": args.envs, "rate": gl["rate_b"],
              "ratio": gl["rate_b"] / mj["rate_b"], "paired": gl.get("paired_ratio"),
              "note": f"build {gl['build_b']:.1f} s; paired with MuJoCo's rollout in its process: "
                      f"{gl['paired_ratio']:.2f}x (MuJoCo {gl['mj_rate_b']:,.0f} there)"},

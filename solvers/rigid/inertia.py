@@ -9,6 +9,8 @@ import taichi as ti
 
 from .math3d import func_add, func_inertia_mul
 
+LOCAL_SOLVE_MAX = 16  # element capacity up to which the no-gradient factor-solve runs on local copies
+
 
 @ti.func
 def func_link_inertia(s: ti.template(), i_b, e, src, h):
@@ -95,8 +97,9 @@ def func_solve(s: ti.template(), i_b, x: ti.template(), e):
 @ti.func
 def func_factor_solve(s: ti.template(), i_b, e):
     """qacc[e] = M^-1 force. With gradients the factor stays in mass_fac for func_solve_grad; without,
-    func_factor_solve_local."""
-    if ti.static(s.requires_grad):
+    and for up to LOCAL_SOLVE_MAX dofs, func_factor_solve_local (beyond, zeroing its local copy of
+    the capacity's N x N costs more than it saves: ANYmal's class, N = 32, was slower)."""
+    if ti.static(s.requires_grad or s.cap_elems > LOCAL_SOLVE_MAX):
         func_factor(s, i_b)
         for i in range(s.n_dofs):
             s.qacc[e, i_b, i] = s.force[i_b, i]
