@@ -58,20 +58,27 @@ def func_mass_matrix(s: ti.template(), i_b, e, src, h):
 @ti.func
 def func_factor(s: ti.template(), i_b):
     """In-place L^T D L of the (regularised) mass matrix into mass_fac; sparsity of the dof tree."""
+    func_factor_to(s, i_b, s.mass_fac)
+
+
+@ti.func
+def func_factor_to(s: ti.template(), i_b, F: ti.template()):
+    """func_factor into F (a [env, dof, dof] field; only its lower triangle is written): the contact
+    solve keeps its intermediate factors in their own fields instead of copying mass_fac."""
     n = s.n_dofs
     for i in range(n):
         for j in range(i + 1):
-            s.mass_fac[i_b, i, j] = s.mass_mat[i_b, i, j]
+            F[i_b, i, j] = s.mass_mat[i_b, i, j]
     for kk in range(n):
         k = n - 1 - kk
         i = s.dof_parent[k]
         while i >= 0:
-            a = s.mass_fac[i_b, k, i] / s.mass_fac[i_b, k, k]
+            a = F[i_b, k, i] / F[i_b, k, k]
             j = i
             while j >= 0:
-                s.mass_fac[i_b, i, j] = s.mass_fac[i_b, i, j] - a * s.mass_fac[i_b, k, j]
+                F[i_b, i, j] = F[i_b, i, j] - a * F[i_b, k, j]
                 j = s.dof_parent[j]
-            s.mass_fac[i_b, k, i] = a
+            F[i_b, k, i] = a
             i = s.dof_parent[i]
 
 
