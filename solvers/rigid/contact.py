@@ -81,7 +81,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from .inertia import func_factor, func_factor_solve
+from .inertia import func_factor_solve, func_factor_to
 from .collision import (N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 
@@ -371,8 +371,12 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
     kinematics.py): the contact's on/off is a 0/1 mask. The mask is cleared first and set only in the
     innermost branch: with `else` branches that write it, Taichi 1.7.4's reverse mode built an invalid
     IR for this loop in float32 (verify.cpp: block parent mismatch), so no float32 scene with contacts
-    could take a gradient."""
+    could take a gradient. Without gradients the slots that are on are
+    also listed (sl_list[i_b, :n_on[i_b]], in slot order) for the solve's passes, which then visit only
+    those (a robot's geoms against the ground: a few of some hundred slots touch)."""
     c = s.contact
+    if ti.static(not s.requires_grad):
+        c.n_on[i_b] = 0
     for i_s in range(c.n_slots):
         c.sl_on[i_b, i_s] = 0
         if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
@@ -389,6 +393,10 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
             cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
             if near | cand:
                 func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand)
+        if ti.static(not s.requires_grad):
+            if c.sl_on[i_b, i_s] == 1:
+                c.sl_list[i_b, c.n_on[i_b]] = i_s
+                c.n_on[i_b] = c.n_on[i_b] + 1
 
 
 @ti.func
@@ -486,32 +494,54 @@ def func_p1_motion(s: ti.template(), i_b):
 
 
 @ti.func
+def func_p1_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), add: ti.template()):
+    """Pass 1 for touching slot i_s at the link motion (lw, lv) of the first solve; with `add` its change
+    added onto bank_d. Returns 1 if the slot changes the system (a candidate, or a dropped contact)."""
+    c = s.contact
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    h = c.eval_h[i_b]
+    du = func_rel_motion(s, i_b, i_s, pos, lw, lv).dot(n)
+    depth = c.sl_depth[i_b, i_s]
+    # a contact acting at the start-of-step velocity keeps its linear law (dropped if its force
+    # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
+    # start-of-step velocity, was ~0): it acts if the law pushes there
+    lin = c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / h * du
+    f1, w1, _ = func_normal_law(c, depth, depth - h * (u0.dot(n) + du), h)
+    cand = c.sl_cand[i_b, i_s] == 1
+    keep = ti.select(cand, f1 > 0, lin > 0)
+    F1 = ti.select(keep, ti.select(cand, f1 + w1 / h * du, c.sl_Fn[i_b, i_s]), 0.0)
+    W1 = ti.select(keep, ti.select(cand, w1, c.sl_wn[i_b, i_s]), 0.0)
+    c.sl_Fn1[i_b, i_s] = F1
+    c.sl_wn1[i_b, i_s] = W1
+    c.sl_keep1[i_b, i_s] = ti.select(keep, 1, 0)
+    if ti.static(add):
+        func_bank_add(s, c.bank_d, i_b, i_s, pos, (F1 - c.sl_Fn[i_b, i_s]) * n,
+                      (W1 - c.sl_wn[i_b, i_s]) * n.outer_product(n))
+    return ti.select(cand | (not keep), 1, 0)
+
+
+@ti.func
 def func_p1_slots(s: ti.template(), i_b):
     """Per touching slot: the normal force the first solve applied; a contact whose force pulled (a
     speculative contact that another contact stopped first, or one that separates) leaves the system."""
     c = s.contact
     for i_s in range(c.n_slots):
         if c.sl_on[i_b, i_s] == 1:
-            pos = c.sl_pos[i_b, i_s]
-            n = c.sl_n[i_b, i_s]
-            u0 = c.sl_u[i_b, i_s]
-            h = c.eval_h[i_b]
-            du = func_rel_motion(s, i_b, i_s, pos, c.lv1_w, c.lv1_v).dot(n)
-            depth = c.sl_depth[i_b, i_s]
-            # a contact acting at the start-of-step velocity keeps its linear law (dropped if its force
-            # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
-            # start-of-step velocity, was ~0): it acts if the law pushes there
-            lin = c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / h * du
-            f1, w1, _ = func_normal_law(c, depth, depth - h * (u0.dot(n) + du), h)
-            cand = c.sl_cand[i_b, i_s] == 1
-            keep = ti.select(cand, f1 > 0, lin > 0)
-            F1 = ti.select(keep, ti.select(cand, f1 + w1 / h * du, c.sl_Fn[i_b, i_s]), 0.0)
-            W1 = ti.select(keep, ti.select(cand, w1, c.sl_wn[i_b, i_s]), 0.0)
-            c.sl_Fn1[i_b, i_s] = F1
-            c.sl_wn1[i_b, i_s] = W1
-            c.sl_keep1[i_b, i_s] = ti.select(keep, 1, 0)
-            func_bank_add(s, c.bank_d, i_b, i_s, pos, (F1 - c.sl_Fn[i_b, i_s]) * n,
-                          (W1 - c.sl_wn[i_b, i_s]) * n.outer_product(n))
+            func_p1_slot(s, i_b, i_s, c.lv1_w, c.lv1_v, True)
+
+
+@ti.func
+def func_p1_add_listed(s: ti.template(), i_b):
+    """bank_d <- the changes func_p1_slot (without `add`) stored, for the listed slots in slot order:
+    the same sums as func_p1_slots' (a kept contact adds exact zeros)."""
+    c = s.contact
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        n = c.sl_n[i_b, i_s]
+        func_bank_add(s, c.bank_d, i_b, i_s, c.sl_pos[i_b, i_s], (c.sl_Fn1[i_b, i_s] - c.sl_Fn[i_b, i_s]) * n,
+                      (c.sl_wn1[i_b, i_s] - c.sl_wn[i_b, i_s]) * n.outer_product(n))
 
 
 @ti.func
@@ -553,17 +583,32 @@ def func_p2_slots(s: ti.template(), i_b):
     c = s.contact
     for i_s in range(c.n_slots):
         if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep1[i_b, i_s] == 1):
-            pos = c.sl_pos[i_b, i_s]
-            n = c.sl_n[i_b, i_s]
-            u0 = c.sl_u[i_b, i_s]
-            u2 = u0 + func_rel_motion(s, i_b, i_s, pos, c.lv2_w, c.lv2_v)
-            f2 = func_normal_after(c, i_b, i_s, u0, u2, n)
-            u2t = u2 - u2.dot(n) * n
-            g2 = u2t / ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
-            c.sl_u2[i_b, i_s] = u2
-            c.sl_f2[i_b, i_s] = f2
-            load = ti.max(f2, 0.0)
-            func_bank_add(s, c.bank_c, i_b, i_s, pos, -c.sl_mu[i_b, i_s] * load * g2, ti.Matrix.zero(s.dtype, 3, 3))
+            func_p2_slot(s, i_b, i_s)
+
+
+@ti.func
+def func_p2_slot(s: ti.template(), i_b, i_s):
+    c = s.contact
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    u2 = u0 + func_rel_motion(s, i_b, i_s, pos, c.lv2_w, c.lv2_v)
+    f2 = func_normal_after(c, i_b, i_s, u0, u2, n)
+    u2t = u2 - u2.dot(n) * n
+    g2 = u2t / ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+    c.sl_u2[i_b, i_s] = u2
+    c.sl_f2[i_b, i_s] = f2
+    load = ti.max(f2, 0.0)
+    func_bank_add(s, c.bank_c, i_b, i_s, pos, -c.sl_mu[i_b, i_s] * load * g2, ti.Matrix.zero(s.dtype, 3, 3))
+
+
+@ti.func
+def func_p2_slots_listed(s: ti.template(), i_b):
+    c = s.contact
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        if c.sl_keep1[i_b, i_s] == 1:
+            func_p2_slot(s, i_b, i_s)
 
 
 @ti.func
@@ -607,29 +652,48 @@ def func_p3_slots(s: ti.template(), i_b):
     c = s.contact
     for i_s in range(c.n_slots):
         if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep1[i_b, i_s] == 1):
-            h = c.eval_h[i_b]
-            pos = c.sl_pos[i_b, i_s]
-            n = c.sl_n[i_b, i_s]
-            u0 = c.sl_u[i_b, i_s]
-            u2 = c.sl_u2[i_b, i_s]
-            f2 = c.sl_f2[i_b, i_s]
-            u2t = u2 - u2.dot(n) * n
-            s2 = ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
-            uc = u2 + func_rel_motion(s, i_b, i_s, pos, c.lvc_w, c.lvc_v)
-            w = (uc - uc.dot(n) * n).dot(u2t) / s2
-            # slip speed ahead, smoothly clipped at 0 (a reversal means the contact sticks)
-            wc = ti.min(ti.max(w / c.eps, -60.0), 60.0)
-            vp = ti.max(w, 0.0) + c.eps * ti.log(1.0 + ti.exp(-ti.abs(wc)))
-            keep = f2 > 0
-            eta = c.sl_mu[i_b, i_s] * ti.max(f2, 0.0) / ti.sqrt(vp * vp + c.eps * c.eps)
-            drop = ti.select(keep, 0.0, 1.0)
-            nn = n.outer_product(n)
-            u0t = u0 - u0.dot(n) * n
-            dF = -eta * u0t - drop * c.sl_Fn1[i_b, i_s] * n
-            dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn1[i_b, i_s] * nn
-            func_bank_add(s, c.bank_t, i_b, i_s, pos, dF, dW)
-            c.sl_eta[i_b, i_s] = eta
-            c.sl_keep[i_b, i_s] = ti.select(keep, 1, 0)
+            func_p3_slot(s, i_b, i_s)
+        else:
+            c.sl_keep[i_b, i_s] = 0
+
+
+@ti.func
+def func_p3_slot(s: ti.template(), i_b, i_s):
+    c = s.contact
+    h = c.eval_h[i_b]
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    u2 = c.sl_u2[i_b, i_s]
+    f2 = c.sl_f2[i_b, i_s]
+    u2t = u2 - u2.dot(n) * n
+    s2 = ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+    uc = u2 + func_rel_motion(s, i_b, i_s, pos, c.lvc_w, c.lvc_v)
+    w = (uc - uc.dot(n) * n).dot(u2t) / s2
+    # slip speed ahead, smoothly clipped at 0 (a reversal means the contact sticks)
+    wc = ti.min(ti.max(w / c.eps, -60.0), 60.0)
+    vp = ti.max(w, 0.0) + c.eps * ti.log(1.0 + ti.exp(-ti.abs(wc)))
+    keep = f2 > 0
+    eta = c.sl_mu[i_b, i_s] * ti.max(f2, 0.0) / ti.sqrt(vp * vp + c.eps * c.eps)
+    drop = ti.select(keep, 0.0, 1.0)
+    nn = n.outer_product(n)
+    u0t = u0 - u0.dot(n) * n
+    dF = -eta * u0t - drop * c.sl_Fn1[i_b, i_s] * n
+    dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn1[i_b, i_s] * nn
+    func_bank_add(s, c.bank_t, i_b, i_s, pos, dF, dW)
+    c.sl_eta[i_b, i_s] = eta
+    c.sl_keep[i_b, i_s] = ti.select(keep, 1, 0)
+
+
+@ti.func
+def func_p3_slots_listed(s: ti.template(), i_b):
+    """func_p3_slots over the listed slots (sl_keep is then written for those only: every reader
+    visits listed slots only)."""
+    c = s.contact
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        if c.sl_keep1[i_b, i_s] == 1:
+            func_p3_slot(s, i_b, i_s)
         else:
             c.sl_keep[i_b, i_s] = 0
 
@@ -660,17 +724,33 @@ def func_contact_report(s: ti.template(), i_b, e):
     readers: not differentiated, own link-velocity fields."""
     c = s.contact
     func_link_motion(s, s.qacc, e, i_b, c.lvr_w, c.lvr_v)
-    for i_s in range(c.n_slots):
-        if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep[i_b, i_s] == 1):
-            pos = c.sl_pos[i_b, i_s]
-            n = c.sl_n[i_b, i_s]
-            u0 = c.sl_u[i_b, i_s]
-            u3 = u0 + func_rel_motion(s, i_b, i_s, pos, c.lvr_w, c.lvr_v)
-            f3 = func_normal_after(c, i_b, i_s, u0, u3, n)
-            c.c_fn[i_b, i_s] = ti.max(f3, 0.0)
-            c.c_force[i_b, i_s] = f3 * n - c.sl_eta[i_b, i_s] * (u3 - u3.dot(n) * n)
-        else:
-            c.c_fn[i_b, i_s] = 0.0
+    if ti.static(s.requires_grad):
+        for i_s in range(c.n_slots):
+            if (c.sl_on[i_b, i_s] == 1) & (c.sl_keep[i_b, i_s] == 1):
+                func_report_slot(s, i_b, i_s)
+            else:
+                c.c_fn[i_b, i_s] = 0.0
+    else:
+        # the other slots' c_fn is left as it was: read() masks it with sl_on (as it masks inactive
+        # pairs), and sl_keep is only read where sl_on is set
+        for k in range(c.n_on[i_b]):
+            i_s = c.sl_list[i_b, k]
+            if c.sl_keep[i_b, i_s] == 1:
+                func_report_slot(s, i_b, i_s)
+            else:
+                c.c_fn[i_b, i_s] = 0.0
+
+
+@ti.func
+def func_report_slot(s: ti.template(), i_b, i_s):
+    c = s.contact
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    u3 = u0 + func_rel_motion(s, i_b, i_s, pos, c.lvr_w, c.lvr_v)
+    f3 = func_normal_after(c, i_b, i_s, u0, u3, n)
+    c.c_fn[i_b, i_s] = ti.max(f3, 0.0)
+    c.c_force[i_b, i_s] = f3 * n - c.sl_eta[i_b, i_s] * (u3 - u3.dot(n) * n)
 
 
 PASS1 = (func_p1_clear, func_p1_motion, func_p1_slots, func_p1_tree, func_p1_dof, func_p1_project)
@@ -678,6 +758,12 @@ PASS1_CROSS = (func_p1_clear_pairs,) + PASS1 + (func_p1_cross,)
 PASS2 = (func_p2_clear, func_p2_motion, func_p2_slots, func_p2_tree, func_p2_dof)
 PASS3 = (func_p3_clear, func_p3_motion, func_p3_slots, func_p3_tree, func_p3_dof, func_p3_project)
 PASS3_CROSS = (func_p3_clear_pairs,) + PASS3 + (func_p3_cross,)
+# the fused step without gradients (func_contact_solve): pass 1's sums once its slots are known to change
+# the system, and pass 3 over the listed slots
+PASS1_ACC = (func_p1_clear, func_p1_add_listed, func_p1_tree, func_p1_dof, func_p1_project)
+PASS1_ACC_CROSS = (func_p1_clear_pairs,) + PASS1_ACC + (func_p1_cross,)
+PASS3_LISTED = (func_p3_clear, func_p3_motion, func_p3_slots_listed, func_p3_tree, func_p3_dof, func_p3_project)
+PASS3_LISTED_CROSS = (func_p3_clear_pairs,) + PASS3_LISTED + (func_p3_cross,)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -687,20 +773,22 @@ PASS3_CROSS = (func_p3_clear_pairs,) + PASS3 + (func_p3_cross,)
 # ------------------------------------------------------------------------------------------------
 @ti.func
 def func_tree_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
-    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with the tree L^T D L factor of A in Fc (inertia.func_solve)."""
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with the tree L^T D L factor of A in Fc (inertia.func_solve).
+    Read-modify-writes spelled out: `-=` on a field in the env loop compiles to an atomic (a
+    compare-and-swap loop), and these solves are never differentiated by Taichi."""
     n = s.n_dofs
     for kk in range(n):
         i = n - 1 - kk
         j = s.dof_parent[i]
         while j >= 0:
-            x[e, i_b, j] -= Fc[i_b, i, j] * x[e, i_b, i]
+            x[e, i_b, j] = x[e, i_b, j] - Fc[i_b, i, j] * x[e, i_b, i]
             j = s.dof_parent[j]
     for i in range(n):
-        x[e, i_b, i] /= Fc[i_b, i, i]
+        x[e, i_b, i] = x[e, i_b, i] / Fc[i_b, i, i]
     for i in range(n):
         j = s.dof_parent[i]
         while j >= 0:
-            x[e, i_b, i] -= Fc[i_b, i, j] * x[e, i_b, j]
+            x[e, i_b, i] = x[e, i_b, i] - Fc[i_b, i, j] * x[e, i_b, j]
             j = s.dof_parent[j]
 
 
@@ -714,7 +802,7 @@ def func_dense_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(),
             acc -= Fc[i_b, i, k] * x[e, i_b, k]
         x[e, i_b, i] = acc
     for i in range(n):
-        x[e, i_b, i] /= Fc[i_b, i, i]
+        x[e, i_b, i] = x[e, i_b, i] / Fc[i_b, i, i]
     for ii in range(n):
         i = n - 1 - ii
         acc = x[e, i_b, i]
@@ -726,21 +814,27 @@ def func_dense_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(),
 @ti.func
 def func_factor_dense(s: ti.template(), i_b):
     """mass_fac <- L D L^T of A = M (tree entries) + mass_cross, dense."""
+    func_factor_dense_to(s, i_b, s.mass_fac)
+
+
+@ti.func
+def func_factor_dense_to(s: ti.template(), i_b, F: ti.template()):
+    """func_factor_dense into F (lower triangle only)."""
     c = s.contact
     n = s.n_dofs
     for i in range(n):
         for j in range(i + 1):
-            s.mass_fac[i_b, i, j] = s.mass_mat[i_b, i, j] * s.dof_anc[i, j] + c.mass_cross[i_b, i, j]
+            F[i_b, i, j] = s.mass_mat[i_b, i, j] * s.dof_anc[i, j] + c.mass_cross[i_b, i, j]
     for j in range(n):
-        dj = s.mass_fac[i_b, j, j]
+        dj = F[i_b, j, j]
         for k in range(j):
-            dj -= s.mass_fac[i_b, j, k] * s.mass_fac[i_b, j, k] * s.mass_fac[i_b, k, k]
-        s.mass_fac[i_b, j, j] = dj
+            dj -= F[i_b, j, k] * F[i_b, j, k] * F[i_b, k, k]
+        F[i_b, j, j] = dj
         for i in range(j + 1, n):
-            v = s.mass_fac[i_b, i, j]
+            v = F[i_b, i, j]
             for k in range(j):
-                v -= s.mass_fac[i_b, i, k] * s.mass_fac[i_b, j, k] * s.mass_fac[i_b, k, k]
-            s.mass_fac[i_b, i, j] = v / dj
+                v -= F[i_b, i, k] * F[i_b, j, k] * F[i_b, k, k]
+            F[i_b, i, j] = v / dj
 
 
 @ti.func
@@ -787,16 +881,15 @@ def func_solve_grad_dense(s: ti.template(), i_b, e):
 
 @ti.func
 def func_factor_into(s: ti.template(), i_b, Fc: ti.template(), x: ti.template()):
-    """Factor the current system (mass_mat, and mass_cross in dense scenes) into mass_fac, keep a copy in
-    Fc, and solve x[0] = A^-1 force with it."""
+    """Factor the current system (mass_mat, and mass_cross in dense scenes) into Fc (kept for the later
+    solves and the adjoints; the solves read its lower triangle only), and solve x[0] = A^-1 force
+    with it."""
     c = s.contact
     if ti.static(c.dense):
-        func_factor_dense(s, i_b)
+        func_factor_dense_to(s, i_b, Fc)
     else:
-        func_factor(s, i_b)
+        func_factor_to(s, i_b, Fc)
     n = s.n_dofs
-    for ij in range(n * n):
-        Fc[i_b, ij // n, ij % n] = s.mass_fac[i_b, ij // n, ij % n]
     for i in range(n):
         x[0, i_b, i] = s.force[i_b, i]
     func_any_solve(s, Fc, i_b, x, 0)
@@ -834,17 +927,44 @@ def func_solve_coulomb(s: ti.template(), i_b):
 @ti.func
 def func_contact_solve(s: ti.template(), i_b, e):
     """The solve of a scene with contacts, all stages for one env (the fused step; see
-    ContactSolver.factor_solve)."""
+    ContactSolver.factor_solve). Without gradients (nothing reads the intermediate factors and
+    solutions back) the same results are computed with less work:
+    - the passes visit the slots listed by func_contact_slots, not all the scene's slots;
+    - an env with no slot on skips to the final solve (every pass adds nothing: A3 = A1 = M);
+    - the first solve goes to fac2/qacc2 and its link motion to lv2; when pass 1 changes nothing (no
+      candidate, no dropped contact: its sums are exact zeros, A2 == A1 and force unchanged) those are
+      the second solve's and its motion, and pass 1's sums, the second factorisation and solve and pass
+      2's link motion are skipped."""
     c = s.contact
-    func_solve_first(s, i_b)
-    for stage in ti.static(c.pass1):
-        stage(s, i_b)
-    func_solve_second(s, i_b)
-    for stage in ti.static(PASS2):
-        stage(s, i_b)
-    func_solve_coulomb(s, i_b)
-    for stage in ti.static(c.pass3):
-        stage(s, i_b)
+    if ti.static(s.requires_grad):
+        func_solve_first(s, i_b)
+        for stage in ti.static(c.pass1):
+            stage(s, i_b)
+        func_solve_second(s, i_b)
+        for stage in ti.static(PASS2):
+            stage(s, i_b)
+        func_solve_coulomb(s, i_b)
+        for stage in ti.static(c.pass3):
+            stage(s, i_b)
+    else:
+        if c.n_on[i_b] > 0:
+            func_factor_into(s, i_b, c.fac2, c.qacc2)
+            func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
+            changed = 0
+            for k in range(c.n_on[i_b]):
+                changed |= func_p1_slot(s, i_b, c.sl_list[i_b, k], c.lv2_w, c.lv2_v, False)
+            if changed:
+                for stage in ti.static(c.pass1_acc):
+                    stage(s, i_b)
+                func_factor_into(s, i_b, c.fac2, c.qacc2)
+                func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
+            func_p2_clear(s, i_b)
+            func_p2_slots_listed(s, i_b)
+            func_p2_tree(s, i_b)
+            func_p2_dof(s, i_b)
+            func_solve_coulomb(s, i_b)
+            for stage in ti.static(c.pass3_listed):
+                stage(s, i_b)
     if ti.static(c.dense):
         func_factor_solve_dense(s, i_b, e)
     else:
@@ -1008,6 +1128,8 @@ class ContactSolver:
         self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_f2 = F((B, S)), F((B, S)), F((B, S)), F((B, S))
         self.sl_depth, self.sl_Fn1, self.sl_wn1 = F((B, S)), F((B, S)), F((B, S))
         self.sl_keep1, self.sl_cand = I((B, S)), I((B, S))
+        # without gradients: the slots that are on, in slot order (func_contact_slots), and their count
+        self.sl_list, self.n_on = I((B, S)), I(B)
         self.bank_n = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_d = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_c = AccBank(B, L, D, 0, f, g, False)
@@ -1032,6 +1154,7 @@ class ContactSolver:
 
         self.stages = CONTACT_STAGES
         self.pass1, self.pass3 = PASS1, PASS3
+        self.pass1_acc, self.pass3_listed = PASS1_ACC, PASS3_LISTED
         # adjoints cleared before each solve's backward (read from the passes' backward onwards)
         self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u2, self.sl_Fn, self.sl_depth,
                                      self.sl_Fn1, self.sl_wn1,
@@ -1045,6 +1168,7 @@ class ContactSolver:
         if self.dense:
             self.stages = CROSS_STAGES
             self.pass1, self.pass3 = PASS1_CROSS, PASS3_CROSS
+            self.pass1_acc, self.pass3_listed = PASS1_ACC_CROSS, PASS3_LISTED_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
 
@@ -1266,7 +1390,9 @@ class ContactSolver:
         """numpy views of the last evaluation: dict of position, normal, force (on the point side),
         depth, fn (normal force magnitude, 0 when not touching), each (B, n_slots[, 3])."""
         B, S = self.n_envs, self.plan.n_slots
-        active = self.pair_active.to_numpy()[:B][:, self.np_slot_pair] == 1
+        # without gradients the report writes c_fn of the slots that are on only (func_contact_report)
+        active = ((self.pair_active.to_numpy()[:B][:, self.np_slot_pair] == 1)
+                  & (self.sl_on.to_numpy()[:B, :S] == 1))
         return {"position": self.c_pos.to_numpy()[:B, :S], "normal": self.c_normal.to_numpy()[:B, :S],
                 "force": self.c_force.to_numpy()[:B, :S], "depth": self.c_depth.to_numpy()[:B, :S],
                 "fn": np.where(active, self.c_fn.to_numpy()[:B, :S], 0.0)}

@@ -63,11 +63,37 @@ def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
         follower = lead >= 0
         j = ti.max(lead, 0)
         m = s.dof_mimic_mult[i_d]
-        v_own, move_own = func_dof_update(s, i_b, kind, e, base, src, h, i_d)
-        v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
-        gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
-        s.qvel[dst, i_b, i_d] = ti.select(follower, m * v_lead, v_own)
-        s.veff[e, i_b, i_d] = ti.select(follower, m * move_lead + gap / h, move_own)
+        if ti.static(s.requires_grad):
+            v_own, move_own = func_dof_update(s, i_b, kind, e, base, src, h, i_d)
+            v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
+            gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
+            s.qvel[dst, i_b, i_d] = ti.select(follower, m * v_lead, v_own)
+            s.veff[e, i_b, i_d] = ti.select(follower, m * move_lead + gap / h, move_own)
+        else:
+            # without gradients a branch: the leader's update only for followers, and the Euler update
+            # without the RK slots' reads (the same numbers as the selects above)
+            if follower:
+                v_lead, move_lead = func_dof_update_branch(s, i_b, kind, e, base, src, h, j)
+                gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
+                s.qvel[dst, i_b, i_d] = m * v_lead
+                s.veff[e, i_b, i_d] = m * move_lead + gap / h
+            else:
+                v_own, move_own = func_dof_update_branch(s, i_b, kind, e, base, src, h, i_d)
+                s.qvel[dst, i_b, i_d] = v_own
+                s.veff[e, i_b, i_d] = move_own
+
+
+@ti.func
+def func_dof_update_branch(s: ti.template(), i_b, kind, e, base, src, h, j):
+    """func_dof_update with a branch on the kind (no-gradient path): Euler reads only its own slots."""
+    v_new = ti.cast(0.0, s.dtype)
+    v_move = ti.cast(0.0, s.dtype)
+    if kind == INT_EULER:
+        v_new = s.qvel[base, i_b, j] + h * s.qacc[e, i_b, j]
+        v_move = v_new
+    else:
+        v_new, v_move = func_dof_update(s, i_b, kind, e, base, src, h, j)
+    return v_new, v_move
 
 
 INTEGRATE = (func_integrate_qvel, func_integrate_qpos)
