@@ -39,6 +39,7 @@ from typing import List
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl
 
 
 GEOM_PLANE, GEOM_SPHERE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH = 0, 1, 2, 3, 4, 5
@@ -432,6 +433,13 @@ def func_sdf_any(c: ti.template(), k: ti.template(), tb, g, q, chat, beta):
         return ti.select(tb == T, phi, phi_r), ti.select(tb == T, n, n_r)
 
 
+def _div_floor() -> float:
+    """Floor of a denominator that may be exactly 0 (parallel edges): 1e-30 in float64; in float32 1e-15,
+    whose square (in the adjoint of a division, -num / den^2) is still a normal float32. With 1e-30 it
+    underflows to 0 and the discarded branch's adjoint becomes 0 * inf = NaN."""
+    return 1e-30 if impl.current_cfg().default_fp == ti.f64 else 1e-15
+
+
 @ti.func
 def func_segment_closest(p1, q1, p2, q2):
     """Closest points of segments p1q1 and p2q2 (Ericson, Real-Time Collision Detection 5.1.9)."""
@@ -444,7 +452,7 @@ def func_segment_closest(p1, q1, p2, q2):
     c = d1.dot(r)
     b = d1.dot(d2)
     den = a * e - b * b
-    s0 = ti.select(den > 1e-12 * a * e, ti.min(ti.max((b * f - c * e) / ti.max(den, 1e-30), 0.0), 1.0), 0.0)
+    s0 = ti.select(den > 1e-12 * a * e, ti.min(ti.max((b * f - c * e) / ti.max(den, ti.static(_div_floor())), 0.0), 1.0), 0.0)
     t0 = (b * s0 + f) / e
     s = ti.select(t0 < 0.0, ti.min(ti.max(-c / a, 0.0), 1.0), ti.select(t0 > 1.0, ti.min(ti.max((b - c) / a, 0.0), 1.0), s0))
     t = ti.min(ti.max(t0, 0.0), 1.0)
@@ -618,8 +626,8 @@ def func_box_edge_contact(c: ti.template(), ga, gb, xa, Ra, xb, Rb, tol):
     db = Rb @ ub
     pa, pb = func_segment_closest(ca - da, ca + da, cb - db, cb + db)
     # inside both edges: the closest points are not end points (parameters strictly inside (0, 1))
-    ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), 1e-30)
-    tb = (pb - (cb - db)).dot(db) / ti.max(2.0 * db.dot(db), 1e-30)
+    ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), ti.static(_div_floor()))
+    tb = (pb - (cb - db)).dot(db) / ti.max(2.0 * db.dot(db), ti.static(_div_floor()))
     inner = (ta > 1e-9) & (ta < 1.0 - 1e-9) & (tb > 1e-9) & (tb < 1.0 - 1e-9)
     on = (sep_e > sep_f + tol) & inner
     return 0.5 * (pa + pb), -L, ti.select(on, -sep_e, -1.0)
