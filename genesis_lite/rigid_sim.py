@@ -60,7 +60,8 @@ class RigidSim:
                                   rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
                                   rigid_options.joint_limit_damping,
                                   contact_options=rigid_options if rigid_options.enable_collision else None,
-                                  mimic=rigid_options.enable_mimic, external_wrench=external_wrench)
+                                  mimic=rigid_options.enable_mimic, external_wrench=external_wrench,
+                                  specialize=rigid_options.specialize_kernels)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.sim = None  # the scene's Simulator, set when it takes this bridge

@@ -269,3 +269,67 @@ def test_second_robot_over_a_plane_compiles_nothing(compiled):
     fresh, ref = ball()
     assert not fresh.rigid_solver.reused_core
     torch.testing.assert_close(got, ref, rtol=0, atol=0)
+
+
+def _boxes_and_ball(n_envs, specialize):
+    """A sphere and a box landing on a plane and a box on the box (pairs plane-sphere, plane-box,
+    box-box): the trajectory of every env, with per-env initial velocities."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01),
+                     rigid_options=gs.options.RigidOptions(specialize_kernels=specialize))
+    scene.add_entity(gs.morphs.Plane())
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(0.0, 0.0, 0.3)))
+    b1 = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0.6, 0.0, 0.12)))
+    b2 = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.62, 0.01, 0.3)))
+    scene.build(n_envs=n_envs)
+    rng = np.random.default_rng(3)
+    for e in (ball, b2):
+        e.set_dofs_velocity(torch.tensor(rng.uniform(-1, 1, (n_envs, 6)), **F64))
+    out = []
+    for _ in range(50):
+        scene.step()
+        out.append(torch.cat([ball.get_qpos(), b1.get_qpos(), b2.get_qpos()], -1).clone())
+    return scene, torch.stack(out)
+
+
+def test_specialized_kernels_give_the_shared_kernels_results():
+    """RigidOptions(specialize_kernels=True) compiles the contact sizes in as constants (fields of
+    exact sizes, not pooled by class) and keeps gs.init's optimisation for the fused step: the same
+    model, so the same trajectory (float64 runs without Taichi's advanced optimisation either way, so
+    to the last bit). A second scene of the same sizes reuses the specialised kernels; one of other
+    sizes does not fit them."""
+    _fresh()
+    shared, ref = _boxes_and_ball(3, False)
+    assert not shared.rigid_solver.specialized and not shared.rigid_solver.contact.static_sizes
+    spec, got = _boxes_and_ball(3, True)
+    c = spec.rigid_solver.contact
+    assert spec.rigid_solver.specialized and c.static_sizes and c.caps[2] == c.n_slots
+    assert float(ref[-1, :, 2].min()) > 0.05  # the ball rests on the plane, not below it
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+    del spec
+    gc.collect()
+    again, got2 = _boxes_and_ball(3, True)
+    assert again.rigid_solver.reused_core
+    torch.testing.assert_close(got2, got, rtol=0, atol=0)
+    # other sizes (one box fewer): the specialised owner above does not fit, a new one is made
+    scene = gs.Scene(rigid_options=gs.options.RigidOptions(specialize_kernels=True))
+    scene.add_entity(gs.morphs.Plane())
+    scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(0.0, 0.0, 0.3)))
+    scene.build(n_envs=3)
+    assert scene.rigid_solver.contact is not c
+
+
+def test_batched_scenes_specialize_by_default():
+    """The default (None) specialises from SPECIALIZE_MIN_ENVS envs on, where the step's run time
+    outweighs the compile; smaller scenes share kernels."""
+    from solvers.rigid.solver import SPECIALIZE_MIN_ENVS
+
+    for n_envs, want in ((0, False), (4, False), (SPECIALIZE_MIN_ENVS, True)):
+        scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_collision=False))
+        scene.add_entity(gs.morphs.URDF(file=PENDULUM, fixed=True))
+        scene.build(n_envs=n_envs)
+        assert scene.rigid_solver.specialized == want, n_envs
+
+
+def test_specialize_kernels_rejects_other_values():
+    with pytest.raises(ValueError, match="specialize_kernels"):
+        gs.options.RigidOptions(specialize_kernels="yes")
