@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import logging
-import os
 
 import numpy as np
 
@@ -82,38 +81,11 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
               log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
     kw.update(taichi_kwargs)
     ti.init(**kw)
-    _lighten_taichi_source_info()
     if seed is not None:
         torch.manual_seed(seed)
         np.random.seed(seed)
     _init_args = args
     _initialized = True
-
-
-def _lighten_taichi_source_info():
-    """Taichi 1.7's kernel compiler formats a source excerpt with a caret line, wrapped by textwrap, for
-    every AST node it transforms (kept for error messages), whether or not an error comes: half of the
-    Python time of compiling a kernel, which a process pays on every first launch even when the kernel
-    comes from the offline cache. The same excerpt without the caret line and the wrapping costs almost
-    nothing; error messages still name the file, line, function and source line.
-    GS_TAICHI_FULL_SOURCE_INFO=1 keeps Taichi's own."""
-    if os.environ.get("GS_TAICHI_FULL_SOURCE_INFO") == "1":
-        return
-    try:
-        from taichi.lang.ast import ast_transformer_utils as atu
-    except ImportError:  # another Taichi layout: leave it alone
-        return
-    ctx_cls = getattr(atu, "ASTTransformerContext", None)
-    if ctx_cls is None or getattr(ctx_cls.get_pos_info, "_gs_light", False):
-        return
-
-    def get_pos_info(self, node):
-        line = node.lineno + self.lineno_offset
-        src = self.src[node.lineno - 1] if 0 < node.lineno <= len(self.src) else ""
-        return f'File "{self.file}", line {line}, in {self.func.func.__name__}:\n{src}\n'
-
-    get_pos_info._gs_light = True
-    ctx_cls.get_pos_info = get_pos_info
 
 
 def _assert_initialized():

@@ -192,13 +192,16 @@ def test_frontend_can_be_turned_off(monkeypatch):
     """GS_TAICHI_FAST_FRONTEND=0 keeps Taichi's helpers (checked in a fresh process: the switch acts at import)."""
     import subprocess
 
-    code = ("import genesis_lite, taichi.lang.kernel_impl as K; "
-            "print(getattr(K._get_tree_and_ctx, '_gs_fast', False), getattr(K._inside_class, '_gs_fast', False))")
-    env = {**os.environ, "GS_TAICHI_FAST_FRONTEND": "0"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip().splitlines()[-1] == "False False"
+    code = ("import genesis_lite, taichi.lang.kernel_impl as K, taichi.lang.util as U; "
+            "from taichi.lang.ast.ast_transformer_utils import ASTTransformerContext as C; "
+            "print([getattr(f, '_gs_fast', False) for f in (K._get_tree_and_ctx, K._inside_class, "
+            "U.get_traceback, C.get_pos_info)])")
+    for switch, want in (("0", "[False, False, False, False]"), ("1", "[True, True, True, True]")):
+        env = {**os.environ, "GS_TAICHI_FAST_FRONTEND": switch}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300,
+                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip().splitlines()[-1] == want, switch
 
 
 # --------------------------------------------------------------------------------------------

@@ -260,18 +260,13 @@ class _Kernels:
 
     # ------------------------------------------------------------------ kernels of the step
     # Every stage runs as its own top-level loop over envs (see kinematics.KINEMATICS).
-    @ti.kernel
-    def kernel_dynamics(self, e: ti.i32, src: ti.i32, h: float):
-        for stage in ti.static(self.dynamics_stages):
-            if ti.static(self.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(self.cap_envs):
-                if i_b < self.n_envs:
-                    stage(self, i_b, e, src, h)
+    def kernel_dynamics(self, e: int, src: int, h: float):
+        """Every dynamics stage of evaluation e at state slot src, substep length h."""
+        self.kernel_dynamics_part(0, len(self.dynamics_stages), e, src, h)
 
     @ti.kernel
     def kernel_dynamics_part(self, k0: ti.template(), k1: ti.template(), e: ti.i32, src: ti.i32, h: float):
-        """Stages k0..k1-1 of kernel_dynamics (the gradient path's backward runs their adjoints as
+        """Stages k0..k1-1 of the dynamics (the gradient path's backward runs their adjoints as
         separate kernels: see _evaluation_unit)."""
         for stage in ti.static(self.dynamics_stages[k0:k1]):
             if ti.static(self.serial):
@@ -280,15 +275,11 @@ class _Kernels:
                 if i_b < self.n_envs:
                     stage(self, i_b, e, src, h)
 
-    @ti.kernel
-    def kernel_link_state_part(self, k0: ti.template(), k1: ti.template(), src: ti.i32):
-        """Stages k0..k1-1 of kernel_kinematics (whose adjoint runs stage by stage, as the dynamics')."""
-        for stage in ti.static(LINK_STATE[k0:k1]):
-            if ti.static(self.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(self.cap_envs):
-                if i_b < self.n_envs:
-                    stage(self, i_b, 0, src, 0.0)
+    def kernel_kinematics(self, src: int):
+        """Link poses and velocities at qpos/qvel[src] (what the getters read): the dynamics' first
+        stages, so their adjoints (see RigidSolver._kinematics_unit) are the kernels the dynamics'
+        backward compiles."""
+        self.kernel_dynamics_part(0, len(LINK_STATE), 0, src, 0.0)
 
     has_contact = False
 
@@ -375,16 +366,6 @@ class _Kernels:
                         bad |= ti.math.isnan(x) or ti.math.isinf(x)
                     if bad:
                         ti.atomic_min(self.nan_step[None], step)
-
-    @ti.kernel
-    def kernel_kinematics(self, src: ti.i32):
-        """Link poses and velocities at qpos/qvel[src] (what the getters read)."""
-        for stage in ti.static(LINK_STATE):
-            if ti.static(self.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(self.cap_envs):
-                if i_b < self.n_envs:
-                    stage(self, i_b, 0, src, 0.0)
 
     @ti.kernel
     def kernel_mass_matrix(self, src: ti.i32):
@@ -1183,7 +1164,7 @@ class RigidSolver:
         recomputes the evaluation first when the scratch fields (poses, M, its factor) hold another
         one, then runs the adjoint of the solve (hand-written: for qacc = M^-1 f, f_bar = M^-1 qacc_bar
         and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, stage by stage in reverse
-        order: the same computation as kernel_dynamics.grad, whose tasks are the stages, but Taichi
+        order: the same computation as the adjoint of one kernel of every stage, but Taichi
         compiles an adjoint in time superlinear in its size (the Panda's 13 stages: 9 s as separate
         kernels, 24 s as one). The generalised force shares the kernel of the stage before it: its
         adjoint alone left ~1e-250 (not 0) in the gradient of an env outside the loss
@@ -1217,6 +1198,7 @@ class RigidSolver:
         run inside the MPM substep's own grad_replaced adjoint, where a nested one is not recorded."""
         core = self.core
         stages = range(len(LINK_STATE) - 1, -1, -1)
+        assert DYNAMICS[: len(LINK_STATE)] == LINK_STATE
 
         @ti.ad.grad_replaced
         def kinematics(src):
@@ -1226,7 +1208,7 @@ class RigidSolver:
         @ti.ad.grad_for(kinematics)
         def kinematics_grad(src):
             for k in stages:
-                core.kernel_link_state_part.grad(k, k + 1, src)
+                core.kernel_dynamics_part.grad(k, k + 1, 0, src, 0.0)
 
         return kinematics
 
