@@ -110,33 +110,25 @@ def func_forward_kinematics(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
-def func_link_world_inertia(s: ti.template(), i_b, i_l, e, src, h):
-    """COM and spatial inertia of link i_l about the world origin: mass, first moment m c,
-    J = I_c - m [c]x[c]x. Without gradients it also starts the composite inertias
-    (inertia.func_link_inertia's copy, here while the values are in registers: a pass over the links
-    less) and skips link_cpos, which no stage reads."""
-    R = s.link_R[i_b, i_l]
-    c = s.link_pos[i_b, i_l] + R @ s.link_com[i_b, i_l]
-    m = s.link_mass[i_b, i_l]
-    mc = m * c
-    J = func_rotate_inertia(R, s.link_inertia[i_b, i_l]) + m * (c.dot(c) * ti.Matrix.identity(s.dtype, 3) - c.outer_product(c))
-    s.link_h[i_b, i_l] = mc
-    s.link_J[i_b, i_l] = J
-    if ti.static(s.requires_grad):
-        s.link_cpos[i_b, i_l] = c
-    else:
-        s.crb_m[i_b, i_l] = m
-        s.crb_h[i_b, i_l] = mc
-        s.crb_J[i_b, i_l] = J
-
-
-@ti.func
 def func_world_inertia(s: ti.template(), i_b, e, src, h):
+    """COM and spatial inertia about the world origin: mass, first moment m c, J = I_c - m [c]x[c]x.
+    Without gradients it also starts the composite inertias (inertia.func_link_inertia's copy, here
+    while the values are in registers: a pass over the links less) and skips link_cpos, which no
+    stage reads."""
     for i_l in range(s.n_links):
-        func_link_world_inertia(s, i_b, i_l, e, src, h)
-
-
-func_world_inertia.per_link = func_link_world_inertia  # see solver._Kernels.kernel_dynamics_part
+        R = s.link_R[i_b, i_l]
+        c = s.link_pos[i_b, i_l] + R @ s.link_com[i_b, i_l]
+        m = s.link_mass[i_b, i_l]
+        mc = m * c
+        J = func_rotate_inertia(R, s.link_inertia[i_b, i_l]) + m * (c.dot(c) * ti.Matrix.identity(s.dtype, 3) - c.outer_product(c))
+        s.link_h[i_b, i_l] = mc
+        s.link_J[i_b, i_l] = J
+        if ti.static(s.requires_grad):
+            s.link_cpos[i_b, i_l] = c
+        else:
+            s.crb_m[i_b, i_l] = m
+            s.crb_h[i_b, i_l] = mc
+            s.crb_J[i_b, i_l] = J
 
 
 @ti.func

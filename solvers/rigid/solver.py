@@ -271,18 +271,9 @@ class _Kernels:
         for stage in ti.static(self.dynamics_stages[k0:k1]):
             if ti.static(self.serial):
                 ti.loop_config(serialize=True)
-            if ti.static(hasattr(stage, "per_link")):
-                # a stage whose links are independent runs as one loop over (env, link): no loop nested
-                # in the env loop, whose locals Taichi's adjoint keeps on stacks that compile slowly
-                # (the Panda's link forces and world inertias: 1.7 s and 1.2 s of adjoint compile)
-                for i_b, i_l in ti.ndrange(self.cap_envs, self.cap_elems):
-                    if i_b < self.n_envs:
-                        if i_l < self.n_links:
-                            stage.per_link(self, i_b, i_l, e, src, h)
-            else:
-                for i_b in range(self.cap_envs):
-                    if i_b < self.n_envs:
-                        stage(self, i_b, e, src, h)
+            for i_b in range(self.cap_envs):
+                if i_b < self.n_envs:
+                    stage(self, i_b, e, src, h)
 
     def kernel_kinematics(self, src: int):
         """Link poses and velocities at qpos/qvel[src] (what the getters read): the dynamics' first
