@@ -53,6 +53,8 @@ INTEGRATOR_EULER, INTEGRATOR_IMPLICITFAST, INTEGRATOR_RK4 = 0, 1, 2
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
 SERIAL_MAX_ENVS = 16
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_generalized_force,)
+# stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (_AdjointCompile)
+PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:2]
 # smallest element capacity: the robots of one size class (Panda, UR5, arms up to 16 links/dofs/qs)
 # share a core
 MIN_ELEMS = 16
@@ -97,6 +99,33 @@ class _ForwardCompile:
 
 
 KEEP_FORWARD_ADVANCED_OPTIMIZATION = os.environ.get("GS_FORWARD_ADVANCED_OPTIMIZATION") == "1"
+
+
+class _AdjointCompile:
+    """Compile the adjoints launched inside it without Taichi's advanced IR optimisation when `plain`.
+
+    float32 needs that optimisation for correct adjoints of some stages only (see gs.init). Measured on
+    the Panda's 50-step rollout: without it the adjoints of func_dof_momentum, func_mass_matrix and
+    func_project_forces + func_generalized_force came out wrong by 30-500 %, while those of the stages
+    in PLAIN_ADJOINT matched the optimised ones to float32 rounding (gradients within 1e-7), and the
+    cold first backward took 4.2-4.7 s instead of 6.2-7.6 s (their compile is ~40 % of it).
+    tests/test_precision.py compares float32 gradients with float64 ones (a ball landing on a plane:
+    free joint and contacts; the arm and the box stack under -m slow). GS_ADJOINT_ADVANCED_OPTIMIZATION=1
+    keeps the optimisation for every adjoint."""
+
+    def __init__(self, plain: bool):
+        self.plain = plain and not KEEP_ADJOINT_ADVANCED_OPTIMIZATION
+
+    def __enter__(self):
+        cfg = impl.current_cfg()
+        self.was = cfg.advanced_optimization
+        cfg.advanced_optimization = self.was and not self.plain
+
+    def __exit__(self, *exc):
+        impl.current_cfg().advanced_optimization = self.was
+
+
+KEEP_ADJOINT_ADVANCED_OPTIMIZATION = os.environ.get("GS_ADJOINT_ADVANCED_OPTIMIZATION") == "1"
 
 
 # scenes of at least this many envs get specialised kernels by default (RigidOptions.specialize_kernels)
@@ -1172,7 +1201,8 @@ class RigidSolver:
         owner = self.owner
         bounds = [k for k, f in enumerate(owner.dynamics_stages) if f is not func_generalized_force or k == 0]
         bounds.append(len(owner.dynamics_stages))
-        parts = [(bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1)]
+        parts = [(k0, k1, all(f in PLAIN_ADJOINT for f in owner.dynamics_stages[k0:k1]))
+                 for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))]
 
         @ti.ad.grad_replaced
         def evaluate(e, src, h):
@@ -1187,8 +1217,9 @@ class RigidSolver:
                 owner.kernel_factor_solve(e)
                 self._scratch = (e, src, h)
             owner.kernel_solve_grad(e)
-            for k0, k1 in parts:
-                owner.kernel_dynamics_part.grad(k0, k1, e, src, h)
+            for k0, k1, plain in parts:
+                with _AdjointCompile(plain):
+                    owner.kernel_dynamics_part.grad(k0, k1, e, src, h)
 
         return evaluate
 
@@ -1198,7 +1229,7 @@ class RigidSolver:
         run inside the MPM substep's own grad_replaced adjoint, where a nested one is not recorded."""
         core = self.core
         stages = range(len(LINK_STATE) - 1, -1, -1)
-        assert DYNAMICS[: len(LINK_STATE)] == LINK_STATE
+        assert DYNAMICS[: len(LINK_STATE)] == LINK_STATE and set(LINK_STATE) <= set(PLAIN_ADJOINT)
 
         @ti.ad.grad_replaced
         def kinematics(src):
@@ -1207,8 +1238,9 @@ class RigidSolver:
 
         @ti.ad.grad_for(kinematics)
         def kinematics_grad(src):
-            for k in stages:
-                core.kernel_dynamics_part.grad(k, k + 1, 0, src, 0.0)
+            with _AdjointCompile(True):  # LINK_STATE is in PLAIN_ADJOINT
+                for k in stages:
+                    core.kernel_dynamics_part.grad(k, k + 1, 0, src, 0.0)
 
         return kinematics
 
