@@ -471,24 +471,39 @@ def func_geom_pose(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
-def func_plane_extent(c: ti.template(), g, R, n):
+def func_plane_extent(c: ti.template(), g, R, n, branch: ti.template()):
     """How far geom g (rotation R) reaches from its centre along -n: its support function. Exact for
-    sphere, capsule, box and cylinder; the bounding radius for meshes."""
+    sphere, capsule, box and cylinder; the bounding radius for meshes. With `branch` (no gradients)
+    only the geom's own type is evaluated; else every type's, selected (single-assignment form)."""
     t = c.geom_type[g]
     sz = c.geom_size[g]
     a = R.transpose() @ n  # n in the geom frame
-    box = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
-    cyl = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
-    cap = sz[1] * ti.abs(a[2]) + sz[0]
-    return ti.select(t == GEOM_BOX, box, ti.select(t == GEOM_CYLINDER, cyl, ti.select(
-        t == GEOM_CAPSULE, cap, ti.select(t == GEOM_SPHERE, sz[0], c.geom_rbound[g]))))
+    r = c.geom_rbound[g]
+    if ti.static(branch):
+        if t == GEOM_BOX:
+            r = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
+        elif t == GEOM_CYLINDER:
+            r = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
+        elif t == GEOM_CAPSULE:
+            r = sz[1] * ti.abs(a[2]) + sz[0]
+        elif t == GEOM_SPHERE:
+            r = sz[0]
+    else:
+        box = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
+        cyl = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
+        cap = sz[1] * ti.abs(a[2]) + sz[0]
+        r = ti.select(t == GEOM_BOX, box, ti.select(t == GEOM_CYLINDER, cyl, ti.select(
+            t == GEOM_CAPSULE, cap, ti.select(t == GEOM_SPHERE, sz[0], r))))
+    return r
 
 
 @ti.func
 def func_broad_phase(s: ti.template(), i_b, e, src, h):
     """pair_active: the geom reaches within the contact margin of a plane (support function), or two
     bounding spheres do, now or within the step (the margin grows by how far the two can approach each
-    other in h at their current velocities: speculative contacts, see contact.py)."""
+    other in h at their current velocities: speculative contacts, see contact.py). Without gradients
+    the plane and sphere tests are branches (each pair evaluates its own: a fifth of the stage on
+    ANYmal); with them both are evaluated and selected (single-assignment form)."""
     c = s.contact
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]
@@ -499,27 +514,49 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         Rb = c.geom_xR[i_b, gb]
         ca = c.geom_xpos[i_b, ga] + Ra @ c.geom_center[ga]
         cb = c.geom_xpos[i_b, gb] + Rb @ c.geom_center[gb]
-        nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
-        gap_plane = (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb)
-        dc = ca - cb
-        # norms with TINY under the root: no infinite derivative at 0 in the adjoint (0 * inf is NaN)
-        ldc = ti.sqrt(dc.dot(dc) + TINY)
-        gap_pair = ldc - c.geom_rbound[ga] - c.geom_rbound[gb]
         is_plane = c.geom_type[gb] == GEOM_PLANE
-        gap = ti.select(is_plane, gap_plane, gap_pair)
-        # closing speed bound: centre velocities along the separating direction, plus rotation of the
-        # geoms' extents (a plane does not move: candidate_pairs rejects moving planes)
+        # closing speed bound: centre velocities, plus rotation of the geoms' extents (a plane does not
+        # move: candidate_pairs rejects moving planes); either body may also turn towards the other
+        # within the step (stopped by a third one): their speeds bound that (contact.py linearises such
+        # candidate contacts again after its first solve)
         va = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(ca)
         vb = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(cb)
-        dirn = ti.select(is_plane, nb, dc / ti.max(ldc, 1e-12))
         wa = s.cvel_w[i_b, la]
-        wb = s.cvel_w[i_b, lb]
         rot_a = ti.sqrt(wa.dot(wa) + TINY) * ti.min(c.geom_rbound[ga], 1e6)
-        rot_b = ti.select(is_plane, 0.0, ti.sqrt(wb.dot(wb) + TINY) * ti.min(c.geom_rbound[gb], 1e6))
-        # either body may also turn towards the other within the step (stopped by a third one): their
-        # speeds bound that (contact.py linearises such candidate contacts again after its first solve)
-        closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a + rot_b
+        closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a
+        gap = ti.cast(0.0, s.dtype)
+        if ti.static(s.requires_grad):
+            gap_plane, _ = func_gap_plane(c, ga, gb, Ra, Rb, ca, cb, False)
+            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb)
+            gap = ti.select(is_plane, gap_plane, gap_pair)
+            closing += ti.select(is_plane, 0.0, rot_b)
+        else:
+            if is_plane:
+                gap, _ = func_gap_plane(c, ga, gb, Ra, Rb, ca, cb, True)
+            else:
+                gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb)
+                gap = gap_pair
+                closing += rot_b
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
+
+
+@ti.func
+def func_gap_plane(c: ti.template(), ga, gb, Ra, Rb, ca, cb, branch: ti.template()):
+    """Gap of geom ga (centre ca) above plane gb (its normal the plane's z axis), and that normal."""
+    nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+    return (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb, branch), nb
+
+
+@ti.func
+def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb):
+    """Gap of the bounding spheres of geoms ga and gb (centres ca, cb), and how fast gb's rotation can
+    sweep its extent."""
+    c = s.contact
+    dc = ca - cb
+    # norms with TINY under the root: no infinite derivative at 0 in the adjoint (0 * inf is NaN)
+    ldc = ti.sqrt(dc.dot(dc) + TINY)
+    wb = s.cvel_w[i_b, lb]
+    return ldc - c.geom_rbound[ga] - c.geom_rbound[gb], ti.sqrt(wb.dot(wb) + TINY) * ti.min(c.geom_rbound[gb], 1e6)
 
 
 @ti.func

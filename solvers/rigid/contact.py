@@ -366,37 +366,52 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand):
 
 
 @ti.func
+def func_contact_slot(s: ti.template(), i_b, i_s, h):
+    """Geometry and normal force of slot i_s (of an active pair): sl_on set if it is in contact."""
+    c = s.contact
+    pos, n, depth = func_slot_geometry(s, i_b, i_s)
+    la = c.geom_link[c.slot_ga[i_s]]
+    lb = c.geom_link[c.slot_gb[i_s]]
+    ua = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)
+    ub = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos)
+    u = ua - ub
+    # within the margin now, or at the end of the step if the velocity stays
+    near = ti.max(depth, depth - h * u.dot(n)) > -c.margin
+    # or if either body could turn towards the other within the step (the one below stopped by a third
+    # body while this one falls on): a candidate
+    cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
+    if near | cand:
+        func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand)
+
+
+@ti.func
 def func_contact_slots(s: ti.template(), i_b, e, src, h):
     """Geometry and normal force of every slot of an active pair. Single-assignment form (see
     kinematics.py): the contact's on/off is a 0/1 mask. The mask is cleared first and set only in the
     innermost branch: with `else` branches that write it, Taichi 1.7.4's reverse mode built an invalid
     IR for this loop in float32 (verify.cpp: block parent mismatch), so no float32 scene with contacts
-    could take a gradient. Without gradients the slots that are on are
-    also listed (sl_list[i_b, :n_on[i_b]], in slot order) for the solve's passes, which then visit only
-    those (a robot's geoms against the ground: a few of some hundred slots touch)."""
+    could take a gradient. Without gradients the loop runs over the active pairs' slots only (slots are
+    stored by pair; the mask of an inactive pair's slots is left stale: read() masks it with
+    pair_active) and lists the slots that are on (sl_list[i_b, :n_on[i_b]], in slot order) for the
+    solve's passes, which then visit only those (a robot's geoms against the ground: a few of some
+    hundred slots touch; visiting every slot was an eighth of ANYmal's step)."""
     c = s.contact
-    if ti.static(not s.requires_grad):
-        c.n_on[i_b] = 0
-    for i_s in range(c.n_slots):
-        c.sl_on[i_b, i_s] = 0
-        if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
-            pos, n, depth = func_slot_geometry(s, i_b, i_s)
-            la = c.geom_link[c.slot_ga[i_s]]
-            lb = c.geom_link[c.slot_gb[i_s]]
-            ua = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)
-            ub = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos)
-            u = ua - ub
-            # within the margin now, or at the end of the step if the velocity stays
-            near = ti.max(depth, depth - h * u.dot(n)) > -c.margin
-            # or if either body could turn towards the other within the step (the one below stopped by
-            # a third body while this one falls on): a candidate
-            cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
-            if near | cand:
-                func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand)
-        if ti.static(not s.requires_grad):
-            if c.sl_on[i_b, i_s] == 1:
-                c.sl_list[i_b, c.n_on[i_b]] = i_s
-                c.n_on[i_b] = c.n_on[i_b] + 1
+    if ti.static(s.requires_grad):
+        for i_s in range(c.n_slots):
+            c.sl_on[i_b, i_s] = 0
+            if c.pair_active[i_b, c.slot_pair[i_s]] == 1:
+                func_contact_slot(s, i_b, i_s, h)
+    else:
+        n_on = 0
+        for i_p in range(c.n_pairs):
+            if c.pair_active[i_b, i_p] == 1:
+                for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
+                    c.sl_on[i_b, i_s] = 0
+                    func_contact_slot(s, i_b, i_s, h)
+                    if c.sl_on[i_b, i_s] == 1:
+                        c.sl_list[i_b, n_on] = i_s
+                        n_on += 1
+        c.n_on[i_b] = n_on
 
 
 @ti.func
@@ -1122,6 +1137,8 @@ class ContactSolver:
         self.link_dyn = I(L)
         # pairs and slots
         self.pair_ga, self.pair_gb = I(Pn), I(Pn)
+        # the pair's slots: pair_s0[p] .. pair_s0[p + 1] - 1 (build_slots stores them by pair)
+        self.pair_s0 = I(Pn + 1)
         self.pair_active = I((B, Pn))
         self.slot_pair, self.slot_kind, self.slot_ga, self.slot_gb = I(S), I(S), I(S), I(S)
         self.slot_p = V3(S, False)
@@ -1204,17 +1221,20 @@ class ContactSolver:
         slot_i = np.array([[x[0], x[1], x[2], x[3], lp] for x, lp in zip(slots, plan.slot_lp)], dtype=np.int32)
         slot_f = np.array([list(x[4]) + [x[5], x[6]] for x in slots], dtype=float).reshape(S, 5)
         cross = plan.cross if plan.cross else [(0, 0, 0, 0.0)]
+        pair_s0 = np.searchsorted(plan.np_slot_pair, np.arange(plan.n_pairs + 1))
+        assert np.all(np.diff(plan.np_slot_pair) >= 0), "slots must be stored by pair"
         c = lambda a, t: np.ascontiguousarray(np.asarray(a, dtype=t))  # noqa: E731
         self.kernel_load(c(plan.cfg_i, np.int32),
                          c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf),
                          c(np.broadcast_to(geoms.friction, (n_envs, G)), npf), dyn,
-                         c([[p[0], p[1]] for p in plan.pairs], np.int32), slot_i, c(slot_f, npf),
+                         c([[p[0], p[1], s0] for p, s0 in zip(plan.pairs, pair_s0)], np.int32),
+                         c(pair_s0[-1:], np.int32), slot_i, c(slot_f, npf),
                          c([x[:3] for x in cross], np.int32), c([x[3] for x in cross], npf))
 
     @ti.kernel
     def kernel_load(self, cfg_i: ti.types.ndarray(), geom_i: ti.types.ndarray(),
                     geom_f: ti.types.ndarray(), kdop: ti.types.ndarray(), mu: ti.types.ndarray(),
-                    dyn: ti.types.ndarray(), pair: ti.types.ndarray(), slot_i: ti.types.ndarray(),
+                    dyn: ti.types.ndarray(), pair: ti.types.ndarray(), pair_end: ti.types.ndarray(), slot_i: ti.types.ndarray(),
                     slot_f: ti.types.ndarray(), cross_i: ti.types.ndarray(), cross_f: ti.types.ndarray()):
         """A scene's contact model into the fields (one kernel rather than a copy kernel per field). The
         dof vectors of the passes are zeroed over their whole capacity: the link-motion pass reads
@@ -1241,6 +1261,8 @@ class ContactSolver:
         for p in range(pair.shape[0]):
             self.pair_ga[p] = pair[p, 0]
             self.pair_gb[p] = pair[p, 1]
+            self.pair_s0[p] = pair[p, 2]
+        self.pair_s0[pair.shape[0]] = pair_end[0]
         for i_s in range(slot_i.shape[0]):
             self.slot_pair[i_s] = slot_i[i_s, 0]
             self.slot_kind[i_s] = slot_i[i_s, 1]
