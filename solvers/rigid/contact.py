@@ -247,30 +247,42 @@ def func_bank_tree(s: ti.template(), b: ti.template(), i_b):
 @ti.func
 def func_bank_dof(s: ti.template(), b: ti.template(), i_b):
     """Per dof i: force_i += cdof_i . wrench(subtree of link(i)) (J^T f), and the spatial vector
-    S(link(i)) cdof_i that func_bank_project dots with the ancestors' cdofs."""
+    S(link(i)) cdof_i that func_bank_project dots with the ancestors' cdofs. Without gradients that
+    projection is done here, from the vector in registers, walking up the dof tree (the same terms:
+    each M[i, j] gets one term per bank; 28 % less time for the two stages on ANYmal), and
+    func_bank_project does nothing."""
     for i in range(s.n_dofs):
         i_l = s.dof_link[i]
         touch = b.link_touch[i_b, i_l] == 1
         wi = s.cdof_w[i_b, i]
         vi = s.cdof_v[i_b, i]
         Swv = b.link_Swv[i_b, i_l]
-        zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
-        b.dof_Sw[i_b, i] = ti.select(touch, b.link_Sww[i_b, i_l] @ wi + Swv @ vi, zero)
-        b.dof_Sv[i_b, i] = ti.select(touch, Swv.transpose() @ wi + b.link_Svv[i_b, i_l] @ vi, zero)
+        if ti.static(s.requires_grad):
+            zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+            b.dof_Sw[i_b, i] = ti.select(touch, b.link_Sww[i_b, i_l] @ wi + Swv @ vi, zero)
+            b.dof_Sv[i_b, i] = ti.select(touch, Swv.transpose() @ wi + b.link_Svv[i_b, i_l] @ vi, zero)
         if touch:
             func_acc(s, s.force, i_b, i, wi.dot(b.link_fn[i_b, i_l]) + vi.dot(b.link_ff[i_b, i_l]))
+            if ti.static(not s.requires_grad):
+                Sw = b.link_Sww[i_b, i_l] @ wi + Swv @ vi
+                Sv = Swv.transpose() @ wi + b.link_Svv[i_b, i_l] @ vi
+                j = i
+                while j >= 0:
+                    func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(Sw) + s.cdof_v[i_b, j].dot(Sv))
+                    j = s.dof_parent[j]
 
 
 @ti.func
 def func_bank_project(s: ti.template(), b: ti.template(), i_b):
     """M[i, j] += cdof_j^T S(link(i)) cdof_i for j an ancestor-or-self of i (the composite-inertia
     pattern of func_mass_matrix), over the static list of such (i, j), skipping links with no contact
-    below them."""
-    for t in range(s.n_anc):
-        i = s.anc_i[t]
-        j = s.anc_j[t]
-        if b.link_touch[i_b, s.dof_link[i]] == 1:
-            func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(b.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(b.dof_Sv[i_b, i]))
+    below them. Without gradients func_bank_dof has done it."""
+    if ti.static(s.requires_grad):
+        for t in range(s.n_anc):
+            i = s.anc_i[t]
+            j = s.anc_j[t]
+            if b.link_touch[i_b, s.dof_link[i]] == 1:
+                func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(b.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(b.dof_Sv[i_b, i]))
 
 
 @ti.func
@@ -453,26 +465,47 @@ def func_vec3(x: ti.template(), e, i_b, i):
 @ti.func
 def func_link_motion(s: ti.template(), x: ti.template(), e, i_b, out_w: ti.template(), out_v: ti.template()):
     """Spatial velocity (about the world origin) of every link for the dof velocities h * x[e, i_b], h
-    the evaluation's step (kinematics.func_velocity's recursion for another velocity vector; x is sized
-    by the core's element capacity, so the clamped reads of masked-out joint shapes stay inside it)."""
+    the evaluation's step (kinematics.func_velocity's recursion for another velocity vector). With
+    gradients in single-assignment form, every joint shape's term masked (x is sized by the core's
+    element capacity, so the clamped reads of masked-out shapes stay inside it); without, a branch per
+    joint shape (the same sums, a quarter less time)."""
     for i_l in range(s.n_links):
         # read inside the loop: a field value loaded before a loop and used in it made Taichi 1.7.4's
         # adjoint of the loop fail LLVM verification ("Instruction does not dominate all uses")
         scale = s.contact.eval_h[i_b]
         p = s.link_parent[i_l]
-        has_p = p >= 0
-        pp = ti.max(p, 0)
         zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
         nd = s.link_ndof[i_l]
-        d0 = ti.min(s.link_dof_start[i_l], s.cap_elems - 1)
-        df = ti.max(ti.min(s.link_dof_start[i_l], s.cap_elems - 6), 0)
-        one = ti.cast(nd == 1, s.dtype) * scale * x[e, i_b, d0]
-        free = ti.cast(nd == 6, s.dtype) * scale
-        vb = func_vec3(x, e, i_b, df)
-        wb = func_vec3(x, e, i_b, df + 3)
-        out_w[i_b, i_l] = ti.select(has_p, out_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * one + free * wb
-        out_v[i_b, i_l] = (ti.select(has_p, out_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * one
-                           + free * (vb + s.link_pos[i_b, i_l].cross(wb)))
+        if ti.static(s.requires_grad):
+            has_p = p >= 0
+            pp = ti.max(p, 0)
+            d0 = ti.min(s.link_dof_start[i_l], s.cap_elems - 1)
+            df = ti.max(ti.min(s.link_dof_start[i_l], s.cap_elems - 6), 0)
+            one = ti.cast(nd == 1, s.dtype) * scale * x[e, i_b, d0]
+            free = ti.cast(nd == 6, s.dtype) * scale
+            vb = func_vec3(x, e, i_b, df)
+            wb = func_vec3(x, e, i_b, df + 3)
+            out_w[i_b, i_l] = ti.select(has_p, out_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * one + free * wb
+            out_v[i_b, i_l] = (ti.select(has_p, out_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * one
+                               + free * (vb + s.link_pos[i_b, i_l].cross(wb)))
+        else:
+            w = zero
+            v = zero
+            if p >= 0:
+                w = out_w[i_b, p]
+                v = out_v[i_b, p]
+            d0 = s.link_dof_start[i_l]
+            if nd == 1:
+                one = scale * x[e, i_b, d0]
+                w = w + s.cdof_w[i_b, d0] * one
+                v = v + s.cdof_v[i_b, d0] * one
+            elif nd == 6:
+                vb = func_vec3(x, e, i_b, d0)
+                wb = func_vec3(x, e, i_b, d0 + 3)
+                w = w + scale * wb
+                v = v + scale * (vb + s.link_pos[i_b, i_l].cross(wb))
+            out_w[i_b, i_l] = w
+            out_v[i_b, i_l] = v
 
 
 @ti.func
