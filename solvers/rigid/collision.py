@@ -526,13 +526,13 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a
         gap = ti.cast(0.0, s.dtype)
         if ti.static(s.requires_grad):
-            gap_plane, _ = func_gap_plane(c, ga, gb, Ra, Rb, ca, cb, False)
+            gap_plane = func_gap_plane(c, ga, Ra, Rb, ca, cb, False)
             gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb)
             gap = ti.select(is_plane, gap_plane, gap_pair)
             closing += ti.select(is_plane, 0.0, rot_b)
         else:
             if is_plane:
-                gap, _ = func_gap_plane(c, ga, gb, Ra, Rb, ca, cb, True)
+                gap = func_gap_plane(c, ga, Ra, Rb, ca, cb, True)
             else:
                 gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb)
                 gap = gap_pair
@@ -541,10 +541,11 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
-def func_gap_plane(c: ti.template(), ga, gb, Ra, Rb, ca, cb, branch: ti.template()):
-    """Gap of geom ga (centre ca) above plane gb (its normal the plane's z axis), and that normal."""
+def func_gap_plane(c: ti.template(), ga, Ra, Rb, ca, cb, branch: ti.template()):
+    """Gap of geom ga (rotation Ra, centre ca) above the plane of rotation Rb through cb (its normal the
+    plane's z axis)."""
     nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
-    return (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb, branch), nb
+    return (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb, branch)
 
 
 @ti.func
