@@ -318,6 +318,65 @@ def test_specialized_kernels_give_the_shared_kernels_results():
     assert scene.rigid_solver.contact is not c
 
 
+def _quadruped(urdf, n_envs, specialize):
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01),
+                     rigid_options=gs.options.RigidOptions(specialize_kernels=specialize))
+    scene.add_entity(gs.morphs.Plane())
+    robot = scene.add_entity(gs.morphs.URDF(file=urdf, fixed=False, pos=(0.0, 0.0, 0.62)))
+    scene.build(n_envs=n_envs)
+    dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]
+    robot.set_dofs_kp(torch.full((len(dofs),), 300.0, **F64), dofs)
+    robot.set_dofs_kv(torch.full((len(dofs),), 10.0, **F64), dofs)
+    return scene, robot, dofs
+
+
+def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_path):
+    """A specialised scene without gradients unrolls the factorisations and solves of its contact solve
+    over its dof tree (inertia.TreeSchedule, contact.func_contact_solve_rounds); the shared kernels loop
+    over the tree on fields. Same operations in the same order, compiled differently, so the same
+    results to rounding. ANYmal dropped onto the ground, its PD targets jumping by up to 0.5 rad every
+    0.3 s per env (feet land, slide and lift off: every round of the contact solve runs), each step
+    taken from the shared scene's state. The stiff contact system amplifies rounding (the next
+    velocities move by up to ~5e-9 here), so the yardstick is a third scene on the shared kernels whose
+    velocities are changed by 1e-15 (relative) before each step: the specialised scene must stay as
+    close to the shared one as that, where a wrong factorisation or round order is off by far more."""
+    _fresh()
+    urdf = str(urdf_path("anymal"))
+    shared, r_shared, dofs = _quadruped(urdf, 3, False)
+    spec, r_spec, _ = _quadruped(urdf, 3, True)
+    nudged, r_nudged, _ = _quadruped(urdf, 3, False)
+    assert not shared.rigid_solver.owner.unrolled
+    assert spec.rigid_solver.owner.unrolled and not spec.rigid_solver.contact.dense
+    rng = np.random.default_rng(5)
+    gen = torch.Generator().manual_seed(0)
+    err, ref, q_first = [], [], r_shared.get_qpos().clone()
+
+    def gap(r):
+        return max(float((r.get_qpos() - r_shared.get_qpos()).abs().max()),
+                   float((r.get_dofs_velocity() - r_shared.get_dofs_velocity()).abs().max()))
+
+    for i in range(150):
+        if i % 30 == 0:
+            target = torch.tensor(rng.uniform(-0.5, 0.5, (3, len(dofs))), **F64)
+            for r in (r_shared, r_spec, r_nudged):
+                r.control_dofs_position(target, dofs)
+        q, v = r_shared.get_qpos(), r_shared.get_dofs_velocity()
+        r_spec.set_qpos(q)
+        r_spec.set_dofs_velocity(v)
+        r_nudged.set_qpos(q)
+        r_nudged.set_dofs_velocity(v * (1.0 + 1e-15 * torch.randn(v.shape, generator=gen, **F64)))
+        for scene in (shared, spec, nudged):
+            scene.step()
+        err.append(gap(r_spec))
+        ref.append(gap(r_nudged))
+    q = r_shared.get_qpos()
+    assert torch.isfinite(q).all() and float(q[:, 2].min()) > 0.1  # it stands, stumbling
+    assert float((q - q_first).abs().max()) > 0.05  # and moves
+    assert max(ref) > 1e-11  # the yardstick: rounding is amplified on this rollout
+    assert max(err) < 10.0 * max(ref), (max(err), max(ref))
+    assert np.median(err) < 10.0 * np.median(ref) + 1e-13, (np.median(err), np.median(ref))
+
+
 def test_batched_scenes_specialize_by_default():
     """The default (None) specialises from SPECIALIZE_MIN_ENVS envs on, where the step's run time
     outweighs the compile; smaller scenes share kernels."""

@@ -81,7 +81,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from .inertia import func_factor_solve, func_factor_to
+from .inertia import func_factor_solve, func_factor_to, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .collision import (N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 
@@ -994,6 +994,8 @@ def func_contact_solve(s: ti.template(), i_b, e):
         func_solve_coulomb(s, i_b)
         for stage in ti.static(c.pass3):
             stage(s, i_b)
+    elif ti.static(s.unrolled and not c.dense):
+        func_contact_solve_rounds(s, i_b, e)
     else:
         if c.n_on[i_b] > 0:
             func_factor_into(s, i_b, c.fac2, c.qacc2)
@@ -1015,9 +1017,59 @@ def func_contact_solve(s: ti.template(), i_b, e):
                 stage(s, i_b)
     if ti.static(c.dense):
         func_factor_solve_dense(s, i_b, e)
-    else:
+    elif ti.static(not s.unrolled or s.requires_grad):
         func_factor_solve(s, i_b, e)
     func_contact_report(s, i_b, e)
+
+
+@ti.func
+def func_contact_solve_rounds(s: ti.template(), i_b, e):
+    """func_contact_solve's no-gradient path, final solve included, for a core that unrolls the tree
+    factorisation (inertia.TreeSchedule): its factorisations and solves are rounds of one loop, so the
+    unrolled factor and solve are compiled once, not three and four times (the kernel's compile time
+    grows by a third of what inlining each would cost). The factor stays a local between rounds:
+    round 0 factors A1 and solves into qacc2; round 1 (only when pass 1 changed something) A2, into
+    qacc2; round 2 solves the Coulomb response dqc with the last factor; round 3 factors A3 and solves
+    into qacc[e]."""
+    c = s.contact
+    L = ti.Vector.zero(s.dtype, s.static_tree.n_lower)
+    rnd = 0
+    if c.n_on[i_b] == 0:
+        rnd = 3
+    while rnd < 4:
+        b = ti.Vector.zero(s.dtype, s.static_tree.n)
+        if rnd == 2:
+            b = func_static_vec(s, c.rhs_c, i_b)
+        else:
+            L = func_static_factor(s, i_b)
+            b = func_static_vec(s, s.force, i_b)
+        y = func_static_solve(s, L, b)
+        if rnd == 3:
+            func_static_store(s, y, s.qacc, e, i_b)
+            rnd = 4
+        elif rnd == 2:
+            func_static_store(s, y, c.dqc, 0, i_b)
+            for stage in ti.static(c.pass3_listed):
+                stage(s, i_b)
+            rnd = 3
+        else:
+            func_static_store(s, y, c.qacc2, 0, i_b)
+            func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
+            nxt = 2
+            if rnd == 0:
+                changed = 0
+                for k in range(c.n_on[i_b]):
+                    changed |= func_p1_slot(s, i_b, c.sl_list[i_b, k], c.lv2_w, c.lv2_v, False)
+                if changed:
+                    for stage in ti.static(c.pass1_acc):
+                        stage(s, i_b)
+                    nxt = 1
+            if nxt == 2:
+                func_p2_clear(s, i_b)
+                func_p2_slots_listed(s, i_b)
+                func_p2_tree(s, i_b)
+                func_p2_dof(s, i_b)
+            rnd = nxt
 
 
 # run-time sizes of the contact model (indices into ContactSolver.cfg_i): the contact kernels read them

@@ -41,7 +41,7 @@ from ..adstack import require as require_ad_stack
 from .actuation import func_generalized_force
 from .bias import BIAS
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
-from .inertia import INERTIA, func_factor_solve, func_solve_grad
+from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
 from .kinematics import (JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS, LINK_STATE,
                          func_dof_subspace, func_forward_kinematics, func_world_inertia)
@@ -311,6 +311,8 @@ class _Kernels:
         self.kernel_dynamics_part(0, len(LINK_STATE), 0, src, 0.0)
 
     has_contact = False
+    static_tree = None  # a specialised core's dof tree (RigidCore)
+    unrolled = False  # whether the no-gradient kernels unroll the factorisation over static_tree
 
     def kernel_factor_solve(self, e: int):
         """The solve op: qacc[e] (with contacts, the contact solver's passes around the final solve)."""
@@ -654,12 +656,16 @@ class RigidCore(_Kernels):
     dense_solve = False
 
     def __init__(self, key):
-        f, g, B, N, S, E, n_ops, specialized = key
+        f, g, B, N, S, E, n_ops, specialized, tree = key
         self.key = key
         # a specialised core (RigidOptions.specialize_kernels) compiles its fused step with gs.init's
         # optimisation setting (see _ForwardCompile). Its sizes stay run-time reads: as constants they
-        # measured no faster (ANYmal 1.38x vs 1.40x MuJoCo's rollout, Panda 1.93x vs 1.92x)
+        # measured no faster (ANYmal 1.38x vs 1.40x MuJoCo's rollout, Panda 1.93x vs 1.92x). Without
+        # gradients it is one scene's dof tree (`tree`, its dof parents), whose factorisation and
+        # solves the fused step unrolls (inertia.TreeSchedule)
         self.specialized = specialized
+        self.static_tree = TreeSchedule.create(tree) if tree is not None else None
+        self.unrolled = self.static_tree is not None and not g
         self.dtype = f
         self.requires_grad = g
         self.serial = B <= SERIAL_MAX_ENVS
@@ -761,6 +767,7 @@ class _SceneOwner(_Kernels):
         self.dynamics_stages = DYNAMICS + sum((tuple(x.stages) for x in extra), ())
         self.dense_solve = bool(contact is not None and contact.dense)
         self.has_contact = contact is not None
+        self.static_tree, self.unrolled = core.static_tree, core.unrolled
         if core.requires_grad:
             self.grad_plan = _ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems,
                                        [f.grad for x in extra for f in x.grad_fields])
@@ -895,8 +902,11 @@ class RigidSolver:
         self._schedule()
         # n_links + 1: a root link reads its parent from a slot no link occupies (kinematics.func_parent_slot)
         self.specialized = bool(n_envs >= SPECIALIZE_MIN_ENVS if specialize is None else specialize)
+        tree = None
+        if self.specialized and not requires_grad and TreeSchedule.create(self.np_dof_parent) is not None:
+            tree = tuple(int(p) for p in self.np_dof_parent)
         key = (dtype, bool(requires_grad), _cap_envs(n_envs), _cap_elems(max(self.n_links + 1, self.n_dofs, self.n_qs)),
-               self.n_slots, self.n_evals, len(self.ops), self.specialized)
+               self.n_slots, self.n_evals, len(self.ops), self.specialized, tree)
         # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
         # `force`); no plan when the scene has no collision pairs, so nothing is compiled for them.
         plan = None
