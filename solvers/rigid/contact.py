@@ -973,6 +973,29 @@ def func_solve_coulomb(s: ti.template(), i_b):
 
 
 @ti.func
+def func_p1_listed(s: ti.template(), i_b):
+    """Pass 1 over the listed slots with the first solve's link motion (lv2), without gradients; where it
+    changed something, its sums are accumulated into the system. Returns whether it did."""
+    c = s.contact
+    changed = 0
+    for k in range(c.n_on[i_b]):
+        changed |= func_p1_slot(s, i_b, c.sl_list[i_b, k], c.lv2_w, c.lv2_v, False)
+    if changed:
+        for stage in ti.static(c.pass1_acc):
+            stage(s, i_b)
+    return changed
+
+
+@ti.func
+def func_p2_listed(s: ti.template(), i_b):
+    """Pass 2 over the listed slots, without gradients."""
+    func_p2_clear(s, i_b)
+    func_p2_slots_listed(s, i_b)
+    func_p2_tree(s, i_b)
+    func_p2_dof(s, i_b)
+
+
+@ti.func
 def func_contact_solve(s: ti.template(), i_b, e):
     """The solve of a scene with contacts, all stages for one env (the fused step; see
     ContactSolver.factor_solve). Without gradients (nothing reads the intermediate factors and
@@ -1000,18 +1023,10 @@ def func_contact_solve(s: ti.template(), i_b, e):
         if c.n_on[i_b] > 0:
             func_factor_into(s, i_b, c.fac2, c.qacc2)
             func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
-            changed = 0
-            for k in range(c.n_on[i_b]):
-                changed |= func_p1_slot(s, i_b, c.sl_list[i_b, k], c.lv2_w, c.lv2_v, False)
-            if changed:
-                for stage in ti.static(c.pass1_acc):
-                    stage(s, i_b)
+            if func_p1_listed(s, i_b):
                 func_factor_into(s, i_b, c.fac2, c.qacc2)
                 func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
-            func_p2_clear(s, i_b)
-            func_p2_slots_listed(s, i_b)
-            func_p2_tree(s, i_b)
-            func_p2_dof(s, i_b)
+            func_p2_listed(s, i_b)
             func_solve_coulomb(s, i_b)
             for stage in ti.static(c.pass3_listed):
                 stage(s, i_b)
@@ -1057,18 +1072,10 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
             func_link_motion(s, c.qacc2, 0, i_b, c.lv2_w, c.lv2_v)
             nxt = 2
             if rnd == 0:
-                changed = 0
-                for k in range(c.n_on[i_b]):
-                    changed |= func_p1_slot(s, i_b, c.sl_list[i_b, k], c.lv2_w, c.lv2_v, False)
-                if changed:
-                    for stage in ti.static(c.pass1_acc):
-                        stage(s, i_b)
+                if func_p1_listed(s, i_b):
                     nxt = 1
             if nxt == 2:
-                func_p2_clear(s, i_b)
-                func_p2_slots_listed(s, i_b)
-                func_p2_tree(s, i_b)
-                func_p2_dof(s, i_b)
+                func_p2_listed(s, i_b)
             rnd = nxt
 
 
