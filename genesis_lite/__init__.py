@@ -14,6 +14,7 @@ import numpy as np
 from . import _taichi_frontend  # noqa: E402  (isort: skip)
 
 _taichi_frontend.install()
+_taichi_frontend.install_fast_launch()  # repeated launches skip Taichi's per-call key building
 # The solvers (and Taichi) before torch: decorating a Taichi function looks its frame's module up in
 # sys.modules (inspect.getframeinfo), a scan that torch's ~2,000 modules make several times longer.
 import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)

@@ -266,3 +266,163 @@ def _install_light_traceback():
             continue
         if getattr(mod, "get_traceback", None) is original:
             mod.get_traceback = light_traceback
+
+
+# ---------------------------------------------------------------------------------------------------
+# Kernel launches
+#
+# Every `Kernel.__call__` of Taichi 1.7 builds the kernel's template key from all its arguments
+# (`mapper.lookup`: an isinstance chain per argument, and for a @ti.data_oriented owner attribute
+# lookups through its __getattribute__), checks every field of the program for placement
+# (`runtime.materialize`), and sets the launch arguments through closures it defines anew on each
+# call: ~35 us per launch on this machine, for kernels that run in 3-10 us on one environment. A
+# gradient step launches ~25 kernels, so this was most of the time of a one-env backward.
+#
+# `install_fast_launch` keeps Taichi's own call for the first launch of every (kernel, template
+# arguments) pair and for everything unusual, and remembers the compiled kernel it used. Later
+# launches with the same template arguments (the same objects, checked through weak references, or
+# equal ints / floats / bools / strings) and only scalar run-time arguments set those scalars into a
+# launch context and launch the same compiled kernel. They fall back to Taichi's call while a tape
+# records (`ti.ad.Tape` must see the launch), in forward-mode autodiff, for kernels with a return
+# value or print, when a field was created since (Taichi must place it first), and after `ti.reset()`
+# (the kernel's compiled instances are gone). GS_TAICHI_FAST_LAUNCH=0 keeps Taichi's call everywhere.
+
+
+class _FastEntry:
+    __slots__ = ("refs", "key", "t_kernel")
+
+    def __init__(self, refs, key, t_kernel):
+        self.refs, self.key, self.t_kernel = refs, key, t_kernel
+
+
+_VALUE_TYPES = (int, float, bool, str, type(None))
+
+
+def install_fast_launch() -> bool:
+    """Replace taichi's Kernel.__call__ with the cached launch above; True if installed (or already)."""
+    if os.environ.get("GS_TAICHI_FAST_LAUNCH") == "0":
+        return False
+    try:
+        import numpy as np
+        from taichi.lang import impl
+        from taichi.lang import kernel_impl as K
+        from taichi.lang.enums import AutodiffMode
+        from taichi.lang.exception import handle_exception_from_cpp
+        from taichi.lang.util import cook_dtype
+        from taichi.types import primitive_types as P
+        from taichi.types import ndarray_type, template
+        from taichi.types.utils import is_signed
+    except ImportError:
+        return False
+    Kernel = getattr(K, "Kernel", None)
+    if Kernel is None or getattr(Kernel.__call__, "_gs_fast", False):
+        return Kernel is not None
+    if not all(hasattr(Kernel, n) for n in ("ensure_compiled", "launch_kernel", "materialize")):
+        return False  # another Taichi layout: leave it alone
+    original = Kernel.__call__
+    real_ids, int_ids = set(P.real_type_ids), set(P.integer_type_ids)
+    plain_modes = (AutodiffMode.NONE, AutodiffMode.VALIDATION)
+    fields_seen = [None]  # the program's field counts when the fast path last checked them
+    numbers = (int, float, np.integer, np.floating)
+    integers = (int, np.integer)
+
+    def fields_state(rt):
+        return (id(rt.prog), len(rt.global_vars), len(rt.grad_vars), len(rt.dual_vars), len(rt.matrix_fields))
+
+    def plan_of(kernel):
+        """(template positions, [(setter name, position, launch index)]) or None where the kernel's
+        arguments are not all templates and scalars."""
+        temps, scalars, n_t = [], [], 0
+        for i, a in enumerate(kernel.arguments):
+            anno = a.annotation
+            if isinstance(anno, template):
+                temps.append(i)
+                n_t += 1
+            elif id(anno) in real_ids:
+                scalars.append(("set_arg_float", i, i - n_t))
+            elif id(anno) in int_ids:
+                scalars.append(("set_arg_int" if is_signed(cook_dtype(anno)) else "set_arg_uint", i, i - n_t))
+            elif (isinstance(anno, ndarray_type.NdarrayType) and anno.needs_grad is None
+                  and (anno.dtype is None or id(anno.dtype) in P.type_ids)):
+                scalars.append(("array", i, i - n_t))  # an external array of scalars
+            else:
+                return None
+        return tuple(temps), tuple(scalars)
+
+    def array_sig(v):
+        """What Taichi's template key takes from an external array, for the arrays the fast path
+        launches itself (C-contiguous numpy arrays, contiguous CPU torch tensors without grad), else None."""
+        if type(v) is np.ndarray:
+            return (np.ndarray, v.dtype, v.ndim) if v.flags.c_contiguous else None
+        torch = sys.modules.get("torch")  # imported after the solvers
+        if torch is not None and isinstance(v, torch.Tensor):
+            if v.requires_grad or v.device.type != "cpu" or not v.is_contiguous():
+                return None
+            return (torch.Tensor, v.dtype, v.dim())
+        return None
+
+    def fast_call(self, *args, **kwargs):
+        d = self.__dict__
+        plan = d.get("_gs_plan", False)
+        if plan is False:
+            plan = d["_gs_plan"] = plan_of(self) if self.return_type is None else None
+            d["_gs_cache"] = {}
+        rt = self.runtime
+        if (plan is None or kwargs or len(args) != len(self.arguments) or rt.fwd_mode_manager
+                or (rt.target_tape and not rt.grad_replaced and self.autodiff_mode in plain_modes)
+                or self.has_print):
+            return original(self, *args, **kwargs)
+        temps, scalars = plan
+        sig = tuple(a if type(a) in _VALUE_TYPES else id(a) for a in (args[i] for i in temps))
+        arrays = [s for s in scalars if s[0] == "array"]
+        if arrays:
+            asig = tuple(array_sig(args[i]) for _, i, _ in arrays)
+            if None in asig:
+                return original(self, *args)
+            sig = (sig, asig)
+        cache = d["_gs_cache"]
+        hit = cache.get(sig)
+        if (hit is None or self.compiled_kernels.get(hit.key) is not hit.t_kernel
+                or any(r() is not args[i] for i, r in hit.refs) or fields_seen[0] != fields_state(rt)):
+            ret = original(self, *args)
+            refs = []
+            for i in temps:
+                if type(args[i]) not in _VALUE_TYPES:
+                    try:
+                        refs.append((i, weakref.ref(args[i])))
+                    except TypeError:  # not weakly referable: no fast path for these arguments
+                        cache.pop(sig, None)
+                        return ret
+            key = self.ensure_compiled(*args)
+            cache[sig] = _FastEntry(tuple(refs), key, self.compiled_kernels[key])
+            fields_seen[0] = fields_state(rt)
+            return ret
+        t_kernel = hit.t_kernel
+        ctx = t_kernel.make_launch_context()
+        for setter, i, j in scalars:
+            v = args[i]
+            if setter == "array":
+                if type(v) is np.ndarray:
+                    ctx.set_arg_external_array_with_shape((j,), int(v.ctypes.data), v.nbytes, v.shape, 0)
+                else:
+                    ctx.set_arg_external_array_with_shape((j,), int(v.data_ptr()), v.element_size() * v.nelement(),
+                                                          tuple(v.shape), 0)
+                continue
+            if not isinstance(v, numbers if setter == "set_arg_float" else integers):
+                return original(self, *args)  # Taichi's own type error
+            getattr(ctx, setter)((j,), float(v) if setter == "set_arg_float" else int(v))
+        prog = rt.prog
+        try:
+            prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel), ctx)
+        except Exception as e:
+            e = handle_exception_from_cpp(e)
+            if impl.get_runtime().print_full_traceback:
+                raise e
+            raise e from None
+        return None
+
+    fast_call._gs_fast = True
+    fast_call.__wrapped__ = original
+    Kernel._taichi_call = original
+    Kernel.__call__ = fast_call
+    return True
