@@ -21,21 +21,21 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine_info, print_table, progress, run_python, write_stripped_panda  # noqa: E402
+import bench_contact as bc  # noqa: E402
+import bench_rigid as br  # noqa: E402
+from common import machine_info, print_table, progress, write_stripped_panda  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 
 
 def _panda(urdf, envs, steps, repeats, precision, threads):
-    return run_python([str(HERE / "bench_rigid.py"), "--worker", "gl_steps", "--urdf", str(urdf), "--envs",
-                       str(envs), "--steps", str(steps), "--repeats", str(repeats), "--precision", precision,
-                       "--paired-threads", str(threads)], timeout=3600)
+    return br._child("gl_steps", urdf, envs=envs, steps=steps, repeats=repeats, precision=precision,
+                     **{"paired-threads": threads})
 
 
 def _anymal(envs, steps, repeats, precision, threads):
-    return run_python([str(HERE / "bench_contact.py"), "--worker", "speed", "--envs", str(envs), "--steps1", "50",
-                       "--stepsb", str(steps), "--repeats", str(repeats), "--precision", precision,
-                       "--paired-threads", str(threads)], timeout=3600)
+    return bc._child("speed", envs=envs, steps1=50, stepsb=steps, repeats=repeats, precision=precision,
+                     **{"paired-threads": threads})
 
 
 def main():

@@ -330,24 +330,25 @@ def install_fast_launch() -> bool:
         return (id(rt.prog), len(rt.global_vars), len(rt.grad_vars), len(rt.dual_vars), len(rt.matrix_fields))
 
     def plan_of(kernel):
-        """(template positions, [(setter name, position, launch index)]) or None where the kernel's
-        arguments are not all templates and scalars."""
-        temps, scalars, n_t = [], [], 0
+        """(template positions, floats, ints, arrays) or None where the kernel's arguments are not all
+        templates, scalars and external arrays of scalars. floats and arrays are (position, launch
+        index) pairs, ints (setter name, position, launch index)."""
+        temps, floats, ints, arrays, n_t = [], [], [], [], 0
         for i, a in enumerate(kernel.arguments):
             anno = a.annotation
             if isinstance(anno, template):
                 temps.append(i)
                 n_t += 1
             elif id(anno) in real_ids:
-                scalars.append(("set_arg_float", i, i - n_t))
+                floats.append((i, i - n_t))
             elif id(anno) in int_ids:
-                scalars.append(("set_arg_int" if is_signed(cook_dtype(anno)) else "set_arg_uint", i, i - n_t))
+                ints.append(("set_arg_int" if is_signed(cook_dtype(anno)) else "set_arg_uint", i, i - n_t))
             elif (isinstance(anno, ndarray_type.NdarrayType) and anno.needs_grad is None
                   and (anno.dtype is None or id(anno.dtype) in P.type_ids)):
-                scalars.append(("array", i, i - n_t))  # an external array of scalars
+                arrays.append((i, i - n_t))
             else:
                 return None
-        return tuple(temps), tuple(scalars)
+        return tuple(temps), tuple(floats), tuple(ints), tuple(arrays)
 
     def array_sig(v):
         """What Taichi's template key takes from an external array, for the arrays the fast path
@@ -372,11 +373,10 @@ def install_fast_launch() -> bool:
                 or (rt.target_tape and not rt.grad_replaced and self.autodiff_mode in plain_modes)
                 or self.has_print):
             return original(self, *args, **kwargs)
-        temps, scalars = plan
+        temps, floats, ints, arrays = plan
         sig = tuple(a if type(a) in _VALUE_TYPES else id(a) for a in (args[i] for i in temps))
-        arrays = [s for s in scalars if s[0] == "array"]
         if arrays:
-            asig = tuple(array_sig(args[i]) for _, i, _ in arrays)
+            asig = tuple(array_sig(args[i]) for i, _ in arrays)
             if None in asig:
                 return original(self, *args)
             sig = (sig, asig)
@@ -399,18 +399,23 @@ def install_fast_launch() -> bool:
             return ret
         t_kernel = hit.t_kernel
         ctx = t_kernel.make_launch_context()
-        for setter, i, j in scalars:
+        for i, j in floats:
             v = args[i]
-            if setter == "array":
-                if type(v) is np.ndarray:
-                    ctx.set_arg_external_array_with_shape((j,), int(v.ctypes.data), v.nbytes, v.shape, 0)
-                else:
-                    ctx.set_arg_external_array_with_shape((j,), int(v.data_ptr()), v.element_size() * v.nelement(),
-                                                          tuple(v.shape), 0)
-                continue
-            if not isinstance(v, numbers if setter == "set_arg_float" else integers):
+            if not isinstance(v, numbers):
                 return original(self, *args)  # Taichi's own type error
-            getattr(ctx, setter)((j,), float(v) if setter == "set_arg_float" else int(v))
+            ctx.set_arg_float((j,), float(v))
+        for setter, i, j in ints:
+            v = args[i]
+            if not isinstance(v, integers):
+                return original(self, *args)
+            getattr(ctx, setter)((j,), int(v))
+        for i, j in arrays:
+            v = args[i]
+            if type(v) is np.ndarray:
+                ctx.set_arg_external_array_with_shape((j,), int(v.ctypes.data), v.nbytes, v.shape, 0)
+            else:
+                ctx.set_arg_external_array_with_shape((j,), int(v.data_ptr()), v.element_size() * v.nelement(),
+                                                      tuple(v.shape), 0)
         prog = rt.prog
         try:
             prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel), ctx)

@@ -1032,7 +1032,7 @@ def func_contact_solve(s: ti.template(), i_b, e):
                 stage(s, i_b)
     if ti.static(c.dense):
         func_factor_solve_dense(s, i_b, e)
-    elif ti.static(not s.unrolled or s.requires_grad):
+    elif ti.static(not s.unrolled):  # an unrolled core has no gradients; its rounds did the final solve
         func_factor_solve(s, i_b, e)
     func_contact_report(s, i_b, e)
 

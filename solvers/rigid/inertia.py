@@ -5,6 +5,8 @@ The factorisation and solve are not differentiated by Taichi (their loops are to
 reverse mode); their adjoint is written out in `func_solve_grad`: for qacc = M^-1 f,
 f_bar = M^-1 qacc_bar and M_bar = -f_bar qacc^T.
 """
+import functools
+
 import taichi as ti
 
 from .math3d import func_add, func_inertia_mul
@@ -49,7 +51,10 @@ class TreeSchedule:
         self.n_lower = len(self.lower)
 
     @staticmethod
-    def create(parent):
+    @functools.lru_cache(maxsize=None)
+    def create(parent: tuple):
+        """The schedule of the tree given by its dof parents (a tuple), or None; kept per tree, as the
+        solver asks when it builds its core's key and the core again when it is made."""
         t = TreeSchedule(parent)
         return t if 0 < t.n and t.n_ops <= TreeSchedule.MAX_OPS else None
 

@@ -902,9 +902,9 @@ class RigidSolver:
         self._schedule()
         # n_links + 1: a root link reads its parent from a slot no link occupies (kinematics.func_parent_slot)
         self.specialized = bool(n_envs >= SPECIALIZE_MIN_ENVS if specialize is None else specialize)
-        tree = None
-        if self.specialized and not requires_grad and TreeSchedule.create(self.np_dof_parent) is not None:
-            tree = tuple(int(p) for p in self.np_dof_parent)
+        tree = tuple(int(p) for p in self.np_dof_parent) if self.specialized and not requires_grad else None
+        if tree is not None and TreeSchedule.create(tree) is None:
+            tree = None
         key = (dtype, bool(requires_grad), _cap_envs(n_envs), _cap_elems(max(self.n_links + 1, self.n_dofs, self.n_qs)),
                self.n_slots, self.n_evals, len(self.ops), self.specialized, tree)
         # Contacts plug in as extra dynamics stages after the generalised force (they add J^T f into
