@@ -118,15 +118,29 @@ class FieldTree:
     """Fields placed in an SNode tree of their own. Taichi caps the SNodes of one tree (1024; every
     component of a vector or matrix field and of its adjoint is one), and a scene's contact fields with
     their adjoints would take the rigid solver's tree past it: each AccBank and the rest of the contact
-    solver get their own tree. finalize() after the last field, before any is used."""
+    solver get their own tree. finalize() after the last field, before any is used.
 
-    def __init__(self, dtype, grad):
+    Fields with an env axis of length `B` (first, or second after a leading axis of 1: shapes (B, ...)
+    and (1, B, ...)) are placed env-major, as the core's (solver._place_env_major): one env's entries of
+    all of them form one block, the fields of one index side by side. A field per array put one env's
+    contact data some sixty arrays apart, at offsets that are multiples of large powers of two (B x
+    capacity x 4 bytes) and so fall into the same cache sets."""
+
+    def __init__(self, dtype, grad, B=None):
         self.fb = ti.FieldsBuilder()
         self.dtype, self.grad = dtype, grad
+        self.B = B
+        self.groups = {}  # (env axis, other extents) -> fields, placed env-major by finalize()
 
     def _place(self, x, shape):
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
-        self.fb.dense(ti.axes(*range(len(shape))), shape).place(x)
+        B = self.B
+        if B is not None and shape[0] == B:
+            self.groups.setdefault((0, shape[1:]), []).append(x)
+        elif B is not None and len(shape) >= 2 and shape[0] == 1 and shape[1] == B:
+            self.groups.setdefault((1, (1,) + shape[2:]), []).append(x)
+        else:
+            self.fb.dense(ti.axes(*range(len(shape))), shape).place(x)
         return x
 
     def F(self, shape, grad=None):
@@ -142,6 +156,15 @@ class FieldTree:
         return self._place(ti.Matrix.field(3, 3, self.dtype, needs_grad=self.grad if grad is None else grad), shape)
 
     def finalize(self):
+        envs = {}
+        for (axis, rest), xs in self.groups.items():
+            if axis not in envs:
+                envs[axis] = self.fb.dense(ti.axes(axis), self.B)
+            others = tuple(a for a in range(len(rest) + 1) if a != axis)
+            if rest:
+                envs[axis].dense(ti.axes(*others), rest).place(*xs)
+            else:
+                envs[axis].place(*xs)
         if self.grad:
             self.fb.lazy_grad()
         return self.fb.finalize()
@@ -155,7 +178,7 @@ class AccBank:
     vectors S(link(i)) cdof_i the projection onto M dots with the ancestors' cdofs."""
 
     def __init__(self, B, L, D, n_lp, dtype, grad, matrices):
-        t = FieldTree(dtype, grad)
+        t = FieldTree(dtype, grad, B)
         V3, M3 = t.V3, t.M3
         self.matrices = matrices
         self.pairs = matrices and n_lp > 0
@@ -1214,7 +1237,7 @@ class ContactSolver:
         # entries at a clamped index even in scenes with fewer dofs (masked out, as in kinematics.py)
         D = core.cap_elems
         f, g = core.dtype, core.requires_grad
-        tree = FieldTree(f, g)
+        tree = FieldTree(f, g, B)
         I, V3, M3, F = tree.I, tree.V3, tree.M3, tree.F  # noqa: E741
         self.cfg_i = I(N_CCFG_I)
         # geoms
