@@ -84,6 +84,7 @@ from taichi.lang import impl
 from .inertia import func_factor_solve, func_factor_to, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .collision import (N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
+from .layout import place_env_major
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
@@ -121,10 +122,8 @@ class FieldTree:
     solver get their own tree. finalize() after the last field, before any is used.
 
     Fields with an env axis of length `B` (first, or second after a leading axis of 1: shapes (B, ...)
-    and (1, B, ...)) are placed env-major, as the core's (solver._place_env_major): one env's entries of
-    all of them form one block, the fields of one index side by side. A field per array put one env's
-    contact data some sixty arrays apart, at offsets that are multiples of large powers of two (B x
-    capacity x 4 bytes) and so fall into the same cache sets."""
+    and (1, B, ...)) are placed env-major by finalize() (layout.place_env_major, as the core's), fields
+    of the same shape side by side."""
 
     def __init__(self, dtype, grad, B=None):
         self.fb = ti.FieldsBuilder()
@@ -156,15 +155,7 @@ class FieldTree:
         return self._place(ti.Matrix.field(3, 3, self.dtype, needs_grad=self.grad if grad is None else grad), shape)
 
     def finalize(self):
-        envs = {}
-        for (axis, rest), xs in self.groups.items():
-            if axis not in envs:
-                envs[axis] = self.fb.dense(ti.axes(axis), self.B)
-            others = tuple(a for a in range(len(rest) + 1) if a != axis)
-            if rest:
-                envs[axis].dense(ti.axes(*others), rest).place(*xs)
-            else:
-                envs[axis].place(*xs)
+        place_env_major(self.fb, self.B, [(axis, rest, xs) for (axis, rest), xs in self.groups.items()])
         if self.grad:
             self.fb.lazy_grad()
         return self.fb.finalize()

@@ -45,6 +45,7 @@ from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
 from .kinematics import (JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS, LINK_STATE,
                          func_dof_subspace, func_forward_kinematics, func_world_inertia)
+from .layout import place_env_major
 from .model import JOINT_NQ, JOINT_NV, EntityModel
 
 OP_DYN, OP_SOLVE, OP_INT, OP_COPY = 0, 1, 2, 3
@@ -627,24 +628,10 @@ NO_NAN = 2**31 - 1
 
 
 def _place_env_major(B, N, elem, mats, ones, slots):
-    """Place per-env fields so that each env's data is one contiguous block, the fields of one element
-    side by side: elem [B, N] fields, mats [B, N, N], ones [B], slots [(n, fields [n, B, N])] (indexed
-    slot first, laid out env first). A step reads an env's links and dofs across dozens of fields; a
-    field per array puts them dozens of streams apart, and the capacity's unused elements in the
-    middle of every stream. Here one env's step walks a few KiB, and unused elements are never read."""
-    if elem or mats or ones:
-        env = ti.root.dense(ti.i, B)
-        if ones:
-            env.place(*ones)
-        if elem:
-            env.dense(ti.j, N).place(*elem)
-        if mats:
-            env.dense(ti.axes(1, 2), (N, N)).place(*mats)
-    slots = [(n, xs) for n, xs in slots if xs]
-    if slots:
-        env = ti.root.dense(ti.j, B)
-        for n, xs in slots:
-            env.dense(ti.axes(0, 2), (n, N)).place(*xs)
+    """The core's per-env fields env-major (layout.place_env_major): elem [B, N] fields, mats [B, N, N],
+    ones [B], slots [(n, fields [n, B, N])], each list a group of its own."""
+    place_env_major(ti.root, B, [(0, (), ones), (0, (N,), elem), (0, (N, N), mats)]
+                    + [(1, (n, N), xs) for n, xs in slots])
 
 
 @ti.data_oriented
