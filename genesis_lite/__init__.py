@@ -18,6 +18,7 @@ _taichi_frontend.install_fast_launch()  # repeated launches skip Taichi's per-ca
 # The solvers (and Taichi) before torch: decorating a Taichi function looks its frame's module up in
 # sys.modules (inspect.getframeinfo), a scan that torch's ~2,000 modules make several times longer.
 import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)
+from solvers.taichi_compat import adstack, checked_runtime  # noqa: E402  (isort: skip)
 import torch  # noqa: E402
 
 from . import materials, morphs, options, surfaces
@@ -81,6 +82,12 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
               advanced_optimization=str(precision) == "32",
               log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
     kw.update(taichi_kwargs)
+    # Autodiff stacks of a fixed size, never Taichi's adaptive sizing (wrong gradients in 1.7.4):
+    # solvers/taichi_compat/adstack.py. The solvers raise it at build for their longest loops.
+    kw["ad_stack_size"] = adstack.init_size(taichi_kwargs.get("ad_stack_size"))
+    if checked_runtime.requested() and arch == ti.cpu:
+        # GS_CHECK_AD_STACK=1: stack operations that check their bounds (the test suite runs with it)
+        kw.setdefault("offline_cache_file_path", checked_runtime.install())
     ti.init(**kw)
     if seed is not None:
         torch.manual_seed(seed)

@@ -25,7 +25,7 @@ substep's adjoint replays it.
 import numpy as np
 import taichi as ti
 
-from .adstack import require as require_ad_stack
+from .taichi_compat.adstack import require as require_ad_stack
 from .rigid.collision import func_sdf_any, geom_rotations
 
 TINY = 1e-30

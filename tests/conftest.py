@@ -68,6 +68,12 @@ def robot_urdf(name: str) -> Path:
     return path
 
 
+# Every kernel of the suite runs against Taichi's runtime with bounds-checked autodiff stacks
+# (solvers/taichi_compat/checked_runtime.py): an undersized stack aborts the run with a message
+# instead of giving a wrong gradient that a test might not see. Subprocesses (examples) inherit it.
+# GS_CHECK_AD_STACK=0 runs the suite on Taichi's own runtime.
+os.environ.setdefault("GS_CHECK_AD_STACK", "1")
+
 # One gs.init per process (DESIGN.md). The import is guarded so that this file, and the tests that do
 # not need the simulator, still work while the package is incomplete; tests that need it import it
 # themselves and fail there with the real error.

@@ -37,7 +37,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from ..adstack import require as require_ad_stack
+from ..taichi_compat.adstack import require as require_ad_stack
 from .actuation import func_generalized_force
 from .bias import BIAS
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
