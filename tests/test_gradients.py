@@ -1,8 +1,10 @@
 """Issue #3: end-to-end gradients through the rigid solver with ordinary torch autograd.
 
 Every differentiable input and output kind is checked against central finite differences in
-float64 (gs.grad.check) on smooth scenes (no contact): a fixed-base arm, a floating-base body and
-batched environments. Tolerance: relative error <= 1e-6, as the issue asks.
+float64 (gs.grad.check) on smooth scenes (nothing in contact) built with the default options
+(collision and joint limits on): a fixed-base arm, a floating-base body and batched environments.
+Tolerance: relative error <= 1e-6, as the issue asks. tests/test_gradient_matrix.py covers contact,
+MPM and coupling.
 """
 import math
 
@@ -23,7 +25,7 @@ F64 = dict(dtype=torch.float64)
 def make_scene(n_envs=0, integrator=gs.integrator.implicitfast, substeps=1, checkpoint_every=None, dt=0.01):
     return gs.Scene(
         sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, requires_grad=True, checkpoint_every=checkpoint_every),
-        rigid_options=gs.options.RigidOptions(integrator=integrator, enable_collision=False, enable_joint_limit=False),
+        rigid_options=gs.options.RigidOptions(integrator=integrator),  # defaults otherwise: collision and limits on
     )
 
 
@@ -335,9 +337,9 @@ def test_substeps_and_long_horizon_gradient():
 
 
 def test_chain_longer_than_taichis_default_autodiff_stack(tmp_path):
-    """A 40-link chain: Taichi keeps a loop's overwritten locals on an autodiff stack of 32 entries by
-    default and does not check it outside debug mode, so loops over 40 links used to overflow it (a NaN
-    gradient). Initial positions and velocities, joint torques, eight steps."""
+    """A 40-link chain, longer than the 32 entries Taichi gives an autodiff stack by default (it checks
+    the stack in no mode; this gradient was once NaN). Initial positions and velocities, joint
+    torques, eight steps."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("make_chain", ASSETS_DIR / "make_chain.py")

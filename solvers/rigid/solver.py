@@ -932,7 +932,7 @@ class RigidSolver:
         if self.contact is not None:
             self.contact.load(plan, self.n_envs, self.np_dtype)
         if requires_grad:
-            # reverse-mode loops run over the core's element capacity and the contact tables (adstack.py)
+            # reverse-mode loops run over the core's element capacity and the contact tables (taichi_compat/adstack.py)
             loops = [self.core.cap_elems] + ([self.contact.longest_loop()] if self.contact is not None else [])
             if self.external is not None:
                 loops.append(self.n_links * self.n_dofs)  # its dof x link double loop
