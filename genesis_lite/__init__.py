@@ -10,11 +10,11 @@ import logging
 
 import numpy as np
 
-# Lighter Taichi front-end bookkeeping (same IR; see _taichi_frontend.py), before any kernel is decorated.
-from . import _taichi_frontend  # noqa: E402  (isort: skip)
+# Lighter Taichi front-end bookkeeping and launches (same IR; solvers/taichi_compat), before any kernel
+# is decorated.
+from solvers import taichi_compat  # noqa: E402  (isort: skip)
 
-_taichi_frontend.install()
-_taichi_frontend.install_fast_launch()  # repeated launches skip Taichi's per-call key building
+taichi_compat.install_speedups()
 # The solvers (and Taichi) before torch: decorating a Taichi function looks its frame's module up in
 # sys.modules (inspect.getframeinfo), a scan that torch's ~2,000 modules make several times longer.
 import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)
@@ -42,14 +42,19 @@ backend = None
 _initialized = False
 
 
-def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, **taichi_kwargs):
+def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, taichi_speedups=None,
+         **taichi_kwargs):
     """Initialise Taichi on `backend` (gs.cpu or gs.gpu, which is Taichi's CUDA backend) with
     floats of `precision` bits ("32" or "64"). One call per process; later calls with the same
-    arguments are no-ops and different ones raise."""
+    arguments are no-ops and different ones raise. `taichi_speedups=False` runs on Taichi's own
+    front-end and launch functions (solvers/taichi_compat; as GS_TAICHI_SPEEDUPS=0); extra keyword
+    arguments go to `ti.init`."""
     global device, tc_float, np_float, ti_float, _initialized, _init_args
     import taichi as ti
 
     args = (backend, str(precision), bool(debug), tuple(sorted(taichi_kwargs.items())))
+    if taichi_speedups is not None:
+        args += (("taichi_speedups", bool(taichi_speedups)),)
     if _initialized:
         if args != _init_args:
             raise GenesisException(f"gs.init was already called with backend={_init_args[0]!r}, precision={_init_args[1]!r}, "
@@ -63,6 +68,8 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
         raise ValueError(f"gs.init(precision={precision!r}): use \"32\" or \"64\"")
     if backend not in (cpu, gpu):
         raise ValueError(f"gs.init(backend={backend!r}): use gs.cpu or gs.gpu")
+    if taichi_speedups is False:
+        taichi_compat.uninstall_speedups()
     level = logging_level.upper() if isinstance(logging_level, str) else logging_level
     logger.setLevel(level)
     if backend == gpu:

@@ -1,5 +1,5 @@
 """Issue #10 item 4, the Python side of build time: the lighter Taichi front-end helpers
-(genesis_lite/_taichi_frontend.py) must return exactly what Taichi's own return, and the on-disk model
+(solvers/taichi_compat/frontend.py) must return exactly what Taichi's own return, and the on-disk model
 cache (genesis_lite/loaders/cache.py) must give the model a fresh load gives, and notice every change
 of what the loader read."""
 import ast
@@ -161,7 +161,7 @@ def test_fast_launch_gives_taichi_s_results():
     # a new owner at a freed one's address must get its own kernel: every object given one id here,
     # two live owners alternate
     del p
-    from genesis_lite import _taichi_frontend as F
+    from solvers.taichi_compat import frontend as F
 
     q, r = _LaunchProbe(5), _LaunchProbe(5)
     with pytest.MonkeyPatch.context() as mp:
@@ -201,7 +201,7 @@ def test_source_store_keeps_taichi_s_source_across_processes(tmp_path, monkeypat
     import importlib.util
     import textwrap
 
-    from genesis_lite import _taichi_frontend as F
+    from solvers.taichi_compat import frontend as F
 
     monkeypatch.setenv("GS_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.delenv("GS_MODEL_CACHE", raising=False)

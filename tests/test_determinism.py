@@ -1,5 +1,5 @@
 """Issue #20 item 4: the same rollout's gradient is bitwise equal across two backward passes, two
-processes, and with Taichi's launch fast path (genesis_lite/_taichi_frontend.py) on and off, so that
+processes, and with Taichi's launch fast path (solvers/taichi_compat/frontend.py) on and off, so that
 a race or a read of stale memory (an autodiff stack read past its top, an adjoint not cleared between
 passes) shows up as a difference. A contact scene with 3 environments and a two-way coupled MPM scene,
 each in two fresh processes (the second one without the fast launch)."""

@@ -38,8 +38,9 @@ def enabled() -> bool:
 
 def cache_root() -> str:
     """genesis_lite's on-disk caches: $GS_CACHE_DIR, else ~/.cache/genesis_lite ($XDG_CACHE_HOME honoured)."""
-    return os.environ.get("GS_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "genesis_lite")
+    from solvers.taichi_compat import cache_root as root
+
+    return root()
 
 
 def cache_dir() -> str:

@@ -39,7 +39,7 @@ from typing import List
 
 import numpy as np
 import taichi as ti
-from taichi.lang import impl
+from .. import taichi_compat
 
 
 GEOM_PLANE, GEOM_SPHERE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH = 0, 1, 2, 3, 4, 5
@@ -437,7 +437,7 @@ def _div_floor() -> float:
     """Floor of a denominator that may be exactly 0 (parallel edges): 1e-30 in float64; in float32 1e-15,
     whose square (in the adjoint of a division, -num / den^2) is still a normal float32. With 1e-30 it
     underflows to 0 and the discarded branch's adjoint becomes 0 * inf = NaN."""
-    return 1e-30 if impl.current_cfg().default_fp == ti.f64 else 1e-15
+    return 1e-30 if taichi_compat.config().default_fp == ti.f64 else 1e-15
 
 
 @ti.func

@@ -35,7 +35,7 @@ from typing import List
 
 import numpy as np
 import taichi as ti
-from taichi.lang import impl
+from .. import taichi_compat
 
 from ..taichi_compat.adstack import require as require_ad_stack
 from .actuation import func_generalized_force
@@ -70,8 +70,8 @@ def _runtime(index, floating=False):
     scene the core will hold (stage code writes `range(s.n_links)` either way)."""
 
     def get(self):
-        if impl.inside_kernel():
-            return impl.subscript(None, self.cfg_f if floating else self.cfg_i, index)
+        if taichi_compat.inside_kernel():
+            return taichi_compat.subscript(self.cfg_f if floating else self.cfg_i, index)
         return self.scene_cfg[(N_CFG_I + index) if floating else index]
 
     return property(get)
@@ -91,12 +91,12 @@ class _ForwardCompile:
     of the offline cache's key), so an adjoint compiled later, outside, gets gs.init's setting."""
 
     def __enter__(self):
-        cfg = impl.current_cfg()
+        cfg = taichi_compat.config()
         self.was = cfg.advanced_optimization
         cfg.advanced_optimization = self.was and KEEP_FORWARD_ADVANCED_OPTIMIZATION
 
     def __exit__(self, *exc):
-        impl.current_cfg().advanced_optimization = self.was
+        taichi_compat.config().advanced_optimization = self.was
 
 
 KEEP_FORWARD_ADVANCED_OPTIMIZATION = os.environ.get("GS_FORWARD_ADVANCED_OPTIMIZATION") == "1"
@@ -118,12 +118,12 @@ class _AdjointCompile:
         self.plain = plain and not KEEP_ADJOINT_ADVANCED_OPTIMIZATION
 
     def __enter__(self):
-        cfg = impl.current_cfg()
+        cfg = taichi_compat.config()
         self.was = cfg.advanced_optimization
         cfg.advanced_optimization = self.was and not self.plain
 
     def __exit__(self, *exc):
-        impl.current_cfg().advanced_optimization = self.was
+        taichi_compat.config().advanced_optimization = self.was
 
 
 KEEP_ADJOINT_ADVANCED_OPTIMIZATION = os.environ.get("GS_ADJOINT_ADVANCED_OPTIMIZATION") == "1"

@@ -1,21 +1,36 @@
 """Every use of Taichi's private API in genesis_lite, behind a check of the Taichi version it was written for.
 
+- `frontend`: lighter Python-side bookkeeping in Taichi's kernel front end (the same IR and cache
+  keys) and a launch path that skips Taichi's per-call key building for repeated launches.
 - `adstack`: the size of the autodiff stacks of reverse-mode kernels (the compile option
-  `ad_stack_size`, read and raised through `taichi.lang.impl.current_cfg()`).
-- `checked_runtime`: a copy of Taichi's LLVM runtime whose stack operations check their bounds, for
-  the test suite and for `GS_CHECK_AD_STACK=1` (Taichi 1.7.4 checks them in no mode, debug included).
+  `ad_stack_size`), always fixed, never Taichi's adaptive sizing.
+- `checked_runtime`: a copy of Taichi's LLVM runtime whose autodiff-stack operations check their
+  bounds, for the test suite and for GS_CHECK_AD_STACK=1 (Taichi 1.7.4 checks them in no mode).
+- `config()`, `inside_kernel()`, `subscript()`: the compile configuration in force and the two
+  `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need.
 
-These are written against `TAICHI_VERSION`; `version_ok()` says whether the installed Taichi is that one.
+The speed-ups (`frontend`) are one switch: GS_TAICHI_SPEEDUPS=0 in the environment, or
+`gs.init(taichi_speedups=False)`, keeps Taichi's own functions everywhere (the two finer switches
+GS_TAICHI_FAST_FRONTEND=0 / GS_TAICHI_FAST_LAUNCH=0 remain). They are installed only on the Taichi
+version they were written for (`TAICHI_VERSION`); on another one they stay off and say so in a log line.
+Nothing here changes a computed value: the suite checks the IR, the offline-cache keys and bitwise
+gradients with and without them (tests/test_build_overheads.py, tests/test_determinism.py), and CI
+runs the gradient matrix once with them off.
 """
 from __future__ import annotations
 
+import logging
+import os
+
 TAICHI_VERSION = (1, 7, 4)
+_log = logging.getLogger("genesis_lite")
 
 
 def installed_version() -> tuple:
     import taichi as ti
 
-    return tuple(int(v) for v in ti.__version__[:3])
+    v = ti.__version__  # a tuple in Taichi 1.7
+    return tuple(int(x) for x in (v.split(".") if isinstance(v, str) else v)[:3])
 
 
 def version_ok() -> bool:
@@ -24,3 +39,49 @@ def version_ok() -> bool:
         return installed_version() == TAICHI_VERSION
     except Exception:
         return False
+
+
+def cache_root() -> str:
+    """genesis_lite's on-disk caches: $GS_CACHE_DIR, else ~/.cache/genesis_lite ($XDG_CACHE_HOME honoured)."""
+    return os.environ.get("GS_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "genesis_lite")
+
+
+def speedups_requested() -> bool:
+    return os.environ.get("GS_TAICHI_SPEEDUPS", "1") != "0"
+
+
+def install_speedups() -> dict:
+    """Install the front-end and launch speed-ups (before any kernel is decorated) when the switch
+    allows and Taichi is TAICHI_VERSION; returns which are in place."""
+    from . import frontend
+
+    if not speedups_requested():
+        return {"frontend": False, "fast_launch": False}
+    if not version_ok():
+        _log.info("Taichi %s is not the %s that genesis_lite's front-end speed-ups were written for: running "
+                  "without them", ".".join(map(str, installed_version())), ".".join(map(str, TAICHI_VERSION)))
+        return {"frontend": False, "fast_launch": False}
+    frontend.install()
+    frontend.install_fast_launch()
+    return frontend.installed()
+
+
+def uninstall_speedups() -> None:
+    """Taichi's own front-end and launch functions from now on."""
+    from . import frontend
+
+    frontend.uninstall()
+
+
+from taichi.lang import impl as _impl  # noqa: E402
+
+# the compile configuration kernels compiled from now on get
+config = _impl.current_cfg
+# whether Python is running inside a kernel's compilation (a size lookup then emits a field load)
+inside_kernel = _impl.inside_kernel
+
+
+def subscript(field, *index):
+    """A field load emitted while compiling a kernel (`impl.subscript` without an AST node)."""
+    return _impl.subscript(None, field, *index)

@@ -22,7 +22,7 @@ import os
 import shutil
 import tempfile
 
-from . import TAICHI_VERSION, installed_version, version_ok
+from . import TAICHI_VERSION, cache_root, installed_version, version_ok
 
 LLVM_MAJOR = 15  # Taichi 1.7.4's
 ENV = "GS_CHECK_AD_STACK"
@@ -126,9 +126,7 @@ ok:
 
 
 def _cache_root() -> str:
-    base = os.environ.get("GS_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "genesis_lite")
-    return os.path.join(base, "taichi_checked_runtime")
+    return os.path.join(cache_root(), "taichi_checked_runtime")
 
 
 def _stock_runtime_dir() -> str:

@@ -27,7 +27,8 @@ do with the kernel and grow with the number of modules loaded (torch brings ~2,0
 
 The first two return exactly what Taichi's own functions return, so the IR, the offline-cache keys and
 the compiled kernels are unchanged (tests/test_build_overheads.py compares them).
-GS_TAICHI_FAST_FRONTEND=0 keeps all of Taichi's own functions.
+GS_TAICHI_FAST_FRONTEND=0 keeps all of Taichi's own functions (GS_TAICHI_SPEEDUPS=0 or
+gs.init(taichi_speedups=False) also the launch path below; `uninstall` restores Taichi's functions).
 """
 from __future__ import annotations
 
@@ -134,7 +135,7 @@ class _SourceStore:
     def _entry_path(self, path):
         import hashlib
 
-        from .loaders.cache import cache_root
+        from . import cache_root
 
         return os.path.join(cache_root(), "taichi_source", hashlib.sha256(path.encode()).hexdigest()[:32] + ".pkl")
 
@@ -243,6 +244,7 @@ def _install_light_pos_info():
         return f'File "{self.file}", line {line}, in {self.func.func.__name__}:\n{src}\n'
 
     get_pos_info._gs_fast = True
+    ctx_cls._taichi_get_pos_info = ctx_cls.get_pos_info
     ctx_cls.get_pos_info = get_pos_info
 
 
@@ -431,3 +433,38 @@ def install_fast_launch() -> bool:
     Kernel._taichi_call = original
     Kernel.__call__ = fast_call
     return True
+
+
+def uninstall() -> None:
+    """Put back every Taichi function that `install` and `install_fast_launch` replaced."""
+    import importlib
+
+    try:
+        from taichi.lang import kernel_impl as K
+        from taichi.lang import util
+        from taichi.lang.ast import ast_transformer_utils as atu
+    except ImportError:
+        return
+    if getattr(K._get_tree_and_ctx, "_gs_fast", False):
+        K._inside_class, K._get_tree_and_ctx = K._taichi_inside_class, K._taichi_get_tree_and_ctx
+    ctx_cls = getattr(atu, "ASTTransformerContext", None)
+    if ctx_cls is not None and getattr(ctx_cls.get_pos_info, "_gs_fast", False):
+        ctx_cls.get_pos_info = ctx_cls._taichi_get_pos_info
+    original = getattr(util, "_taichi_get_traceback", None)
+    if original is not None:
+        for name in ("taichi.lang.util", "taichi.lang.impl", "taichi.lang.matrix", "taichi.lang.snode",
+                     "taichi.lang._ndarray"):
+            mod = importlib.import_module(name)
+            if getattr(getattr(mod, "get_traceback", None), "_gs_fast", False):
+                mod.get_traceback = original
+    Kernel = getattr(K, "Kernel", None)
+    if Kernel is not None and getattr(Kernel.__call__, "_gs_fast", False):
+        Kernel.__call__ = Kernel._taichi_call
+
+
+def installed() -> dict:
+    """Which of the replacements are in place now."""
+    from taichi.lang import kernel_impl as K
+
+    return {"frontend": bool(getattr(K._get_tree_and_ctx, "_gs_fast", False)),
+            "fast_launch": bool(getattr(K.Kernel.__call__, "_gs_fast", False))}
