@@ -29,13 +29,13 @@ integration kernels are recorded as they are.
 """
 
 import gc
-import os
 import weakref
 from typing import List
 
 import numpy as np
 import taichi as ti
 from .. import taichi_compat
+from ..taichi_compat.compile_options import AdjointCompile, ForwardCompile
 
 from ..taichi_compat.adstack import require as require_ad_stack
 from .actuation import func_generalized_force
@@ -54,7 +54,7 @@ INTEGRATOR_EULER, INTEGRATOR_IMPLICITFAST, INTEGRATOR_RK4 = 0, 1, 2
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
 SERIAL_MAX_ENVS = 16
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_generalized_force,)
-# stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (_AdjointCompile)
+# stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (taichi_compat.compile_options.AdjointCompile)
 PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:2]
 # smallest element capacity: the robots of one size class (Panda, UR5, arms up to 16 links/dofs/qs)
 # share a core
@@ -77,56 +77,6 @@ def _runtime(index, floating=False):
     return property(get)
 
 
-class _ForwardCompile:
-    """Compile the kernels launched inside it without Taichi's advanced IR optimisation.
-
-    Its whole-kernel passes cost time superlinear in a kernel's size: the fused step of a scene with
-    contacts (dynamics, the contact stages, the three contact solves with their passes, integration:
-    one loop body) compiled in ~45 s with them and ~6 s without (benchmarks/bench_build.py), and steps
-    ~10 % slower in float32 (ANYmal on the ground 61 -> 69 us, four stacked boxes 95 -> 105 us, the
-    Panda over a plane unchanged; GS_FORWARD_ADVANCED_OPTIMIZATION=1 keeps gs.init's setting, for long
-    runs where that matters more than the compile). float64 runs without them anyway (gs.init); float32
-    keeps them for the kernels that Taichi differentiates, whose adjoints need them (see gs.init), hence
-    this is set around forward launches only: the option is read when a kernel compiles (and is part
-    of the offline cache's key), so an adjoint compiled later, outside, gets gs.init's setting."""
-
-    def __enter__(self):
-        cfg = taichi_compat.config()
-        self.was = cfg.advanced_optimization
-        cfg.advanced_optimization = self.was and KEEP_FORWARD_ADVANCED_OPTIMIZATION
-
-    def __exit__(self, *exc):
-        taichi_compat.config().advanced_optimization = self.was
-
-
-KEEP_FORWARD_ADVANCED_OPTIMIZATION = os.environ.get("GS_FORWARD_ADVANCED_OPTIMIZATION") == "1"
-
-
-class _AdjointCompile:
-    """Compile the adjoints launched inside it without Taichi's advanced IR optimisation when `plain`.
-
-    float32 needs that optimisation for correct adjoints of some stages only (see gs.init). Measured on
-    the Panda's 50-step rollout: without it the adjoints of func_dof_momentum, func_mass_matrix and
-    func_project_forces + func_generalized_force came out wrong by 30-500 %, while those of the stages
-    in PLAIN_ADJOINT matched the optimised ones to float32 rounding (gradients within 1e-7), and the
-    cold first backward took 4.2-4.7 s instead of 6.2-7.6 s (their compile is ~40 % of it).
-    tests/test_precision.py compares float32 gradients with float64 ones (a ball landing on a plane:
-    free joint and contacts; the arm and the box stack under -m slow). GS_ADJOINT_ADVANCED_OPTIMIZATION=1
-    keeps the optimisation for every adjoint."""
-
-    def __init__(self, plain: bool):
-        self.plain = plain and not KEEP_ADJOINT_ADVANCED_OPTIMIZATION
-
-    def __enter__(self):
-        cfg = taichi_compat.config()
-        self.was = cfg.advanced_optimization
-        cfg.advanced_optimization = self.was and not self.plain
-
-    def __exit__(self, *exc):
-        taichi_compat.config().advanced_optimization = self.was
-
-
-KEEP_ADJOINT_ADVANCED_OPTIMIZATION = os.environ.get("GS_ADJOINT_ADVANCED_OPTIMIZATION") == "1"
 
 
 # scenes of at least this many envs get specialised kernels by default (RigidOptions.specialize_kernels)
@@ -646,7 +596,7 @@ class RigidCore(_Kernels):
         f, g, B, N, S, E, n_ops, specialized, tree = key
         self.key = key
         # a specialised core (RigidOptions.specialize_kernels) compiles its fused step with gs.init's
-        # optimisation setting (see _ForwardCompile). Its sizes stay run-time reads: as constants they
+        # optimisation setting (see taichi_compat.compile_options.ForwardCompile). Its sizes stay run-time reads: as constants they
         # measured no faster (ANYmal 1.38x vs 1.40x MuJoCo's rollout, Panda 1.93x vs 1.92x). Without
         # gradients it is one scene's dof tree (`tree`, its dof parents), whose factorisation and
         # solves the fused step unrolls (inertia.TreeSchedule)
@@ -945,7 +895,7 @@ class RigidSolver:
         self.dof_tau = _SceneBlock(self, self.core.dof_tau, 2)
         self._fill_info(gravity)
         self._scratch = None  # the (e, src, h) whose evaluation the scratch fields hold, if any
-        self._fused_ready = False  # kernel_step_fused compiled (see _ForwardCompile)
+        self._fused_ready = False  # kernel_step_fused compiled (see taichi_compat.compile_options.ForwardCompile)
         self.evaluate = self._evaluation_unit()
         self.kernel_kinematics = self._kinematics_unit()
 
@@ -1160,7 +1110,7 @@ class RigidSolver:
         if self._fused_ready or self.specialized:
             self.owner.kernel_step_fused(step, k0, k1, finish)
         else:
-            with _ForwardCompile():
+            with ForwardCompile():
                 self.owner.kernel_step_fused(step, k0, k1, finish)
             self._fused_ready = True
 
@@ -1178,7 +1128,7 @@ class RigidSolver:
     def substep(self, i: int):
         """Substep i's ops one launch each, the form a ti.ad.Tape records (gradient path). The state
         moves from slot i (or the substep's first RK slot) to the substep's last slot."""
-        with _ForwardCompile():
+        with ForwardCompile():
             for kind_op, kind, e, base, src, dst, h in self.substep_ops[i]:
                 if kind_op == OP_DYN:
                     self.evaluate(e, src, h)
@@ -1215,7 +1165,7 @@ class RigidSolver:
                 self._scratch = (e, src, h)
             owner.kernel_solve_grad(e)
             for k0, k1, plain in parts:
-                with _AdjointCompile(plain):
+                with AdjointCompile(plain):
                     owner.kernel_dynamics_part.grad(k0, k1, e, src, h)
 
         return evaluate
@@ -1230,12 +1180,12 @@ class RigidSolver:
 
         @ti.ad.grad_replaced
         def kinematics(src):
-            with _ForwardCompile():
+            with ForwardCompile():
                 core.kernel_kinematics(src)
 
         @ti.ad.grad_for(kinematics)
         def kinematics_grad(src):
-            with _AdjointCompile(True):  # LINK_STATE is in PLAIN_ADJOINT
+            with AdjointCompile(True):  # LINK_STATE is in PLAIN_ADJOINT
                 for k in stages:
                     core.kernel_dynamics_part.grad(k, k + 1, 0, src, 0.0)
 

@@ -6,6 +6,7 @@
   `ad_stack_size`), always fixed, never Taichi's adaptive sizing.
 - `checked_runtime`: a copy of Taichi's LLVM runtime whose autodiff-stack operations check their
   bounds, for the test suite and for GS_CHECK_AD_STACK=1 (Taichi 1.7.4 checks them in no mode).
+- `compile_options`: Taichi's advanced IR optimisation switched around forward and adjoint launches.
 - `config()`, `inside_kernel()`, `subscript()`: the compile configuration in force and the two
   `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need.
 
