@@ -7,3 +7,18 @@ class GenesisException(RuntimeError):
 
 class SimulationNaNError(GenesisException, FloatingPointError):
     """The state of an entity became NaN or infinite."""
+
+
+class GenesisWarning(UserWarning):
+    """Something that runs but is probably not what the user meant; silence a kind with
+    `warnings.filterwarnings("ignore", category=...)`."""
+
+
+class GradientGrowthWarning(GenesisWarning):
+    """A backward pass amplified the gradient of the state by more than
+    `genesis_lite.grad.growth.GROWTH_WARN_FACTOR` (1e6) over some window of steps:
+    the rollout is chaotic or unstable over its horizon and its gradient is not informative."""
+
+
+class ZeroGainWarning(GenesisWarning):
+    """A PD target was set on dofs whose gain is 0, so the target has no effect."""

@@ -308,6 +308,7 @@ class _SceneParams:
 
         self._scene = scene
         self.name = "scene"
+        self._label = "scene"
         self._envs = RigidEntity._envs.__get__(self)
         self._values = RigidEntity._values.__get__(self)
         self._idx = RigidEntity._idx.__get__(self)

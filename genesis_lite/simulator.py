@@ -31,6 +31,7 @@ from solvers.buffer import StepBuffer
 
 from .errors import GenesisException
 from .grad.functions import StepFunction, require_token
+from .grad.growth import GrowthMonitor
 
 
 class Simulator:
@@ -44,6 +45,7 @@ class Simulator:
         self.step_count = 0
         self._backward_done = False
         self._step_inputs = {}
+        self.growth = GrowthMonitor()  # warns when a backward pass blows the gradient up (grad/growth.py)
         self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
         # the Tape's loss: <gradient torch hands a node's outputs, those outputs>
         self.loss = ti.field(gs.ti_float, shape=(), needs_grad=True) if self.requires_grad else None
@@ -157,9 +159,12 @@ class Simulator:
             self._run(grad=True)
             for b, g in zip(self.bridges, out_grads):
                 b.vjp(g, self.loss)
-        result = []
+        result, state_grads = [], []
         for b, n in zip(self.bridges, self._split(needs, counts)):
-            result.extend(b.input_grads(n, step))
+            g = b.input_grads(n, step)
+            result.extend(g)
+            state_grads.extend(g[:b.n_state])
+        self.growth.record(step, grads, state_grads)
         return result
 
     # ---------------------------------------------------------------- getters (OutputFunction)
@@ -185,5 +190,6 @@ class Simulator:
         if self.buffer is not None:
             self.buffer.clear()
         self._step_inputs = {}
+        self.growth.reset()
         for b, s in zip(self.bridges, states):
             b.new_rollout(s)

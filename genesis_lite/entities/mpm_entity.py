@@ -48,6 +48,10 @@ class MPMEntity:
         self.n_particles = len(particles)
         self._p_start = -1
 
+    @property
+    def _label(self):
+        return f"MPM entity '{self.name}'"
+
     def _on_build(self, p_start):
         self._p_start = p_start
 
@@ -149,10 +153,11 @@ class MPMEntity:
         """Move the entity: pos (3,) puts its centre of mass there (the shape is kept), (n_particles, 3)
         sets every particle."""
         envs, idx = self._envs(envs_idx), self._particles(None)
-        t = torch.as_tensor(pos) if not isinstance(pos, torch.Tensor) else pos
+        t = pos if isinstance(pos, torch.Tensor) else torch.as_tensor(np.asarray(pos, dtype=np.float64))
         if t.shape[-2:] == (self.n_particles, 3):
             return self.set_particles_pos(pos, envs_idx=envs_idx)
-        c = self._values(pos, envs, 1, "pos", (3,))
+        # (3,) or batched (n_envs, 3): one centre per env
+        c = self._values(t.unsqueeze(-2), envs, 1, "pos", (3,))
         m = self._masses()
         x = self._sim.state()[0][envs][:, self._range]
         com = (x * m[None, :, None]).sum(1, keepdim=True) / m.sum()

@@ -6,6 +6,7 @@ lists; with requires_grad=True scenes, tensors that require grad carry gradients
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import List, Optional
 
@@ -14,7 +15,7 @@ import torch
 
 from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 
-from ..errors import GenesisException
+from ..errors import GenesisException, ZeroGainWarning
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
 from .contact_api import ContactMixin
@@ -89,6 +90,23 @@ def _rotvec_to_quat(r):
     return torch.cat([cos, r * sinc], -1)
 
 
+def _raise_if_not_finite(t, who, what, batched):
+    """Refuse NaN / inf in a setter's values, whether or not they require grad (the check reads a
+    detached view, so a finite value keeps its autograd history). `t` is (envs, n, ...)."""
+    bad = ~torch.isfinite(t.detach())
+    if not bool(bad.any()):
+        return
+    first = [int(i) for i in torch.nonzero(bad)[0]]
+    where = first if batched else first[1:]
+    value = t.detach()[tuple(first)].item()
+    hint = (" It requires grad: if an optimiser step produced it, the previous gradient or step size diverged (look "
+            "for a GradientGrowthWarning, shorten the horizon, lower the learning rate or clip the gradient)."
+            if t.requires_grad else "")
+    raise GenesisException(
+        f"{who}: {what} contains NaN or infinite values "
+        f"({int(bad.sum())} of {bad.numel()}; {what}{where} = {value}). Pass finite values.{hint}")
+
+
 class RigidEntity(ContactMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
@@ -110,6 +128,8 @@ class RigidEntity(ContactMixin):
             d += nv
         self.n_links, self.n_qs, self.n_dofs = len(self.links), q, d
         self._link_start = self._q_start = self._dof_start = -1
+        self._zero_gain = {}  # gain -> (the scene's gain tensor, this entity's (envs, dofs) mask of zeros)
+        self._zero_gain_warned = set()  # (gain, dofs) already warned about
 
     # ---------------------------------------------------------------- structure
     def _on_build(self, link_start, q_start, dof_start):
@@ -197,15 +217,16 @@ class RigidEntity(ContactMixin):
         """x as a (len(envs), n, *trailing) tensor in the scene precision, keeping autograd history."""
         import genesis_lite as gs
 
+        who = getattr(self, "_label", f"entity '{self.name}'")
         if isinstance(x, torch.Tensor):
             if x.device.type != gs.device.type:
-                raise GenesisException(f"entity '{self.name}': {what} is on {x.device} but the scene lives on "
+                raise GenesisException(f"{who}: {what} is on {x.device} but the scene lives on "
                                        f"{gs.device}; move it with .to(gs.device)")
             if not (x.is_floating_point() or x.dtype in (torch.int32, torch.int64)):
-                raise GenesisException(f"entity '{self.name}': {what} has dtype {x.dtype}; give floating-point values")
+                raise GenesisException(f"{who}: {what} has dtype {x.dtype}; give floating-point values")
             if x.requires_grad and not self._scene.sim_options.requires_grad:
                 raise GenesisException(
-                    f"entity '{self.name}': {what} requires grad but the scene was built without gradients, so it "
+                    f"{who}: {what} requires grad but the scene was built without gradients, so it "
                     "would receive none. Create the scene with gs.options.SimOptions(requires_grad=True), or pass "
                     "x.detach().")
             t = x.to(gs.tc_float)
@@ -213,7 +234,7 @@ class RigidEntity(ContactMixin):
             try:
                 t = torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=gs.tc_float, device=gs.device)
             except (TypeError, ValueError) as e:
-                raise GenesisException(f"entity '{self.name}': {what} must be numbers ({e})") from None
+                raise GenesisException(f"{who}: {what} must be numbers ({e})") from None
         want = (len(envs), n) + tuple(trailing)
         batched = self._scene.n_envs > 0
         shape = tuple(t.shape)
@@ -221,9 +242,8 @@ class RigidEntity(ContactMixin):
             t = t.unsqueeze(0).expand(want)
         elif shape != want or not batched:
             exp = f"{want[1:]}" + (f" or {want} (envs, ...)" if batched else "")
-            raise GenesisException(f"entity '{self.name}': {what} has shape {shape}; expected {exp}")
-        if not t.requires_grad and not torch.isfinite(t).all():
-            raise GenesisException(f"entity '{self.name}': {what} contains NaN or infinite values")
+            raise GenesisException(f"{who}: {what} has shape {shape}; expected {exp}")
+        _raise_if_not_finite(t, who, what, batched)
         if isinstance(x, torch.Tensor) and x.requires_grad and x.is_leaf:
             # lets a new rollout rebuild this value from the leaf, so the leaf keeps getting gradients
             t._gs_remake = lambda: self._values(x, envs, n, what, trailing)
@@ -353,8 +373,11 @@ class RigidEntity(ContactMixin):
 
     def set_qpos(self, qpos, qs_idx_local=None, envs_idx=None, zero_velocity=True):
         """Set generalised positions (free bases: xyz then quaternion wxyz); zeroes the velocity like Genesis."""
+        self._set_qpos(qpos, qs_idx_local, envs_idx, zero_velocity, "qpos")
+
+    def _set_qpos(self, qpos, qs_idx_local, envs_idx, zero_velocity, what):
         envs, qs = self._envs(envs_idx), self._qs(qs_idx_local)
-        vals = self._values(qpos, envs, len(qs), "qpos")
+        vals = self._values(qpos, envs, len(qs), what)
 
         q0, v0 = self._sim.get_state()
         q = index_put(q0, envs, qs, vals)
@@ -416,14 +439,13 @@ class RigidEntity(ContactMixin):
     def set_pos(self, pos, envs_idx=None, zero_velocity=True):
         """Set the base position (m) of a free-base entity."""
         qs = self._free_base("set_pos")
-        self.set_qpos(pos, qs_idx_local=list(range(qs - self._q_start, qs - self._q_start + 3)), envs_idx=envs_idx,
-                      zero_velocity=zero_velocity)
+        self._set_qpos(pos, list(range(qs - self._q_start, qs - self._q_start + 3)), envs_idx, zero_velocity, "pos")
 
     def set_quat(self, quat, envs_idx=None, zero_velocity=True):
         """Set the base orientation (w, x, y, z) of a free-base entity."""
         qs = self._free_base("set_quat")
-        self.set_qpos(quat, qs_idx_local=list(range(qs - self._q_start + 3, qs - self._q_start + 7)),
-                      envs_idx=envs_idx, zero_velocity=zero_velocity)
+        self._set_qpos(quat, list(range(qs - self._q_start + 3, qs - self._q_start + 7)), envs_idx, zero_velocity,
+                       "quat")
 
     # ---------------------------------------------------------------- control
     def control_dofs_force(self, force, dofs_idx_local=None, envs_idx=None):
@@ -437,13 +459,46 @@ class RigidEntity(ContactMixin):
         if (torch.as_tensor(self._dof_q_local)[(d - self._dof_start).cpu()] < 0).any():
             raise GenesisException(f"entity '{self.name}': position control of free-joint dofs is not supported; "
                                    "control them with control_dofs_force or control_dofs_velocity")
-        self._sim.set_ctrl("pos", self._values(position, envs, len(d), "position"), envs, d, 1)
+        self._sim.set_ctrl("pos", self._values(position, envs, len(d), "position target"), envs, d, 1)
         self._sim.set_ctrl("vel", torch.zeros(len(envs), len(d), device=self._device), envs, d, None)
+        self._warn_if_zero_gain("kp", envs, d)
 
     def control_dofs_velocity(self, velocity, dofs_idx_local=None, envs_idx=None):
         """Velocity targets (m/s, rad/s): force = kv (target - v), clipped to the force range."""
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
-        self._sim.set_ctrl("vel", self._values(velocity, envs, len(d), "velocity"), envs, d, 2)
+        self._sim.set_ctrl("vel", self._values(velocity, envs, len(d), "velocity target"), envs, d, 2)
+        self._warn_if_zero_gain("kv", envs, d)
+
+    def _warn_if_zero_gain(self, gain, envs, d):
+        """Warn (once per entity, gain and set of dofs) when a PD target lands on dofs whose gain is 0 in
+        some of the envs addressed: the target then does nothing. The gains default to 0 (set_dofs_kp /
+        set_dofs_kv). The zero mask is recomputed only when the gain tensor changes (a setter call or a
+        reset), so a control call in a loop pays one identity test."""
+        params = self._sim.params[gain]
+        tensor, zero = self._zero_gain.get(gain, (None, None))
+        if tensor is not params:
+            own = params.detach()[:, self._dof_start:self._dof_start + self.n_dofs]
+            zero = (own == 0).cpu().numpy()
+            self._zero_gain[gain] = (params, zero)
+        if not zero.any():
+            return
+        local = (d - self._dof_start).cpu().numpy()
+        hit = zero[envs.cpu().numpy()][:, local].any(0)
+        if not hit.any():
+            return
+        dofs = tuple(int(i) for i in local[hit])
+        if (gain, dofs) in self._zero_gain_warned:
+            return
+        self._zero_gain_warned.add((gain, dofs))
+        joints = list(dict.fromkeys(j.name for i in dofs for j in self.joints
+                                    if j.dof_start_local <= i < j.dof_start_local + j.n_dofs))
+        call, law = (("control_dofs_position", "kp (target - q) - kv v") if gain == "kp" else
+                     ("control_dofs_velocity", "kv (target - v)"))
+        warnings.warn(
+            f"entity '{self.name}': {call} on dofs {list(dofs)} (joints {joints}) whose {gain} is 0"
+            f"{' in some of the envs' if self._scene.n_envs else ''}, so their targets have no effect (the "
+            f"actuator force is {law}; gains default to 0). Set the gains first with set_dofs_{gain}(...), or drive "
+            "these dofs with control_dofs_force.", ZeroGainWarning, stacklevel=3)
 
     # ---------------------------------------------------------------- parameters
     def _set_dof_param(self, name, values, dofs_idx_local, envs_idx, nonneg=True):
