@@ -61,6 +61,24 @@ def _replace_function(ir: str, head: str, body: str) -> str:
     return ir[:start] + body + ir[end:]
 
 
+def _unless_empty(signature: str, message: str, body: str) -> str:
+    """A runtime function that aborts with `message` when the stack is empty, else runs `body` (which
+    sees %count_ptr and %count, the stack's entry count)."""
+    return f"""\
+define dso_local {signature} #0 {{
+  %count_ptr = bitcast i8* %stack to i64*
+  %count = load i64, i64* %count_ptr, align 8
+  %empty = icmp eq i64 %count, 0
+  br i1 %empty, label %fail, label %ok
+fail:
+  %r = call i32 (i32, i8*, ...) @dprintf(i32 2, {_message_ptr(message)})
+  call void @abort()
+  unreachable
+ok:
+{body}}}
+"""
+
+
 def _checked_ir(ir: str) -> str:
     """Taichi's runtime (LLVM IR text) with bounds-checked stack_push / stack_pop / stack_top_primal.
     The stack layout is Taichi's: a u64 count, then (primal, adjoint) pairs of `element_size` bytes."""
@@ -83,41 +101,21 @@ ok:
   ret void
 }}
 """)
-    ir = _replace_function(ir, "define dso_local void @stack_pop(", f"""\
-define dso_local void @stack_pop(i8* noundef %stack) #0 {{
-  %count_ptr = bitcast i8* %stack to i64*
-  %count = load i64, i64* %count_ptr, align 8
-  %empty = icmp eq i64 %count, 0
-  br i1 %empty, label %fail, label %ok
-fail:
-  %r = call i32 (i32, i8*, ...) @dprintf(i32 2, {_message_ptr("pop")})
-  call void @abort()
-  unreachable
-ok:
+    ir = _replace_function(ir, "define dso_local void @stack_pop(", _unless_empty(
+        "void @stack_pop(i8* noundef %stack)", "pop", """\
   %next = add i64 %count, -1
   store i64 %next, i64* %count_ptr, align 8
   ret void
-}}
-""")
-    ir = _replace_function(ir, "define dso_local i8* @stack_top_primal(", f"""\
-define dso_local i8* @stack_top_primal(i8* noundef %stack, i64 noundef %size) #0 {{
-  %count_ptr = bitcast i8* %stack to i64*
-  %count = load i64, i64* %count_ptr, align 8
-  %empty = icmp eq i64 %count, 0
-  br i1 %empty, label %fail, label %ok
-fail:
-  %r = call i32 (i32, i8*, ...) @dprintf(i32 2, {_message_ptr("top")})
-  call void @abort()
-  unreachable
-ok:
+"""))
+    ir = _replace_function(ir, "define dso_local i8* @stack_top_primal(", _unless_empty(
+        "i8* @stack_top_primal(i8* noundef %stack, i64 noundef %size)", "top", """\
   %data = getelementptr inbounds i8, i8* %stack, i64 8
   %index = sub i64 %count, 1
   %pairs = mul i64 %index, 2
   %offset = mul i64 %pairs, %size
   %top = getelementptr inbounds i8, i8* %data, i64 %offset
   ret i8* %top
-}}
-""")
+"""))
     decls = "".join(_c_string(k, v) for k, v in _MESSAGES.items())
     if "@dprintf(" not in ir.split("define ", 1)[0]:
         decls += "declare i32 @dprintf(i32, i8*, ...)\n"
