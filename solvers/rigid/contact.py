@@ -342,6 +342,18 @@ def func_contact_clear_cross(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
+def func_softplus(x, xc):
+    """log(1 + e^x), with xc = x clamped to [-60, 60] (exp stays finite in the adjoint). Each branch is
+    exact on its side (x + log(1 + e^-x) above 0, log(1 + e^x) at and below), so the derivative Taichi's
+    reverse mode takes is the sigmoid everywhere, x = 0 included. Spelled max(x, 0) + log(1 + e^-|x|)
+    (the same values) its adjoint at x == 0 was 0, not 1/2: Taichi sends max's adjoint to its second
+    argument at a tie and takes abs's as sign(0) = 0. A body placed exactly on the ground starts its
+    contacts at depth 0 with no normal velocity, so z = zp = 0 there, and the first step's gradient
+    dropped the force's dependence on the depth."""
+    return ti.select(x > 0, x + ti.log(1.0 + ti.exp(-xc)), ti.log(1.0 + ti.exp(xc)))
+
+
+@ti.func
 def func_normal_law(c: ti.template(), depth, depth_end, h):
     """(normal force, slope h * dF/d(approach speed)) of the implicit law for the depth now and the
     depth predicted for the end of the step, and the force of the current state alone (the spring on
@@ -351,8 +363,8 @@ def func_normal_law(c: ti.template(), depth, depth_end, h):
     # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
     zc = ti.min(ti.max(z, -60.0), 60.0)
     zpc = ti.min(ti.max(zp, -60.0), 60.0)
-    sp = ti.max(z, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zc)))
-    spp = ti.max(zp, 0.0) + ti.log(1.0 + ti.exp(-ti.abs(zpc)))
+    sp = func_softplus(z, zc)
+    spp = func_softplus(zp, zpc)
     sg = 1.0 / (1.0 + ti.exp(-zpc))
     ch = c.d / h
     fn = (c.k + ch) * c.delta * spp - ch * c.delta * sp
@@ -734,7 +746,8 @@ def func_p3_slot(s: ti.template(), i_b, i_s):
     w = (uc - uc.dot(n) * n).dot(u2t) / s2
     # slip speed ahead, smoothly clipped at 0 (a reversal means the contact sticks)
     wc = ti.min(ti.max(w / c.eps, -60.0), 60.0)
-    vp = ti.max(w, 0.0) + c.eps * ti.log(1.0 + ti.exp(-ti.abs(wc)))
+    # (func_softplus's two branches, so that the adjoint at w == 0 is 1/2 as the derivative)
+    vp = ti.select(w > 0, w + c.eps * ti.log(1.0 + ti.exp(-wc)), c.eps * ti.log(1.0 + ti.exp(wc)))
     keep = f2 > 0
     eta = c.sl_mu[i_b, i_s] * ti.max(f2, 0.0) / ti.sqrt(vp * vp + c.eps * c.eps)
     drop = ti.select(keep, 0.0, 1.0)
