@@ -79,8 +79,8 @@ for their own forces.
 
 import numpy as np
 import taichi as ti
-from taichi.lang import impl
 
+from .. import taichi_compat
 from .inertia import func_factor_solve, func_factor_to, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .collision import (N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
@@ -1119,8 +1119,8 @@ def _runtime(index):
     solver's cfg field inside a kernel being compiled (as solver._runtime)."""
 
     def get(self):
-        if impl.inside_kernel() and not self.static_sizes:
-            return impl.subscript(None, self.cfg_i, index)
+        if taichi_compat.inside_kernel() and not self.static_sizes:
+            return taichi_compat.subscript(self.cfg_i, index)
         return self.plan.cfg_i[index]
 
     return property(get)
