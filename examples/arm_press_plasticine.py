@@ -1,17 +1,27 @@
 """Co-simulation with optimised controls: a URDF arm (assets/urdf/arm.urdf, 4 joints, PD position
 control) presses its tool into a block of plasticine (von Mises elasto-plastic MPM). The target is the
 dent that known controls leave; from a wrong guess, gradient descent through the rollout (MPM,
-coupling and the arm's dynamics) finds PD targets that leave the same dent.
+coupling and the arm's dynamics) finds PD targets that leave nearly the same dent.
 
 Controls: offsets of the shoulder-pitch and elbow PD targets from the start pose at 3 knots (at 1/3,
 2/3 and all of the horizon), interpolated linearly in time: 6 numbers (rad). Loss: mean over
 particles of |final position - target position|^2 (m^2). Adam on the knots with a decaying rate;
 the best iterate is kept.
 
-The arm is position-controlled and much heavier than the forces the plasticine puts on it, so the
-coupling is one-way (CouplerOptions(mpm_reaction=False)): the tool moves the material, the arm does
-not feel it. (With the reaction on, the gradient of this rollout diverged, ~1e159: reported as a
-library issue.)
+The coupling is two-way (the default CouplerOptions): the tool moves the material, the arm feels the
+material's reaction through its joints, and the gradient runs through both directions (it matches
+central finite differences of 1e-7 rad in float64 to a relative error below 1e-6 per knot at the
+initial guess, over the 150 steps). The arm is position-controlled and much heavier than the forces
+the plasticine puts on it, so the reaction shifts its last link by a fraction of a millimetre; its lag
+behind the PD targets (~0.04 rad) is its own dynamics.
+
+What is fitted is the dent, not the controls: in the full run the rms distance of the particles to
+their target falls from 4.8 mm to 0.8 mm, but the fitted knots are not the true ones (up to 0.06 rad
+off): other controls leave nearly the same dent, and on the way from them to the true knots the loss
+rises before it falls. The loss is only piecewise smooth: the rigid boundary on the MPM grid makes
+discrete choices (the geom a node answers to, the face of a box it is pushed out through), and where
+one changes, the loss jumps by up to ~3e-4 of its value. Adam needs no line search, which such jumps
+can stall.
 
     python examples/arm_press_plasticine.py [--quick] [--iters 30] [--out out/arm_press_plasticine]
 
@@ -59,8 +69,7 @@ def main():
     wall = 3.0 / dens
     L, H = 0.3, 0.25
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, requires_grad=True),
-                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(L, L, H), grid_density=dens),
-                     coupler_options=gs.options.CouplerOptions(mpm_reaction=False))
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(L, L, H), grid_density=dens))
     block = scene.add_entity(gs.morphs.Box(pos=(L / 2, L / 2, wall + 0.025), size=(0.1, 0.1, 0.05)),
                              material=gs.materials.MPM.ElastoPlastic(E=5e4, nu=0.3, yield_stress=2e3),
                              surface=gs.surfaces.Default(color=(0.85, 0.5, 0.6)))
