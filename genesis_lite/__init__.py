@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 
@@ -92,10 +93,17 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     # Autodiff stacks of a fixed size, never Taichi's adaptive sizing (wrong gradients in 1.7.4):
     # solvers/taichi_compat/adstack.py. The solvers raise it at build for their longest loops.
     kw["ad_stack_size"] = adstack.init_size(taichi_kwargs.get("ad_stack_size"))
+    env_cache = None
     if checked_runtime.requested() and arch == ti.cpu:
-        # GS_CHECK_AD_STACK=1: stack operations that check their bounds (the test suite runs with it)
+        # GS_CHECK_AD_STACK=1: stack operations that check their bounds (the test suite runs with it);
+        # their kernels never share a cache with the ones compiled against Taichi's own runtime
         kw.setdefault("offline_cache_file_path", checked_runtime.install())
-    ti.init(**kw)
+        env_cache = os.environ.pop("TI_OFFLINE_CACHE_FILE_PATH", None)  # (Taichi warns of the override)
+    try:
+        ti.init(**kw)
+    finally:
+        if env_cache is not None:
+            os.environ["TI_OFFLINE_CACHE_FILE_PATH"] = env_cache
     if seed is not None:
         torch.manual_seed(seed)
         np.random.seed(seed)

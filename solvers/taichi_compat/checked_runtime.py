@@ -186,4 +186,7 @@ def install() -> str:
 
     runtime_dir = build()
     core.set_lib_dir(runtime_dir.encode())
+    base = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH")  # a cache folder the user chose: beside it
+    if base:
+        return os.path.join(base, "checked-" + os.path.basename(runtime_dir))
     return os.path.join(runtime_dir, "kernel_cache")
