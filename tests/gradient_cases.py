@@ -1,0 +1,1013 @@
+"""The gradient matrix: scenes x inputs x outputs x variations, as a table (CASES, at the bottom).
+
+A case is one line: a scene (a builder below), the inputs that receive gradients ("entity.kind", kinds
+in INPUTS), the outputs its loss reads ("entity.kind", kinds in OUTPUTS) and a Variation (integrator,
+n_envs, checkpointing, the process it runs in, float32). `run_case` rolls the scene out once with
+autograd and compares every input's gradient with central finite differences in float64: every
+component for inputs of at most 6 scalars, else 2 fixed random directions (with n_envs > 0: one random
+direction inside each env, so that each env's gradient is checked on its own). Every input is float64,
+and so is every finite-difference rollout.
+
+Loss: a sum of outputs read after two steps (mid-horizon and last), each weighted by fixed random normal
+weights of its shape, so that no gradient is zero by symmetry. Inputs start from the scene's defaults
+(Built.defaults) or their kind's base value; in batched scenes env k gets its own values.
+
+Finite differences: central differences D(h), D(h/2), D(h/4) with h the input kind's step (INPUTS[..].h
+or the scene's Built.fd_h, times max(1, |x|) and Built.fd_scale), extrapolated (Richardson) to
+R1 = (4 D(h/2) - D(h)) / 3 and R2 = (4 D(h/4) - D(h/2)) / 3. The two must agree,
+|R1 - R2| <= TOL * max(|R2|, scale), and the round-off of a difference quotient, taken as
+2e-15 max(1, |loss|) / h, must stay below that bound too. A direction where they do not is tried again
+at h/3, h/10, h/30 (a kink or jump of the model within h: contact on/off, B-spline weights, plastic
+yield, the rigid boundary's face choice on the MPM grid), then 3 h, 10 h (round-off); if no level
+converges the direction is FD-unreliable (a failure of the case, never a pass). Pass: |g_ad - R2| <= TOL * max(|R2|, scale), TOL = 1e-6, scale = the norm of the input's
+finite-difference gradient (every component), or its root mean square over the random directions
+(Gaussian directions: E[(g.d)^2] = |g|^2), so that a true zero is checked as zero. An input whose
+gradient is no larger than round-off makes the case "degenerate" (it could not fail): also a failure.
+
+The file is also a script for the variations that need a process of their own:
+    python tests/gradient_cases.py CASE_ID [--precision 32] [--no-fd]
+prints the case's result as JSON on its last line (the parent test compares it).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+import zlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+
+os.environ.setdefault("GS_CHECK_AD_STACK", "1")  # as tests/conftest.py: a script run checks its stacks too
+
+import torch  # noqa: E402
+
+import genesis_lite as gs  # noqa: E402
+
+TESTS_DIR = Path(__file__).resolve().parent
+REPO = TESTS_DIR.parent
+URDF_DIR = REPO / "assets" / "urdf"
+TOL = 1e-6                 # |g_ad - g_fd| <= TOL * max(|g_fd|, scale)
+F32_TOL = 2000 * 2.0 ** -23  # float32 against float64: 2000 float32 ulps (2.4e-4) of max(|g|, scale)
+# rigid contact: the stiff contact solve (M + h^2 k J^T J, k = 1e6 N/m per point) multiplies float32's
+# rounding by its condition number (~1e2-1e3): 20000 ulps (2.4e-3)
+F32_TOL_CONTACT = 20000 * 2.0 ** -23
+F64 = torch.float64
+# the steps (times the input kind's h) a direction is tried at when the differences at h do not converge
+FD_LADDER = (1 / 3, 1 / 10, 1 / 30, 3.0, 10.0)
+
+
+# ================================================================================= variations
+@dataclass(frozen=True)
+class Variation:
+    """What a case changes from the defaults a user gets. integrator: None (the default,
+    implicitfast), "Euler", "implicitfast" or "RK4"; checkpoint_every: SimOptions(checkpoint_every=);
+    process: "shared" (the test's process, after whatever ran there), "after" (the test's process,
+    after building and differentiating another scene itself), "first" (the first scene of a fresh
+    process); precision "32": float32 (in a fresh process) against this process's float64."""
+
+    integrator: Optional[str] = None
+    n_envs: int = 0
+    checkpoint_every: Optional[int] = None
+    process: str = "shared"
+    precision: str = "64"
+
+    @property
+    def label(self) -> str:
+        parts = [self.integrator or "default"]
+        if self.n_envs:
+            parts.append(f"envs{self.n_envs}")
+        if self.checkpoint_every:
+            parts.append(f"ckpt{self.checkpoint_every}")
+        if self.process != "shared":
+            parts.append(self.process)
+        if self.precision != "64":
+            parts.append(f"f{self.precision}")
+        return "-".join(parts)
+
+    def tags(self) -> List[str]:
+        """The variation axes this case exercises (for the benchmark's per-variation table)."""
+        t = [f"integrator={self.integrator or 'default'}", f"n_envs={self.n_envs}",
+             f"checkpoint={'on' if self.checkpoint_every else 'off'}", f"process={self.process}",
+             f"precision={self.precision}"]
+        return t
+
+
+# ================================================================================= scenes
+@dataclass
+class Built:
+    """A built scene, its entities by name, its horizon T, the steps after which outputs are read,
+    default values of input kinds ("entity.kind" -> value of one env) applied every rollout, and the
+    scale of the finite-difference steps (stiff contact: smaller)."""
+
+    scene: object
+    ents: Dict[str, object]
+    T: int
+    defaults: Dict[str, np.ndarray] = field(default_factory=dict)
+    out_steps: Tuple[int, ...] = ()
+    fd_scale: float = 1.0
+    fd_h: Dict[str, float] = field(default_factory=dict)  # input kind -> its step here (replaces INPUTS[kind].h)
+    dofs: Dict[str, Optional[List[int]]] = field(default_factory=dict)  # dof selection per entity (None: all)
+    reset_state: object = None  # scene.get_state() every rollout starts from (None: the state after build)
+    f32_tol: float = None  # float32 against float64 (None: F32_TOL)
+
+    @property
+    def n_envs(self):
+        return self.scene.n_envs
+
+
+def _scene(v: Variation, dt, substeps=1, mpm=None, coupler=None, rigid=None):
+    """A gs.Scene with the user's default options except the variation's (and a builder's dt)."""
+    rigid = dict(rigid or {})
+    if v.integrator is not None:
+        rigid["integrator"] = getattr(gs.integrator, v.integrator)
+    kw = dict(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, requires_grad=True,
+                                                checkpoint_every=v.checkpoint_every))
+    if rigid:
+        kw["rigid_options"] = gs.options.RigidOptions(**rigid)
+    if mpm is not None:
+        kw["mpm_options"] = gs.options.MPMOptions(**mpm)
+    if coupler is not None:
+        kw["coupler_options"] = coupler
+    return gs.Scene(**kw)
+
+
+def _unit(q):
+    q = np.asarray(q, float)
+    return q / np.linalg.norm(q)
+
+
+def build_free_box(v):
+    """A box tumbling in flight (no plane): spin about all three axes, gravity."""
+    scene = _scene(v, dt=0.01)
+    box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.2, 0.1), pos=(0.1, -0.2, 1.0), quat=_unit([0.9, 0.2, -0.3, 0.1])))
+    scene.build(n_envs=v.n_envs)
+    return Built(scene, {"box": box}, T=6, defaults={"box.dofs_velocity": np.array([0.5, -0.3, 1.0, 1.2, -0.7, 2.0])})
+
+
+# poses of bodies in contact move the contact depth directly, and the normal force bends over the
+# contact_smoothing width (5 um): their steps stay well below it
+CONTACT_POSE_H = {"pos": 1e-6, "quat": 1e-6, "qpos": 1e-6, "dofs_position": 1e-6}
+
+
+def _sliding_box(v, z, vz, T):
+    scene = _scene(v, dt=5e-3)
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.3))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.15, 0.1), pos=(0.0, 0.0, z)), material=gs.materials.Rigid(friction=0.5))
+    scene.build(n_envs=v.n_envs)
+    push = np.tile([2.0, 0.0, 0.0, 0.0, 0.0, 0.0], (T, 1))
+    return Built(scene, {"box": box}, T=T, fd_h=CONTACT_POSE_H, f32_tol=F32_TOL_CONTACT,
+                 defaults={"box.dofs_velocity": np.array([1.5, 0.4, vz, 0.0, 0.0, 0.3]), "box.ctrl_force": push})
+
+
+def build_slide_contact(v):
+    """A box (friction 0.5 on a plane of 0.3) starting in exact contact (z = half its height), pushed
+    by 2 N along x, sliding and turning."""
+    return _sliding_box(v, z=0.05, vz=0.0, T=8)
+
+
+def build_slide_land(v):
+    """The same box starting 3 mm above the plane, falling at 0.2 m/s: it lands after ~3 steps."""
+    return _sliding_box(v, z=0.053, vz=-0.2, T=10)
+
+
+def build_stack(v):
+    """Two boxes 1 mm apart and 1 mm above a plane, the top one offset and turned: both land, the top
+    one on the bottom one (a contact between two moving bodies)."""
+    scene = _scene(v, dt=5e-3)
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.3))
+    lo = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.1), pos=(0.0, 0.0, 0.051)),
+                          material=gs.materials.Rigid(friction=0.4))
+    hi = scene.add_entity(gs.morphs.Box(size=(0.12, 0.1, 0.08), pos=(0.02, -0.01, 0.143),
+                                        quat=_unit([0.98, 0.0, 0.0, 0.2])), material=gs.materials.Rigid(friction=0.6))
+    scene.build(n_envs=v.n_envs)
+    # the top box slides and turns on the bottom one once it has landed (mu 0.6 against 0.4: its own counts)
+    return Built(scene, {"lo": lo, "hi": hi}, T=8, fd_h=CONTACT_POSE_H, f32_tol=F32_TOL_CONTACT,
+                 defaults={"hi.dofs_velocity": np.array([0.4, -0.2, -0.1, 0.0, 0.0, 1.0])})
+
+
+def build_arm(v, plane=False):
+    """assets/urdf/skew_arm.urdf fixed 1 m up: offset centres of mass, rotated non-diagonal inertia, skewed
+    joint axes, collision shapes (collision on) with nothing to touch; plane=True adds a ground plane it
+    never reaches (the contact kernels run and find nothing)."""
+    scene = _scene(v, dt=0.01)
+    if plane:
+        scene.add_entity(gs.morphs.Plane())
+    arm = scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "skew_arm.urdf"), fixed=True, pos=(0.0, 0.0, 1.0)))
+    scene.build(n_envs=v.n_envs)
+    # gains low enough for the explicit integrators (Euler, RK4) at dt = 0.01 on the light last link
+    return Built(scene, {"arm": arm}, T=8, defaults={
+        "arm.dofs_position": np.array([0.3, -0.5, 0.8]), "arm.dofs_velocity": np.array([0.5, -0.3, 0.4]),
+        "arm.dofs_kp": np.array([12.0, 8.0, 4.0]), "arm.dofs_kv": np.array([0.6, 0.4, 0.2])})
+
+
+def _robot_urdf(name):
+    sys.path.insert(0, str(TESTS_DIR))
+    from conftest import robot_urdf
+
+    return robot_urdf(name)
+
+
+def build_go2(v):
+    """The Unitree Go2 of example-robot-data standing on the ground under PD control. Its start is a
+    settled stance: dropped from 5 mm onto its feet and held for 40 steps (recorded with gradients, so
+    no other kernel compiles), then every rollout starts from there."""
+    scene = _scene(v, dt=0.01)
+    scene.add_entity(gs.morphs.Plane())
+    robot = scene.add_entity(gs.morphs.URDF(file=str(_robot_urdf("go2")), pos=(0.0, 0.0, 0.5)))
+    scene.build(n_envs=v.n_envs)
+    joints = list(range(6, robot.n_dofs))
+    names = [j.name for j in robot.joints if j.n_dofs == 1]
+    stand = np.array([0.05 if "hip" in n else (0.8 if "thigh" in n else -1.5) for n in names])
+    kp, kv = np.full(12, 60.0), np.full(12, 2.0)
+    with torch.no_grad():
+        robot.set_dofs_position(torch.tensor(stand, dtype=gs.tc_float), dofs_idx_local=joints)
+        calves = [robot.get_link(n).idx_local for n in ("FL_calf", "FR_calf", "RL_calf", "RR_calf")]
+        zc = robot.get_links_pos().reshape(-1, robot.n_links, 3)[0, calves, 2].min().item()
+    z0 = 0.5 - (zc - 0.213 - 0.022) + 0.005  # foot centre 0.213 m below the calf frame, radius ~0.022 m
+    scene.reset()
+    tc = lambda a: torch.tensor(a, dtype=gs.tc_float)  # noqa: E731
+    robot.set_dofs_kp(tc(kp).requires_grad_(True), dofs_idx_local=joints)
+    robot.set_dofs_kv(tc(kv), dofs_idx_local=joints)
+    robot.set_qpos(tc(np.concatenate([[0.0, 0.0, z0, 1.0, 0.0, 0.0, 0.0], stand])))
+    for _ in range(40):
+        robot.control_dofs_position(tc(stand), dofs_idx_local=joints)
+        scene.step()
+    state = scene.get_state()
+    robot.set_dofs_kp(tc(kp), dofs_idx_local=joints)
+    T = 3
+    q = _one_env(robot.get_qpos(), Built(scene, {}, T))
+    # the inputs' base values are the settled stance (a random one would drop or bury the feet); PD
+    # targets lean away from it (0.1 rad) so that the gains matter
+    lean = np.outer(np.arange(1, T + 1) / T, np.tile([0.1, -0.1, 0.1], 4))
+    v = _one_env(robot.get_dofs_velocity(), Built(scene, {}, T))
+    # steps: poses move the feet's contact depth directly (small steps), while velocities, targets and gains
+    # reach the loss through the contact slots' candidate sets, which switch at the margin (a jump of
+    # ~1e-12 of the loss each; steps of 1e-6 see them): large steps, Richardson removes their h^2 error
+    fd_h = {"qpos": 1e-6, "dofs_position": 1e-6, "dofs_velocity": 1e-4, "ctrl_position": 1e-4, "dofs_kp": 1e-3,
+            "dofs_kv": 1e-3}
+    return Built(scene, {"go2": robot}, T=T, fd_h=fd_h, dofs={"go2": joints}, reset_state=state,
+                 f32_tol=F32_TOL_CONTACT, defaults={
+        "go2.qpos": q, "go2.dofs_position": q[7:], "go2.dofs_velocity": v[6:], "go2.dofs_kp": kp, "go2.dofs_kv": kv,
+        "go2.ctrl_position": q[7:] + lean})
+
+
+MPM_MATERIALS = {
+    "Elastic": lambda: gs.materials.MPM.Elastic(E=2e4, nu=0.3),
+    "ElastoPlastic": lambda: gs.materials.MPM.ElastoPlastic(E=2e4, nu=0.3, yield_stress=300.0),
+    "Sand": lambda: gs.materials.MPM.Sand(E=2e4, nu=0.3, friction_angle=30.0),
+    "Liquid": lambda: gs.materials.MPM.Liquid(E=2e4, nu=0.3, viscosity=0.5),
+}
+
+
+def _mpm_scene(v, upper, dens=32, dt=4e-3, substeps=4, coupler=None):
+    return _scene(v, dt=dt, substeps=substeps, coupler=coupler,
+                  mpm=dict(lower_bound=(0.0, 0.0, 0.0), upper_bound=upper, grid_density=dens))
+
+
+def build_mpm_cube(v, material):
+    """A cube of one MPM material (27 particles) thrown down and sideways onto the floor (wall friction)."""
+    scene = _mpm_scene(v, upper=(0.3, 0.3, 0.3))
+    floor = 3 / 32
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, floor + 0.04), size=(0.06, 0.06, 0.06)),
+                            material=MPM_MATERIALS[material]())
+    scene.build(n_envs=v.n_envs)
+    n = cube.n_particles
+    rng = np.random.default_rng(11)
+    vel = rng.normal(0.0, 0.3, (n, 3)) + [0.4, -0.2, -1.5]
+    return Built(scene, {"cube": cube}, T=4, defaults={"cube.particles_vel": vel})
+
+
+def build_mpm_four(v):
+    """One cube of each MPM material (Elastic, ElastoPlastic, Sand, Liquid) side by side, thrown onto
+    the floor: every constitutive model in one scene, one compile."""
+    scene = _mpm_scene(v, upper=(0.5, 0.5, 0.3))
+    floor = 3 / 32
+    ents = {}
+    for k, (name, mat) in enumerate(MPM_MATERIALS.items()):  # noqa: B007
+        x, y = 0.15 + 0.2 * (k % 2), 0.15 + 0.2 * (k // 2)
+        ents[name.lower()] = scene.add_entity(gs.morphs.Box(pos=(x, y, floor + 0.04), size=(0.06, 0.06, 0.06)),
+                                              material=mat())
+    scene.build(n_envs=v.n_envs)
+    rng = np.random.default_rng(12)
+    # sand thrown harder, so that it shears against the floor and its friction angle matters
+    defaults = {f"{k}.particles_vel": rng.normal(0.0, 0.3, (e.n_particles, 3)) + ([1.0, 0.5, -3.0] if k == "sand" else
+                                                                                [0.3, 0.2, -1.5])
+                for k, e in ents.items()}
+    return Built(scene, ents, T=4, defaults=defaults)
+
+
+def build_ball_in_block(v):
+    """A rigid ball (default Rigid material) pressed into a soft elastic block, two-way coupled."""
+    dens = 32
+    floor = 3 / dens
+    scene = _mpm_scene(v, upper=(0.3, 0.3, 0.3), dens=dens, dt=2e-3, substeps=6)
+    block = scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, floor + 0.04), size=(0.12, 0.12, 0.08)),
+                             material=gs.materials.MPM.Elastic(E=1e4, nu=0.3))
+    ball = scene.add_entity(gs.morphs.Sphere(pos=(0.155, 0.148, floor + 0.08 + 0.035), radius=0.04),
+                            material=gs.materials.Rigid(rho=800))
+    scene.build(n_envs=v.n_envs)
+    return Built(scene, {"block": block, "ball": ball}, T=5,
+                 defaults={"ball.dofs_velocity": np.array([0.1, -0.05, -0.8, 1.0, 0.5, -0.3])})
+
+
+def build_arm_press(v):
+    """assets/urdf/arm.urdf under PD control pressing its tool into plasticine, coupled both ways
+    (default CouplerOptions); examples/arm_press_plasticine.py shrunk to 32 cells/m and 6 steps: the
+    tool starts 15 mm deep in soft plasticine (yield stress 60 Pa), moving down at ~0.3 m/s, and its PD
+    targets press on."""
+    dens, L, H = 32, 0.3, 0.25
+    wall = 3.0 / dens
+    scene = _mpm_scene(v, upper=(L, L, H), dens=dens, dt=2e-3, substeps=5)
+    block = scene.add_entity(gs.morphs.Box(pos=(L / 2, L / 2, wall + 0.03), size=(0.12, 0.12, 0.06)),
+                             material=gs.materials.MPM.ElastoPlastic(E=5e4, nu=0.3, yield_stress=60.0))
+    top = wall + 0.06
+    a = 1.2
+    # shoulder pitch a, elbow pi - a: the last link points down; its tool's bottom 15 mm into the block
+    # (the top particles' centres lie half a particle spacing, 1 cm, below its surface); off the grid's
+    # nodes by a few mm: the rigid boundary on the grid picks a face per node, and the loss jumps where a
+    # node is equidistant from two (a tool centred on a node starts on such a jump)
+    base = (L / 2 - 0.35 * np.sin(a) + 0.0037, L / 2 + 0.0021, top + 0.015 - 0.015 - (0.3 + 0.35 * np.cos(a) - 0.415))
+    arm = scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "arm.urdf"), fixed=True, pos=base))
+    scene.build(n_envs=v.n_envs)
+    # the URDF's effort limits (40, 40, 20, 10 N m) clip these PD forces: a kink in every control input
+    # (at the first step exactly, with these targets); the actuators get room
+    big = torch.full((arm.n_dofs,), 1e4, dtype=gs.tc_float)
+    arm.set_dofs_force_range(-big, big)
+    T = 6
+    q0 = np.array([0.0, a, np.pi - a, 0.0])
+    targets = q0 + np.outer(np.arange(1, T + 1) / T, [0.02, 0.12, -0.06, 0.05])
+    # where the tool's boundary on the grid switches faces the loss jumps (~1e-4 of it): small steps for
+    # the arm's controls and state make crossing one less likely
+    # and the material's parameters: between the kinks of yield and of the weights and round-off (measured)
+    return Built(scene, {"block": block, "arm": arm}, T=T, fd_h={"ctrl_position": 1e-6, "dofs_position": 1e-6,
+                                                                 "dofs_velocity": 1e-6, "yield_stress": 3e-4,
+                                                                 "E": 2e-5}, defaults={
+        "arm.dofs_position": q0, "arm.dofs_velocity": np.array([0.05, 0.8, -0.4, 0.0]),
+        "arm.dofs_kp": np.array([2000.0, 2000.0, 2000.0, 500.0]), "arm.dofs_kv": np.array([100.0, 100.0, 100.0, 20.0]),
+        "arm.ctrl_position": targets})
+
+
+SCENES: Dict[str, Callable[[Variation], Built]] = {
+    "free_box": build_free_box,
+    "slide_contact": build_slide_contact,
+    "slide_land": build_slide_land,
+    "stack": build_stack,
+    "arm": build_arm,
+    "arm_plane": lambda v: build_arm(v, plane=True),
+    "go2": build_go2,
+    "mpm_four": build_mpm_four,
+    **{f"mpm_{m.lower()}": (lambda v, m=m: build_mpm_cube(v, m)) for m in MPM_MATERIALS},
+    "ball_in_block": build_ball_in_block,
+    "arm_press": build_arm_press,
+}
+
+
+# ================================================================================= inputs
+def _np(t):
+    t = t.detach().to(F64).cpu().numpy()
+    return t
+
+
+def _one_env(t, b):
+    """A getter's value for env 0 (the table's base values are per env)."""
+    a = _np(t)
+    return a[0] if b.n_envs else a
+
+
+def _dsel(b, name):
+    return b.dofs.get(name)
+
+
+def _n_dofs(b, e, name):
+    d = _dsel(b, name)
+    return e.n_dofs if d is None else len(d)
+
+
+@dataclass(frozen=True)
+class InputKind:
+    """One differentiable setter. phase orders a rollout's calls (0 parameters, 1 positions, 2
+    velocities, 3 per-step controls: the leaf has a leading step axis (T, ...)); base gives the value
+    of one env where the scene has no default; apply(b, entity, name, x, t) calls the setter (x: this
+    rollout's value, batched (n_envs, ...)); h: the finite-difference step in the input's units (times
+    max(1, |x|) and the scene's fd_scale); jitter: the spread of env k's value around the default."""
+
+    phase: int
+    base: Callable
+    apply: Callable
+    h: float = 1e-5
+    jitter: float = 0.05
+    symmetric: bool = False  # directions made symmetric (inertia tensors)
+
+
+def _step(x, t, b):
+    """Per-step controls: the leaf is (T, ...) or batched (n_envs, T, ...)."""
+    return x[:, t] if b.n_envs else x[t]
+
+
+def _rng_for(*keys):
+    return np.random.default_rng(zlib.crc32("/".join(map(str, keys)).encode()))
+
+
+def _ctrl_base(kind):
+    def base(b, e, name, rng):
+        n = _n_dofs(b, e, name)
+        if kind == "position":
+            q = _one_env(e.get_dofs_position(dofs_idx_local=_dsel(b, name)), b)
+            return q + rng.normal(0, 0.2, (b.T, n))
+        return rng.normal(0, 1.0, (b.T, n))
+    return base
+
+
+def _mpm_particles(b, e, name, rng, what):
+    n = e.n_particles
+    if what == "pos":
+        return _one_env(e.get_particles_pos(), b) + rng.normal(0, 0.002, (n, 3))
+    return rng.normal(0, 0.3, (n, 3))
+
+
+def _material(key):
+    def base(b, e, name, rng):
+        """The entity's own value (one for all its particles), moved by a few %."""
+        return np.array(_one_env(e.get_material(key), b).mean() * (1.0 + 0.05 * rng.normal()))
+
+    def apply(b, e, name, x, t):
+        e.set_material(**{key: x[:, None].expand(b.n_envs, e.n_particles) if b.n_envs else x})
+    return base, apply
+
+
+def _mat_kind(key, h):
+    base, apply = _material(key)
+    return InputKind(0, base, apply, h=h, jitter=0.05)
+
+
+def _inertia_base(b, e, name, rng):
+    I = _one_env(e.get_links_inertia(), b)
+    d = rng.normal(0, 0.05, I.shape)
+    return I * 1.1 + (d + np.swapaxes(d, -1, -2)) * 1e-3
+
+
+INPUTS: Dict[str, InputKind] = {
+    # --- rigid initial state
+    "dofs_position": InputKind(1, lambda b, e, n, rng: _one_env(e.get_dofs_position(dofs_idx_local=_dsel(b, n)), b),
+                               lambda b, e, n, x, t: e.set_dofs_position(x, dofs_idx_local=_dsel(b, n))),
+    "dofs_velocity": InputKind(2, lambda b, e, n, rng: rng.normal(0, 0.5, _n_dofs(b, e, n)),
+                               lambda b, e, n, x, t: e.set_dofs_velocity(x, dofs_idx_local=_dsel(b, n))),
+    "qpos": InputKind(1, lambda b, e, n, rng: _one_env(e.get_qpos(), b),
+                      lambda b, e, n, x, t: e.set_qpos(x), jitter=0.01),
+    "pos": InputKind(1, lambda b, e, n, rng: _one_env(e.get_pos(), b),
+                     lambda b, e, n, x, t: e.set_pos(x), jitter=0.01),
+    "quat": InputKind(1, lambda b, e, n, rng: _one_env(e.get_quat(), b),
+                      lambda b, e, n, x, t: e.set_quat(x)),
+    # --- rigid controls, one value per step
+    "ctrl_force": InputKind(3, _ctrl_base("force"), lambda b, e, n, x, t: e.control_dofs_force(_step(x, t, b), dofs_idx_local=_dsel(b, n))),
+    "ctrl_position": InputKind(3, _ctrl_base("position"),
+                               lambda b, e, n, x, t: e.control_dofs_position(_step(x, t, b), dofs_idx_local=_dsel(b, n)),
+                               jitter=0.02),
+    "ctrl_velocity": InputKind(3, _ctrl_base("velocity"),
+                               lambda b, e, n, x, t: e.control_dofs_velocity(_step(x, t, b), dofs_idx_local=_dsel(b, n))),
+    # --- rigid parameters
+    "links_mass": InputKind(0, lambda b, e, n, rng: _one_env(e.get_links_mass(), b) * (1.1 + 0.1 * rng.random(e.n_links)),
+                            lambda b, e, n, x, t: e.set_links_mass(x), h=1e-4),
+    "links_inertia": InputKind(0, _inertia_base, lambda b, e, n, x, t: e.set_links_inertia(x), h=1e-7, jitter=0.0005,
+                               symmetric=True),
+    "links_COM": InputKind(0, lambda b, e, n, rng: _one_env(e.get_links_COM(), b) + rng.normal(0, 0.01, (e.n_links, 3)),
+                           lambda b, e, n, x, t: e.set_links_COM(x), jitter=0.005),
+    "dofs_damping": InputKind(0, lambda b, e, n, rng: rng.uniform(0.1, 1.0, _n_dofs(b, e, n)),
+                              lambda b, e, n, x, t: e.set_dofs_damping(x, dofs_idx_local=_dsel(b, n))),
+    "dofs_armature": InputKind(0, lambda b, e, n, rng: rng.uniform(0.01, 0.1, _n_dofs(b, e, n)),
+                               lambda b, e, n, x, t: e.set_dofs_armature(x, dofs_idx_local=_dsel(b, n)), jitter=0.005),
+    "dofs_kp": InputKind(0, lambda b, e, n, rng: rng.uniform(10, 40, _n_dofs(b, e, n)),
+                         lambda b, e, n, x, t: e.set_dofs_kp(x, dofs_idx_local=_dsel(b, n)), h=1e-4, jitter=1.0),
+    "dofs_kv": InputKind(0, lambda b, e, n, rng: rng.uniform(1, 4, _n_dofs(b, e, n)),
+                         lambda b, e, n, x, t: e.set_dofs_kv(x, dofs_idx_local=_dsel(b, n)), h=1e-4, jitter=0.1),
+    "gravity": InputKind(0, lambda b, e, n, rng: np.array([0.4, -0.3, -9.81]) + rng.normal(0, 0.1, 3),
+                         lambda b, e, n, x, t: b.scene.set_gravity(x), jitter=0.2),
+    "friction": InputKind(0, lambda b, e, n, rng: _one_env(e.get_friction(), b),
+                          lambda b, e, n, x, t: e.set_friction(x), jitter=0.05),
+    # --- MPM
+    # particle positions: the quadratic B-spline weights are C1 only (their second derivative jumps where a
+    # particle crosses a cell's quarter points, some substep of some particle within ~1e-5 m), so small steps
+    "particles_pos": InputKind(1, lambda b, e, n, rng: _mpm_particles(b, e, n, rng, "pos"),
+                               lambda b, e, n, x, t: e.set_particles_pos(x), h=1e-7, jitter=0.001),
+    "particles_vel": InputKind(2, lambda b, e, n, rng: _mpm_particles(b, e, n, rng, "vel"),
+                               lambda b, e, n, x, t: e.set_particles_vel(x), h=1e-6),
+    "position": InputKind(1, lambda b, e, n, rng: _one_env(e.get_pos(), b),
+                          lambda b, e, n, x, t: e.set_position(x), h=1e-7, jitter=0.003),
+    "velocity": InputKind(2, lambda b, e, n, rng: np.array([0.3, -0.2, -1.2]) + rng.normal(0, 0.1, 3),
+                          lambda b, e, n, x, t: e.set_velocity(x), h=1e-6),
+    "particles_force": InputKind(3, lambda b, e, n, rng: rng.normal(0, 0.05, (b.T, e.n_particles, 3)),
+                                 lambda b, e, n, x, t: e.set_particles_force(_step(x, t, b)), h=1e-6, jitter=0.01),
+    # material parameters move every particle a little: their gradients are small against the rollout's
+    # round-off, so their steps are larger (relative 1e-4 of E, yield stress, friction angle; 1e-3 Pa s of
+    # viscosity), but not nu's (3e-6: larger steps cross the B-spline weights' kinks, measured on an elastic
+    # cube); Richardson's extrapolation removes the h^2 error
+    "E": _mat_kind("E", 1e-4),
+    "nu": _mat_kind("nu", 3e-6),
+    "yield_stress": _mat_kind("yield_stress", 1e-4),
+    "friction_angle": _mat_kind("friction_angle", 1e-4),
+    "viscosity": _mat_kind("viscosity", 1e-3),
+}
+
+
+CONTROL_MODES = [INPUTS["ctrl_force"], INPUTS["ctrl_position"], INPUTS["ctrl_velocity"]]
+
+
+# ================================================================================= outputs
+OUTPUTS: Dict[str, Callable] = {
+    "pos": lambda e: e.get_pos(), "quat": lambda e: e.get_quat(), "vel": lambda e: e.get_vel(),
+    "ang": lambda e: e.get_ang(), "links_pos": lambda e: e.get_links_pos(), "links_quat": lambda e: e.get_links_quat(),
+    "links_vel": lambda e: e.get_links_vel(), "links_ang": lambda e: e.get_links_ang(),
+    "dofs_position": lambda e: e.get_dofs_position(), "dofs_velocity": lambda e: e.get_dofs_velocity(),
+    "qpos": lambda e: e.get_qpos(),
+    # MPM entities: get_pos / get_vel are the centre of mass and its velocity (the rigid "pos" / "vel")
+    "particles_pos": lambda e: e.get_particles_pos(), "particles_vel": lambda e: e.get_particles_vel(),
+    # get_state(): positions, velocities, affine velocities C and deformation gradients F, (..., n, 24)
+    "state": lambda e: (lambda s: torch.cat([s.pos, s.vel, s.C.flatten(-2), s.F.flatten(-2)], -1))(e.get_state()),
+}
+
+
+# ================================================================================= the table
+@dataclass(frozen=True)
+class Case:
+    """One line of the matrix. inputs / outputs: "entity.kind"; why: the reason a case leaves a
+    default (beyond its scene's dt and size); xfail: a known library bug (strict)."""
+
+    scene: str
+    inputs: Tuple[str, ...]
+    outputs: Tuple[str, ...]
+    var: Variation = Variation()
+    slow: bool = False
+    xfail: Optional[str] = None
+    why: str = ""
+    tag: str = ""
+
+    @property
+    def id(self) -> str:
+        ins = "+".join(i.split(".")[1] for i in self.inputs)
+        return f"{self.scene}[{ins}]{self.var.label}" + (f"#{self.tag}" if self.tag else "")
+
+
+V = Variation
+BOX_OUT = ("box.pos", "box.quat", "box.vel", "box.ang")
+ARM_OUT = ("arm.links_pos", "arm.links_quat", "arm.links_vel", "arm.links_ang", "arm.dofs_velocity")
+
+CASES: List[Case] = []  # filled at the bottom of the file (see _table)
+
+
+def _table() -> List[Case]:
+    c = []
+    add = lambda *a, **k: c.append(Case(*a, **k))  # noqa: E731
+    slow = lambda *a, **k: c.append(Case(*a, slow=True, **k))  # noqa: E731
+    # ------------------------------------------------------------------ free box in flight
+    FB = ("box.pos", "box.quat", "box.dofs_velocity", "box.ctrl_force", "box.links_mass", "box.links_inertia",
+          "box.links_COM", "box.gravity")
+    FB_SHORT = ("box.pos", "box.quat", "box.dofs_velocity", "box.ctrl_force", "box.links_mass")
+    add("free_box", FB, BOX_OUT + ("box.links_pos",))
+    add("free_box", ("box.qpos", "box.dofs_velocity"), ("box.qpos", "box.dofs_position", "box.dofs_velocity"))
+    add("free_box", ("box.dofs_position", "box.ctrl_force"), BOX_OUT + ("box.dofs_position",))
+    add("free_box", FB_SHORT, BOX_OUT, V(n_envs=3))
+    slow("free_box", FB_SHORT, BOX_OUT, V(checkpoint_every=2))
+    add("free_box", FB_SHORT, BOX_OUT, V(process="first"))
+    add("free_box", FB_SHORT, BOX_OUT, V(integrator="Euler"))
+    add("free_box", FB_SHORT, BOX_OUT, V(integrator="RK4"))
+    # float32: not the mass of a body in flight, whose gradient is the difference of gravity terms ~1000x
+    # larger (m g against M qacc): float32 rounds it to ~2 % (measured: -0.005035 against -0.005128)
+    add("free_box", FB_SHORT[:4], BOX_OUT, V(precision="32"))
+    # ------------------------------------------------------------------ skewed arm, collision on, nothing to touch
+    ARM_STATE = ("arm.dofs_position", "arm.dofs_velocity", "arm.ctrl_force", "arm.links_mass", "arm.links_inertia",
+                 "arm.links_COM", "arm.dofs_damping", "arm.dofs_armature", "arm.gravity")
+    ARM_PD = ("arm.ctrl_position", "arm.dofs_kp", "arm.dofs_kv")
+    ARM_OUT_ALL = ARM_OUT + ("arm.dofs_position", "arm.qpos", "arm.pos", "arm.quat", "arm.vel", "arm.ang")
+    add("arm", ARM_STATE, ARM_OUT_ALL)
+    add("arm", ARM_PD, ARM_OUT)
+    add("arm", ("arm.ctrl_velocity", "arm.dofs_kv", "arm.dofs_damping"), ARM_OUT)
+    add("arm", ARM_PD + ("arm.dofs_velocity",), ARM_OUT, V(n_envs=3))
+    add("arm", ("arm.dofs_position", "arm.ctrl_force", "arm.links_inertia"), ARM_OUT, V(checkpoint_every=3))
+    add("arm", ARM_STATE, ARM_OUT, V(process="after"))
+    for integ in ("Euler", "RK4"):
+        slow("arm", ARM_STATE, ARM_OUT, V(integrator=integ))
+        slow("arm", ARM_PD + ("arm.ctrl_velocity",), ARM_OUT, V(integrator=integ), tag="pd")
+    slow("arm", ARM_STATE, ARM_OUT, V(process="first"))
+    slow("arm", ARM_STATE + ARM_PD, ARM_OUT, V(precision="32"))
+    slow("arm_plane", ARM_STATE, ARM_OUT)
+    slow("arm_plane", ARM_PD, ARM_OUT, V(integrator="RK4"))
+    # ------------------------------------------------------------------ box sliding on a plane
+    SLIDE = ("box.dofs_velocity", "box.ctrl_force", "box.friction", "box.links_mass", "box.links_COM")
+    # exact contact at the start: d/dvz was ~19 % off until 3b88db4 (softplus's adjoint at depth 0)
+    add("slide_contact", ("box.dofs_velocity",), BOX_OUT)
+    add("slide_contact", SLIDE[1:] + ("box.links_inertia", "box.gravity"), BOX_OUT)
+    add("slide_land", SLIDE + ("box.pos", "box.quat"), BOX_OUT + ("box.qpos",))
+    add("slide_land", SLIDE[:3], BOX_OUT, V(n_envs=3))
+    slow("slide_land", SLIDE, BOX_OUT, V(checkpoint_every=4))
+    slow("slide_land", SLIDE, BOX_OUT, V(process="after"))
+    slow("slide_land", SLIDE, BOX_OUT, V(process="first"))
+    slow("slide_land", SLIDE, BOX_OUT, V(precision="32"))
+    for integ in ("Euler", "RK4"):
+        slow("slide_land", SLIDE, BOX_OUT, V(integrator=integ))
+        slow("slide_contact", ("box.dofs_velocity",), BOX_OUT, V(integrator=integ))
+    # ------------------------------------------------------------------ stack of two boxes
+    STACK = ("hi.pos", "hi.dofs_velocity", "lo.links_mass", "hi.friction", "lo.ctrl_force")
+    STACK_OUT = ("lo.pos", "lo.quat", "hi.pos", "hi.quat", "hi.vel", "hi.ang")
+    slow("stack", STACK, STACK_OUT)
+    slow("stack", STACK, STACK_OUT, V(n_envs=3))
+    slow("stack", STACK, STACK_OUT, V(integrator="Euler"))
+    slow("stack", STACK, STACK_OUT, V(checkpoint_every=3))
+    # ------------------------------------------------------------------ quadruped standing on the ground
+    slow("go2", ("go2.dofs_position", "go2.ctrl_position", "go2.dofs_kp"), ("go2.pos", "go2.quat", "go2.links_pos"))
+    slow("go2", ("go2.qpos", "go2.dofs_kv", "go2.dofs_velocity"), ("go2.vel", "go2.ang", "go2.dofs_velocity"))
+    slow("go2", ("go2.ctrl_position", "go2.dofs_kv"), ("go2.pos", "go2.links_pos"), V(n_envs=3))
+    slow("go2", ("go2.ctrl_position", "go2.dofs_kv"), ("go2.pos", "go2.links_pos"), V(integrator="RK4"))
+    slow("go2", ("go2.ctrl_position", "go2.dofs_kv"), ("go2.pos", "go2.links_pos"), V(process="first"))
+    # ------------------------------------------------------------------ MPM: one cube of each material
+    # (each MPM scene compiles its kernels anew, ~20-40 s: one scene in the default run carries every input)
+    add("mpm_four", ("elastic.particles_pos", "elastic.E", "elastic.nu", "elastoplastic.position",
+                     "elastoplastic.yield_stress", "sand.velocity", "sand.friction_angle", "liquid.particles_vel",
+                     "liquid.viscosity", "liquid.particles_force"),
+        ("elastic.particles_pos", "elastoplastic.particles_vel", "elastoplastic.pos", "sand.vel", "liquid.state"))
+    MAT_KEY = {"ElastoPlastic": "cube.yield_stress", "Sand": "cube.friction_angle", "Liquid": "cube.viscosity"}
+    for m in MPM_MATERIALS:
+        ins = ("cube.particles_vel", "cube.E", "cube.nu", "cube.particles_force") + ((MAT_KEY[m],) if m in MAT_KEY else ())
+        slow(f"mpm_{m.lower()}", ins, ("cube.particles_pos", "cube.pos"))
+    slow("mpm_elastic", ("cube.particles_vel", "cube.E"), ("cube.particles_pos",), V(n_envs=3))
+    slow("mpm_sand", ("cube.particles_vel", "cube.friction_angle"), ("cube.particles_pos",), V(checkpoint_every=2))
+    slow("mpm_elastoplastic", ("cube.particles_vel", "cube.yield_stress"), ("cube.particles_pos",), V(process="first"))
+    slow("mpm_liquid", ("cube.particles_vel", "cube.viscosity"), ("cube.particles_pos",), V(process="after"))
+    slow("mpm_elastic", ("cube.particles_vel", "cube.E", "cube.nu"), ("cube.particles_pos",), V(precision="32"))
+    # ------------------------------------------------------------------ rigid-MPM coupling, both ways
+    BALL = ("block.E", "ball.dofs_velocity", "ball.links_mass", "block.particles_vel")
+    BALL_OUT = ("ball.pos", "ball.quat", "block.pos", "block.particles_pos")
+    add("ball_in_block", BALL, BALL_OUT)
+    slow("ball_in_block", BALL, BALL_OUT, V(integrator="Euler"))
+    slow("ball_in_block", BALL, BALL_OUT, V(n_envs=3))
+    slow("ball_in_block", BALL, BALL_OUT, V(checkpoint_every=2))
+    slow("ball_in_block", BALL[:3], BALL_OUT, V(precision="32"))
+    # both ways: the arm's targets and gains move the plasticine, the plasticine's stiffness moves the arm
+    PRESS = ("arm.ctrl_position", "arm.dofs_kp", "block.E")
+    PRESS_OUT = ("block.particles_pos", "arm.links_pos", "arm.dofs_velocity")
+    # the yield stress alone on the plasticine's particles: its gradient is ~3e-5 of the loss per unit of
+    # relative change, below the round-off of the arm's outputs (FD-unreliable at 1e-6 with them in the loss)
+    PRESS_YIELD = (("block.yield_stress", "block.particles_vel"), ("block.particles_pos",))
+    slow("arm_press", PRESS, PRESS_OUT)
+    slow("arm_press", *PRESS_YIELD)
+    slow("arm_press", PRESS, PRESS_OUT, V(integrator="RK4"))
+    slow("arm_press", *PRESS_YIELD, V(integrator="Euler"))
+    slow("arm_press", PRESS, PRESS_OUT, V(process="first"))
+    return c
+
+
+CASES.extend(_table())
+CASE_BY_ID = {c.id: c for c in CASES}
+assert len(CASE_BY_ID) == len(CASES), "two cases with the same id"
+
+
+# ================================================================================= running a case
+@dataclass
+class DirResult:
+    input: str
+    direction: str      # "k=3" (component), "rand0" (random direction), "env1" (random, inside env 1)
+    ad: float
+    h: float = float("nan")        # the largest finite-difference step
+    d_h: float = float("nan")      # central differences D(h), D(h/2), D(h/4)
+    d_h2: float = float("nan")
+    d_h4: float = float("nan")
+    fd_coarse: float = float("nan")  # Richardson (4 D(h/2) - D(h)) / 3
+    fd: float = float("nan")         # Richardson (4 D(h/4) - D(h/2)) / 3: the reference
+    fwd: float = float("nan")      # one-sided differences at h/4: (f(x + h/4 d) - f(x)) / (h/4)
+    bwd: float = float("nan")      # (f(x) - f(x - h/4 d)) / (h/4)
+    scale: float = float("nan")
+    rel_err: float = float("nan")  # |ad - fd| / max(|fd|, scale)
+    status: str = ""               # ok | mismatch | fd_unreliable | degenerate
+
+
+@dataclass
+class CaseResult:
+    case_id: str
+    loss: float
+    dirs: List[DirResult]
+    seconds: float
+    build_seconds: float
+    f32_tol: float = F32_TOL
+
+    @property
+    def status(self) -> str:
+        s = {d.status for d in self.dirs}
+        for k in ("mismatch", "fd_unreliable", "degenerate"):
+            if k in s:
+                return k
+        return "ok"
+
+    @property
+    def worst(self) -> float:
+        return max((d.rel_err for d in self.dirs if not math.isnan(d.rel_err)), default=0.0)
+
+    def report(self) -> str:
+        lines = [f"{self.case_id}: {self.status}, worst rel. error {self.worst:.2e}, loss {self.loss:.6g}"]
+        for d in self.dirs:
+            lines.append(f"  {d.input:24s} {d.direction:6s} ad {d.ad: .10e} fd {d.fd: .10e} (coarser {d.fd_coarse: .10e}; "
+                         f"D(h/4) {d.d_h4: .6e}, one-sided {d.fwd: .6e} {d.bwd: .6e}; h {d.h:.1e}) scale {d.scale:.3e} "
+                         f"rel {d.rel_err:.2e} {d.status}")
+        return "\n".join(lines)
+
+    def to_json(self):
+        return dict(case_id=self.case_id, loss=self.loss, dirs=[asdict(d) for d in self.dirs], seconds=self.seconds,
+                    build_seconds=self.build_seconds, f32_tol=self.f32_tol)
+
+    @classmethod
+    def from_json(cls, d):
+        return cls(d["case_id"], d["loss"], [DirResult(**x) for x in d["dirs"]], d["seconds"], d["build_seconds"],
+                   d["f32_tol"])
+
+
+class Rollout:
+    """The scalar loss of a case as a function of its inputs (name -> float64 tensor)."""
+
+    def __init__(self, case: Case, b: Built):
+        self.case, self.b = case, b
+        self.names = list(case.inputs)
+        applied = {**{k: None for k in b.defaults}, **{k: None for k in self.names}}
+        self.order = sorted(applied, key=lambda k: INPUTS[k.split(".")[1]].phase)
+        rng = _rng_for(case.scene, "weights")
+        self.steps = b.out_steps or (b.T // 2 - 1, b.T - 1)
+        self.outs = []
+        with torch.no_grad():
+            for o in case.outputs:
+                ent, kind = o.split(".")
+                shape = tuple(OUTPUTS[kind](b.ents[ent]).shape)
+                self.outs.append((ent, kind, [torch.tensor(rng.normal(size=shape), dtype=F64) for _ in self.steps]))
+
+    def base_values(self) -> Dict[str, torch.Tensor]:
+        """Each input's value: the scene's default, else the kind's base; batched: env k's own value."""
+        b, vals = self.b, {}
+        for name in self.names:
+            ent, kind = name.split(".")
+            spec = INPUTS[kind]
+            rng = _rng_for(self.case.scene, name, "base")
+            x = b.defaults.get(name)
+            x = np.asarray(spec.base(b, b.ents[ent], ent, rng) if x is None else x, dtype=np.float64)
+            if b.n_envs:
+                xs = [x] + [x + spec.jitter * k * rng.normal(size=x.shape) for k in range(1, b.n_envs)]
+                if spec.symmetric:
+                    xs = [0.5 * (a + np.swapaxes(a, -1, -2)) for a in xs]
+                x = np.stack(xs)
+            vals[name] = torch.tensor(x, dtype=F64)
+        return vals
+
+    def defaults(self) -> Dict[str, torch.Tensor]:
+        b, out = self.b, {}
+        for k, x in b.defaults.items():
+            t = torch.tensor(np.asarray(x, dtype=np.float64), dtype=F64)
+            out[k] = t.expand((b.n_envs,) + t.shape) if b.n_envs else t
+        return out
+
+    def __call__(self, inputs: Dict[str, torch.Tensor]) -> torch.Tensor:
+        b = self.b
+        values = {**self.defaults(), **inputs}
+        b.scene.reset(b.reset_state)
+        ctrl = []
+        for name in self.order:
+            ent, kind = name.split(".")
+            spec = INPUTS[kind]
+            if spec.phase == 3:
+                ctrl.append((spec, b.ents[ent], ent, values[name]))
+            else:
+                spec.apply(b, b.ents[ent], ent, values[name], None)
+        # control modes of one entity take turns: with m of them, the k-th drives steps [k T / m, (k+1) T / m)
+        modes = {}
+        for spec, e, ent, x in ctrl:
+            if spec in CONTROL_MODES:
+                modes.setdefault(ent, []).append(spec)
+        loss = torch.zeros((), dtype=F64)
+        for t in range(b.T):
+            for spec, e, ent, x in ctrl:
+                turn = modes.get(ent, [spec])
+                if len(turn) > 1 and turn.index(spec) != t * len(turn) // b.T:
+                    continue
+                spec.apply(b, e, ent, x, t)
+            b.scene.step()
+            if t in self.steps:
+                i = self.steps.index(t)
+                for ent, kind, ws in self.outs:
+                    loss = loss + (ws[i] * OUTPUTS[kind](b.ents[ent]).to(F64)).sum()
+        return loss
+
+
+def directions(case: Case, name: str, x: torch.Tensor, n_envs: int):
+    """(label, direction) pairs: every component of an input of at most 6 scalars (unbatched), else 2
+    Gaussian directions; batched, one Gaussian direction inside each env."""
+    spec = INPUTS[name.split(".")[1]]
+    rng = _rng_for(case.scene, name, "directions")
+    out = []
+    if n_envs:
+        for k in range(n_envs):
+            d = torch.zeros_like(x)
+            d[k] = torch.tensor(rng.normal(size=x.shape[1:]), dtype=F64)
+            out.append((f"env{k}", d))
+    elif x.numel() <= 6:
+        for k in range(x.numel()):
+            d = torch.zeros(x.numel(), dtype=F64)
+            d[k] = 1.0
+            out.append((f"k={k}", d.reshape(x.shape)))
+    else:
+        for k in range(2):
+            out.append((f"rand{k}", torch.tensor(rng.normal(size=x.shape), dtype=F64)))
+    if spec.symmetric:
+        out = [(lab, 0.5 * (d + d.transpose(-1, -2))) for lab, d in out]
+    return out
+
+
+def prepare(case: Case):
+    """Build the case's scene; returns (Built, Rollout, base values)."""
+    b = SCENES[case.scene](case.var)
+    roll = Rollout(case, b)
+    return b, roll, roll.base_values()
+
+
+def run_case(case: Case, fd: bool = True, tol: float = TOL) -> CaseResult:
+    """Autograd gradient of every input, projected on each direction, and (fd=True) its central
+    finite differences in float64 at h and h/2 with the verdicts described at the top of the file."""
+    t0 = time.time()
+    b, roll, base = prepare(case)
+    t_build = time.time() - t0
+    leaves = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+    loss = roll(leaves)
+    grads = torch.autograd.grad(loss, list(leaves.values()), allow_unused=True)
+    grads = {k: (torch.zeros_like(v) if g is None else g) for (k, v), g in zip(leaves.items(), grads)}
+    f0 = float(loss.detach())
+    results = []
+
+    def f(name, x):
+        # the same (gradient-recording) forward as autograd's rollout: inputs that require grad
+        vals = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+        vals[name] = x.clone().requires_grad_(True)
+        with torch.enable_grad():
+            return float(roll(vals).detach())
+
+    def estimate(r, name, x, d, h):
+        """Central differences at h, h/2, h/4 along d, their Richardson extrapolations, one-sided at h/4."""
+        D = []
+        for k in (1, 2, 4):
+            fp, fm = f(name, x + (h / k) * d), f(name, x - (h / k) * d)
+            D.append((fp - fm) / (2 * h / k))
+        r.h, (r.d_h, r.d_h2, r.d_h4) = h, D
+        r.fd_coarse, r.fd = (4 * D[1] - D[0]) / 3, (4 * D[2] - D[1]) / 3
+        r.fwd, r.bwd = (fp - f0) / (h / 4), (f0 - fm) / (h / 4)
+
+    def noise(h):
+        # round-off of a difference quotient: a rollout's loss carries at least ~10 ulps of its size
+        # whatever h, and a step too small for the gradient asked for cannot resolve it
+        return 2e-15 * max(1.0, abs(f0)) / h
+
+    def converged(r, scale):
+        ref = max(abs(r.fd), scale)
+        return abs(r.fd_coarse - r.fd) <= tol * ref and noise(r.h) <= tol * ref
+
+    for name, x in base.items():
+        spec = INPUTS[name.split(".")[1]]
+        dirs = directions(case, name, x, b.n_envs)
+        h = b.fd_h.get(name.split(".")[1], spec.h) * max(1.0, float(x.abs().max())) * b.fd_scale
+        rows = [DirResult(name, lab, float((grads[name] * d).sum())) for lab, d in dirs]
+        if fd:
+            def scale_of():
+                fds = np.array([r.fd for r in rows])
+                basis = all(r.direction.startswith("k=") for r in rows)
+                return float(np.linalg.norm(fds)) if basis else float(np.sqrt(np.mean(fds ** 2)))
+
+            for r, (lab, d) in zip(rows, dirs):
+                estimate(r, name, x, d, h)
+            # a direction whose differences do not converge at h is tried again at smaller steps (a kink
+            # or a jump within h), then larger ones (round-off); the first level that converges is kept
+            scale = scale_of()
+            for r, (lab, d) in zip(rows, dirs):
+                tried = []
+                for level in FD_LADDER:
+                    if converged(r, scale):
+                        break
+                    tried.append((abs(r.fd_coarse - r.fd) / max(abs(r.fd), scale, 1e-300), dict(asdict(r))))
+                    estimate(r, name, x, d, h * level)
+                if not converged(r, scale) and tried:
+                    best = min(tried + [(abs(r.fd_coarse - r.fd) / max(abs(r.fd), scale, 1e-300), dict(asdict(r)))],
+                               key=lambda t: t[0])[1]
+                    for k, val in best.items():
+                        setattr(r, k, val)
+            scale = scale_of()
+            for r in rows:
+                r.scale = scale
+                ref = max(abs(r.fd), scale)
+                r.rel_err = abs(r.ad - r.fd) / ref if ref > 0 else (0.0 if r.ad == 0 else math.inf)
+                if scale <= 100 * noise(r.h):
+                    r.status = "degenerate"  # no gradient above round-off: the case cannot fail, fix the case
+                elif not converged(r, scale):
+                    r.status = "fd_unreliable"
+                else:
+                    r.status = "ok" if abs(r.ad - r.fd) <= tol * ref else "mismatch"
+        results.extend(rows)
+    return CaseResult(case.id, f0, results, time.time() - t0, t_build, b.f32_tol or F32_TOL)
+
+
+def run_in_subprocess(case: Case, precision: str = "64", fd: bool = True, timeout: float = 900) -> CaseResult:
+    """The case as the first scene of a fresh process (gs.init(precision=...)), via this file's main."""
+    import subprocess
+
+    cmd = [sys.executable, str(Path(__file__).resolve()), case.id, "--precision", precision] + ([] if fd else ["--no-fd"])
+    # the child imports this checkout's genesis_lite and solvers, as this process does (not whatever an
+    # editable install points at)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=str(REPO), env=env)
+    marker = "GRADIENT_CASE_JSON "
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith(marker)]
+    if out.returncode != 0 or not lines:
+        raise RuntimeError(f"subprocess for {case.id} failed (rc {out.returncode}):\n{out.stdout[-3000:]}\n{out.stderr[-5000:]}")
+    return CaseResult.from_json(json.loads(lines[-1][len(marker):]))
+
+
+def compare_precision(r32: CaseResult, r64: CaseResult) -> List[Tuple[str, str, float, float, float, bool]]:
+    """float32 autograd against float64's (whose own check is r64): per direction (input, direction,
+    ad32, ad64, rel, ok) with rel = |ad32 - ad64| / max(|ad64|, scale64), ok: rel <= the scene's tolerance."""
+    tol = r64.f32_tol
+    rows = []
+    for a, b in zip(r32.dirs, r64.dirs):
+        assert (a.input, a.direction) == (b.input, b.direction)
+        ref = max(abs(b.ad), b.scale if not math.isnan(b.scale) else 0.0)
+        rel = abs(a.ad - b.ad) / ref if ref > 0 else math.inf
+        rows.append((a.input, a.direction, a.ad, b.ad, rel, rel <= tol))
+    return rows
+
+
+# ================================================================================= a case, whatever its variation
+# the scene built and differentiated before a case of process="after" (another size class and solver mix)
+PRELUDE = {"arm": "free_box", "free_box": "arm"}
+PRELUDE_DEFAULT = "arm"
+
+
+@dataclass
+class Outcome:
+    case_id: str
+    status: str                    # ok | mismatch | fd_unreliable | degenerate | f32_mismatch | error
+    worst: float                   # worst relative error against finite differences (float64)
+    seconds: float
+    report: str
+    result: Optional[CaseResult] = None
+    f32_worst: float = float("nan")  # worst |g32 - g64| / max(|g64|, scale)
+
+    @property
+    def passed(self):
+        return self.status == "ok"
+
+
+def run_prelude(name: str):
+    """Build another scene and differentiate a short rollout of it (for process="after")."""
+    first = next(c for c in CASES if c.scene == name and not c.slow and c.var == Variation())
+    b, roll, base = prepare(first)
+    leaves = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+    roll(leaves).backward()
+
+
+def execute(case: Case) -> Outcome:
+    """Run a case with its variation: in this process (after the scenes it ran before, or after a
+    prelude scene), as the first scene of a fresh process, or in float32 against this process's float64.
+    Never raises for a gradient failure: the outcome says what happened."""
+    t0 = time.time()
+    v = case.var
+    f32_rows, f32_worst = None, float("nan")
+    if v.process == "first":
+        res = run_in_subprocess(case, precision="64", fd=True)
+    else:
+        if v.process == "after":
+            run_prelude(PRELUDE.get(case.scene, PRELUDE_DEFAULT))
+        res = run_case(case)
+        if v.precision == "32":
+            r32 = run_in_subprocess(case, precision="32", fd=False)
+            f32_rows = compare_precision(r32, res)
+            f32_worst = max(r[4] for r in f32_rows)
+    status = res.status
+    if status == "ok" and f32_rows is not None and not all(r[5] for r in f32_rows):
+        status = "f32_mismatch"
+    rep = res.report()
+    if f32_rows is not None:
+        rep += f"\n  float32 against float64 (tolerance {res.f32_tol:.1e}):"
+        for name, lab, a32, a64, rel, ok in f32_rows:
+            rep += f"\n  {name:24s} {lab:6s} ad32 {a32: .8e} ad64 {a64: .8e} rel {rel:.2e} {'ok' if ok else 'MISMATCH'}"
+    return Outcome(case.id, status, res.worst, time.time() - t0, rep, res, f32_worst)
+
+
+def main(argv=None):
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("case_id")
+    ap.add_argument("--precision", default="64")
+    ap.add_argument("--no-fd", action="store_true")
+    a = ap.parse_args(argv)
+    gs.init(backend=gs.cpu, precision=a.precision)
+    res = run_case(CASE_BY_ID[a.case_id], fd=not a.no_fd)
+    print(res.report(), file=sys.stderr)
+    print("GRADIENT_CASE_JSON " + json.dumps(res.to_json()))
+
+
+if __name__ == "__main__":
+    main()
