@@ -3,7 +3,7 @@
     python benchmarks/bench_gradient_matrix.py [--only SUBSTRING] [--default-only]
                                                [--out benchmarks/results/gradient_matrix.md] [--json FILE]
 
-Runs every case of the table as tests/test_gradient_matrix.py does (gradient_cases.execute: autograd
+Runs every case of the table as tests/test_gradient_matrix.py does (gradient_check.execute: autograd
 against central finite differences in float64, Richardson-checked; variations in this process, after a
 prelude scene, first in a fresh process, float32 against float64) and writes a Markdown report: the
 number of cases, passed / failed / known bugs (the table's xfail rows) / FD-unreliable / degenerate /
@@ -28,6 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO), str(REPO / "tests")]  # this checkout's genesis_lite and test table
 
 import gradient_cases as gc  # noqa: E402  (sets GS_CHECK_AD_STACK=1 before genesis_lite is imported)
+import gradient_check as gk  # noqa: E402
 import genesis_lite as gs  # noqa: E402
 
 
@@ -45,9 +46,9 @@ def run(cases):
     for i, case in enumerate(cases):
         t0 = time.time()
         try:
-            out = gc.execute(case)
+            out = gk.execute(case)
         except Exception as exc:  # recorded, and the run goes on
-            out = gc.Outcome(case.id, "error", float("nan"), time.time() - t0,
+            out = gk.Outcome(case.id, "error", float("nan"), time.time() - t0,
                              f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}")
         verdict = out.status
         if case.xfail:

@@ -1,6 +1,6 @@
-"""The gradient matrix (tests/gradient_cases.py): every case of the table, autograd against central
-finite differences in float64, with the options a user gets by default (a case that leaves one says
-why in its row).
+"""The gradient matrix (table: tests/gradient_cases.py; how a case is checked: tests/gradient_check.py):
+every case of the table, autograd against central finite differences in float64, with the options a
+user gets by default (a scene that leaves one says why).
 
 Each case builds its own scene (nothing is shared between tests, so any order and any subset runs
 alike). Variations: integrators (Euler, implicitfast, RK4), n_envs 0 and 3, checkpointing off and on,
@@ -17,6 +17,7 @@ from __future__ import annotations
 import pytest
 
 import gradient_cases as gc
+from gradient_check import execute
 
 
 def _params():
@@ -31,7 +32,7 @@ def _params():
 
 @pytest.mark.parametrize("case", list(_params()))
 def test_gradient_case(case):
-    out = gc.execute(case)
+    out = execute(case)
     print(out.report)
     if out.status == "fd_unreliable":
         pytest.fail(f"FD-unreliable (finite differences at h, h/2, h/4 do not converge; not a verdict on the "
