@@ -5,7 +5,9 @@ Taichi's reverse mode keeps the successive values of a local variable that the f
 option `ad_stack_size` sets its capacity; its default, 0, asks Taichi to size each stack from the
 kernel's control-flow graph (and to use 32 entries where a loop makes that impossible).
 
-Two facts of Taichi 1.7.4 shape this module (tests/test_adstack.py shows both):
+Two facts of Taichi 1.7.4 shape this module (measured with probe scripts; tests/test_adstack.py checks
+what follows from them: no adaptive sizing, the checked runtime stops an overflow, and the free box's
+gradient is exact in a fresh process on Taichi's own runtime):
 - Its adaptive sizing gives wrong gradients: a free box in flight, 5 steps, d(pos)/d(initial pos) came
   out as 236 or 1e129 instead of 1, while any fixed size, even 4 entries, gives the exact value. The
   stacks adaptive sizing made were never pushed past their capacity (checked with the checked runtime
