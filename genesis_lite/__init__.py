@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 
 import numpy as np
 
@@ -40,22 +41,84 @@ tc_float = torch.float32
 np_float = np.float32
 ti_float = None
 backend = None
+cpu_threads = None  # CPU threads of this process (Taichi's and torch's); None until init() on gs.cpu
 _initialized = False
 
 
+def _available_cores() -> int:
+    """Cores this process may run on (its affinity mask where the OS has one, as taskset and
+    container CPU sets narrow it), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def default_num_threads() -> int | None:
+    """The CPU threads a process gets by default: under torchrun (LOCAL_WORLD_SIZE set to N > 1, one
+    process per rank on this node) its share of the cores, cores // N (at least 1), so that N ranks
+    do not each start a thread per core; None (Taichi's and torch's own defaults: every core)
+    otherwise. GS_NUM_THREADS overrides both."""
+    env = os.environ.get("GS_NUM_THREADS")
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            raise GenesisException(f"GS_NUM_THREADS={env!r}: give a positive integer") from None
+        if n < 1:
+            raise GenesisException(f"GS_NUM_THREADS={env!r}: give a positive integer")
+        return n
+    try:
+        local = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    except ValueError:
+        local = 1
+    if local > 1:
+        return max(1, _available_cores() // local)
+    return None
+
+
+# Taichi's offline cache serialises its metadata writes with a lock file that it creates and removes
+# (ticache.lock, held while a process writes its new kernels at exit: milliseconds to seconds). A process
+# killed meanwhile (torchrun stops every rank when one fails) leaves it behind, and every later process
+# then neither reads nor writes the cache (Taichi's "Lock ... failed" warning is below gs.init's default
+# log level: silently). Older than this, it is such a leftover (tests/test_distributed.py).
+STALE_CACHE_LOCK_S = 120.0
+
+
+def _remove_stale_cache_lock(folder) -> None:
+    lock = os.path.join(folder, "ticache.lock")
+    try:
+        age = time.time() - os.stat(lock).st_mtime
+        if age > STALE_CACHE_LOCK_S:
+            os.unlink(lock)  # (another process starting at the same moment may have removed it first)
+            logger.info("removed %s, left %.0f s ago by a Taichi process that did not finish writing its kernel "
+                        "cache", lock, age)
+    except OSError:
+        pass
+
+
 def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, taichi_speedups=None,
-         **taichi_kwargs):
+         num_threads=None, **taichi_kwargs):
     """Initialise Taichi on `backend` (gs.cpu or gs.gpu, which is Taichi's CUDA backend) with
     floats of `precision` bits ("32" or "64"). One call per process; later calls with the same
     arguments are no-ops and different ones raise. `taichi_speedups=False` runs on Taichi's own
     front-end and launch functions (solvers/taichi_compat; as GS_TAICHI_SPEEDUPS=0); extra keyword
-    arguments go to `ti.init`."""
-    global device, tc_float, np_float, ti_float, _initialized, _init_args
+    arguments go to `ti.init`. `num_threads` (gs.cpu) is the CPU threads of this process, for
+    Taichi's kernels (`cpu_max_num_threads`) and torch (`torch.set_num_threads`) alike; by default
+    every core, except under torchrun with N processes on the node, where each gets cores // N
+    (`default_num_threads`; GS_NUM_THREADS overrides); `gs.cpu_threads` says what it got. Seeds and
+    the environments a rank simulates are the script's business: see
+    examples/distributed_identification.py and README's "Several processes"."""
+    global device, tc_float, np_float, ti_float, _initialized, _init_args, cpu_threads
     import taichi as ti
 
+    if num_threads is None and "cpu_max_num_threads" in taichi_kwargs:
+        num_threads = taichi_kwargs.pop("cpu_max_num_threads")
     args = (backend, str(precision), bool(debug), tuple(sorted(taichi_kwargs.items())))
     if taichi_speedups is not None:
         args += (("taichi_speedups", bool(taichi_speedups)),)
+    if num_threads is not None:
+        args += (("num_threads", num_threads),)
     if _initialized:
         if args != _init_args:
             raise GenesisException(f"gs.init was already called with backend={_init_args[0]!r}, precision={_init_args[1]!r}, "
@@ -69,6 +132,9 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
         raise ValueError(f"gs.init(precision={precision!r}): use \"32\" or \"64\"")
     if backend not in (cpu, gpu):
         raise ValueError(f"gs.init(backend={backend!r}): use gs.cpu or gs.gpu")
+    if num_threads is not None and (isinstance(num_threads, bool) or not isinstance(num_threads, int)
+                                    or num_threads < 1):
+        raise ValueError(f"gs.init(num_threads={num_threads!r}): give a positive integer")
     if taichi_speedups is False:
         taichi_compat.uninstall_speedups()
     level = logging_level.upper() if isinstance(logging_level, str) else logging_level
@@ -90,6 +156,15 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
               advanced_optimization=str(precision) == "32",
               log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
     kw.update(taichi_kwargs)
+    threads = None
+    if arch == ti.cpu:
+        threads = num_threads if num_threads is not None else default_num_threads()
+        if threads is not None:
+            # Taichi's CPU thread pool (one per process, sized at ti.init) and torch's intra-op pool:
+            # under torchrun (which sets OMP_NUM_THREADS=1 for torch alone) every rank would
+            # otherwise start a Taichi thread per core
+            kw["cpu_max_num_threads"] = threads
+            torch.set_num_threads(threads)
     # Autodiff stacks of a fixed size, never Taichi's adaptive sizing (wrong gradients in 1.7.4):
     # solvers/taichi_compat/adstack.py. The solvers raise it at build for their longest loops.
     kw["ad_stack_size"] = adstack.init_size(taichi_kwargs.get("ad_stack_size"))
@@ -99,6 +174,8 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
         # their kernels never share a cache with the ones compiled against Taichi's own runtime
         kw.setdefault("offline_cache_file_path", checked_runtime.install())
         env_cache = os.environ.pop("TI_OFFLINE_CACHE_FILE_PATH", None)  # (Taichi warns of the override)
+    _remove_stale_cache_lock(os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or kw.get("offline_cache_file_path")
+                             or ti.lang.impl.default_cfg().offline_cache_file_path)
     try:
         ti.init(**kw)
     finally:
@@ -107,6 +184,7 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     if seed is not None:
         torch.manual_seed(seed)
         np.random.seed(seed)
+    cpu_threads = threads if threads is not None else (_available_cores() if arch == ti.cpu else None)
     _init_args = args
     _initialized = True
 
@@ -120,5 +198,5 @@ from . import grad  # noqa: E402
 from .grad.creation import from_torch, ones, rand, tensor, zeros  # noqa: E402
 from .scene import Scene  # noqa: E402
 
-__all__ = ["init", "Scene", "options", "morphs", "materials", "integrator", "cpu", "gpu", "device",
-           "tensor", "zeros", "ones", "rand", "from_torch", "grad", "surfaces", "GenesisException"]
+__all__ = ["init", "default_num_threads", "Scene", "options", "morphs", "materials", "integrator", "cpu", "gpu",
+           "device", "tensor", "zeros", "ones", "rand", "from_torch", "grad", "surfaces", "GenesisException"]

@@ -32,6 +32,9 @@ EXAMPLES = {
     "elastic_identification": ["fit.md", "loss.csv", "elastic_identification.png"],
     "ball_mass_identification": ["fit.md", "loss.csv", "ball_mass_identification.png"],
     "arm_press_plasticine": ["fitted_press.gif", "loss.csv", "knots.md", "arm_press_plasticine.png", "before_after.png"],
+    # one process here; tests/test_distributed.py runs them under torchrun (2 ranks) against this
+    "distributed_identification": ["fit.md", "loss.csv", "distributed_identification.png"],
+    "distributed_policy": ["loss.csv", "policy.pt", "distributed_policy.png"],
 }
 SLOW = set()  # examples whose --quick run takes longer than ~40 s on the project's 2-core machine
 
