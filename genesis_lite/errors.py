@@ -22,3 +22,8 @@ class GradientGrowthWarning(GenesisWarning):
 
 class ZeroGainWarning(GenesisWarning):
     """A PD target was set on dofs whose gain is 0, so the target has no effect."""
+
+
+# Raised by the rigid solver, which does not import this package: a UserWarning, re-exported here so
+# that users find every warning of the library in one module.
+from solvers.rigid.contact import ContactPenetrationWarning  # noqa: E402,F401

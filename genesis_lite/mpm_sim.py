@@ -9,14 +9,18 @@ ordinary autograd.
 """
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import torch
 
-from solvers.mpm.solver import MPMSolver
+from solvers.mpm.solver import POOL as SOLVER_POOL, acquire as acquire_solver
 
-from .errors import GenesisException, SimulationNaNError
+from .errors import GenesisException
 from .grad.indexing import index_put, raise_if_nan_grad
-from .materials import sand_alpha
+from .materials import MPM as _MPM_MATERIALS, sand_alpha
+
+Liquid = _MPM_MATERIALS.Liquid
 
 MATERIAL_KEYS = ("E", "nu", "yield_stress", "friction_angle", "viscosity")
 
@@ -43,10 +47,25 @@ class MPMSim:
         mass = np.concatenate([np.full(e.n_particles, e._vol * e.material.rho) for e in entities])
         mat = np.concatenate([np.full(e.n_particles, e.material.code) for e in entities])
         self.n_particles = len(x0)
-        self.solver = MPMSolver(self.B, x0, vol, mass, mat, mpm_options.lower_bound, mpm_options.upper_bound,
-                                mpm_options.dx, sim_options.dt, sim_options.substeps, sim_options.gravity, gs.ti_float,
-                                self.requires_grad, mpm_options.wall_friction, coupler=coupler)
+        # a solver of the scene's class from the pool (its kernels compiled by an earlier scene, if any),
+        # given back when this bridge dies (solvers/mpm/solver.py)
+        self.solver, self.reused_solver = acquire_solver(
+            self.B, x0, vol, mass, mat, mpm_options.lower_bound, mpm_options.upper_bound, mpm_options.dx,
+            sim_options.dt, sim_options.substeps, sim_options.gravity, gs.ti_float, self.requires_grad,
+            mpm_options.wall_friction)
+        weakref.finalize(self, SOLVER_POOL.release, self.solver)
+        if coupler is not None:
+            self.solver.attach_coupler(coupler)
         self.mass = torch.as_tensor(mass, dtype=self.dtype, device=self.device)
+        self.inside = domain_inside(mpm_options)
+        self._dx, self._h = mpm_options.dx, sim_options.dt / sim_options.substeps
+        self._sim_options = sim_options
+        # per particle: density (kg/m^3) and whether the wave speed has no shear part (liquids), for the
+        # time-step check of material changes after build
+        self._rho = torch.as_tensor(np.concatenate([np.full(e.n_particles, e.material.rho) for e in entities]),
+                                    dtype=torch.float64)
+        self._liquid = torch.as_tensor(np.concatenate([np.full(e.n_particles, isinstance(e.material, Liquid))
+                                                       for e in entities]))
         t = lambda a: torch.as_tensor(np.asarray(a, dtype=float), dtype=self.dtype, device=self.device)  # noqa: E731
         per = {k: np.concatenate([np.full(e.n_particles, float(getattr(e.material, k, 0.0))) for e in entities])
                for k in MATERIAL_KEYS}
@@ -125,6 +144,24 @@ class MPMSim:
                 p = index_put(p, envs, idx, remake() if remake is not None else values.detach())
             self.values[key] = p
         self._params = None
+        if self.param_ops["E"] or self.param_ops["nu"]:
+            self.check_time_step(self.values["E"], self.values["nu"], "the material parameters set")
+
+    def check_time_step(self, E, nu, what):
+        """Raise if per-particle E (Pa) and nu, (B, P) tensors, make the substep too long for the grid:
+        the check build() does (check_time_step below), for values set after build."""
+        E, nu = E.detach().to(torch.float64).cpu(), nu.detach().to(torch.float64).cpu()
+        lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+        mu = E / (2.0 * (1.0 + nu))
+        c = torch.sqrt(torch.where(self._liquid, lam, lam + 2.0 * mu) / self._rho)
+        i_b, i_p = divmod(int(torch.argmax(c)), c.shape[1])
+        ent = next(e for e in self.entities if e._p_start <= i_p < e._p_start + e.n_particles)
+        msg = time_step_error(ent.name, float(c[i_b, i_p]), float(E[i_b, i_p]), float(nu[i_b, i_p]),
+                              float(self._rho[i_p]), bool(self._liquid[i_p]), self._dx, self._sim_options)
+        if msg is not None:
+            where = f"particle {i_p - ent._p_start}" + (f" in env {i_b}" if self.scene.n_envs else "")
+            raise GenesisException(f"{msg} (after {what}: {where}). A built scene keeps its substeps: keep E at "
+                                   "or below the bound given, or build a new scene with more substeps.")
 
     def reset_controls(self):
         self.force = torch.zeros(self.B, self.n_particles, 3, dtype=self.dtype, device=self.device)
@@ -192,20 +229,32 @@ class MPMSim:
         raise_if_nan_grad(out, step)
         return out
 
-    def check_finite(self, step):
-        """Raise SimulationNaNError naming the entity and the step if a particle's state is not finite."""
-        x, v = self.state()[:2]
-        bad = ~(torch.isfinite(x.detach()).all(-1) & torch.isfinite(v.detach()).all(-1))
-        if bad.any():
-            i_b, i_p = [int(a) for a in torch.nonzero(bad)[0]]
+    def check_finite(self):
+        """{env: description} of the envs with a particle whose x or v is not finite now (the scene's
+        NaN watch, genesis_lite/nan_watch.py, names the step and decides what to do)."""
+        x, v = (t.detach() for t in self.state()[:2])
+        bad = ~(torch.isfinite(x).all(-1) & torch.isfinite(v).all(-1))
+        out = {}
+        if not bool(bad.any()):
+            return out
+        for i_b in torch.nonzero(bad.any(-1)).reshape(-1).tolist():
+            i_p = int(torch.nonzero(bad[i_b])[0])
             ent = next(e for e in self.entities if e._p_start <= i_p < e._p_start + e.n_particles)
-            raise SimulationNaNError(
-                f"MPM entity '{ent.name}': particle {i_p - ent._p_start} was non-finite at step {step}"
-                f"{f' in env {i_b}' if self.scene.n_envs else ''}. The simulation diverged: raise substeps (the time "
-                "step must resolve the material's wave speed), lower E, or check the forces and velocities set.")
+            n = int(bad[i_b].sum())
+            out[i_b] = (f"MPM entity '{ent.name}': particle {i_p - ent._p_start} (x = {x[i_b, i_p].tolist()}, v = "
+                        f"{v[i_b, i_p].tolist()}){f' and {n - 1} more' if n > 1 else ''}")
+        return out
 
-    def count_nonfinite(self):
-        return int(self.solver.kernel_count_nonfinite(0))
+    def count_nonfinite(self, step, clear=None):
+        """How many envs have a record of a non-finite particle state: after a step without gradients
+        the solver checks the particles in one pass and records the envs at `step`; None when the state
+        is a torch tensor (gradient path: check_finite looks at it). clear (numpy bool (B,)): forget
+        those envs' records instead (scene.reset)."""
+        if clear is not None:
+            return int(self.solver.kernel_reset_nan(np.ascontiguousarray(clear, dtype=np.int32)))
+        if self._state is not None:
+            return None
+        return self.solver.kernel_count_nonfinite(0, step)
 
     # ---------------------------------------------------------------- rollouts
     def new_rollout(self, state):
@@ -214,21 +263,42 @@ class MPMSim:
         self.set_state(*state)
 
 
+def domain_inside(mpm_options):
+    """(lo, hi) numpy (3,) m: where particles may be, the MPM domain less 3 cells of wall at each face
+    (build() refuses entities outside it, setters refuse positions outside it)."""
+    lo = np.asarray(mpm_options.lower_bound, float) + 3 * mpm_options.dx
+    hi = np.asarray(mpm_options.upper_bound, float) - 3 * mpm_options.dx
+    return lo, hi
+
+
+def time_step_error(name, c, E, nu, rho, liquid, dx, sim_options, cfl=0.9):
+    """The message of a substep too long for a material of wave speed c (m/s) on cells of dx m, or
+    None when it is short enough (see check_time_step). Gives the stable substep count and the
+    largest E (Pa) the current substep allows at this nu and rho."""
+    h = sim_options.dt / sim_options.substeps
+    h_max = cfl * dx / c
+    if h <= h_max:
+        return None
+    need = int(np.ceil(sim_options.dt / h_max))
+    c_ok = cfl * dx / h
+    # c^2 rho = E k(nu): k = (1 - nu) / ((1 + nu)(1 - 2 nu)) for solids (lam + 2 mu), nu / (...) for liquids
+    k = (nu if liquid else 1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    e_max = c_ok ** 2 * rho / k if k > 0 else float("inf")
+    return (f"MPM entity '{name}': the substep dt / substeps = {h:.3g} s is too long for its material on this "
+            f"grid: elastic waves travel at {c:.3g} m/s (E={E:g} Pa, nu={nu:g}, rho={rho:g} kg/m^3) and must cross "
+            f"at most {cfl:g} of a cell ({dx:.3g} m) per substep, i.e. a substep <= {h_max:.3g} s. Use "
+            f"SimOptions(substeps={need}) or more (or a smaller dt, a softer material: E <= {e_max:.3g} Pa at this "
+            "nu and rho, a coarser grid)")
+
+
 def check_time_step(entities, mpm_options, sim_options, cfl=0.9):
     """Raise if the substep is too long for the stiffest material on this grid: an explicit MPM step
     must not let an elastic wave (speed c) cross more than `cfl` of a cell. The message gives the
     substep count that would be stable. (Measured here: a corotated cube, E = 1e6 Pa, nu = 0.3, dropped
     on the floor at dx = 1/64 m, is stable at c h / dx = 0.94 and diverges at 1.17.)"""
-    dx = mpm_options.dx
-    h = sim_options.dt / sim_options.substeps
     worst = max(entities, key=lambda e: e.material.wave_speed())
-    c = worst.material.wave_speed()
-    h_max = cfl * dx / c
-    if h > h_max:
-        need = int(np.ceil(sim_options.dt / h_max))
-        raise GenesisException(
-            f"MPM entity '{worst.name}': the substep dt / substeps = {h:.3g} s is too long for its material on this "
-            f"grid: elastic waves travel at {c:.3g} m/s (E={worst.material.E:g} Pa, nu={worst.material.nu:g}, "
-            f"rho={worst.material.rho:g} kg/m^3) and must cross at most {cfl:g} of a cell ({dx:.3g} m) per substep, "
-            f"i.e. a substep <= {h_max:.3g} s. Use SimOptions(substeps={need}) or more (or a smaller dt, a softer "
-            "material, a coarser grid).")
+    m = worst.material
+    msg = time_step_error(worst.name, m.wave_speed(), m.E, m.nu, m.rho, isinstance(m, Liquid), mpm_options.dx,
+                          sim_options, cfl)
+    if msg is not None:
+        raise GenesisException(msg + ".")

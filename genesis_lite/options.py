@@ -37,15 +37,28 @@ class SimOptions(_Options):
     """dt (s) per scene.step(); substeps split each step; gravity (m/s^2, world frame);
     requires_grad keeps per-step state so torch can backpropagate through the rollout;
     checkpoint_every is how many steps the gradient buffer keeps in memory before it checkpoints
-    (memory stays bounded for any horizon; None keeps every step)."""
+    (memory stays bounded for any horizon; None keeps every step).
+
+    nan_policy says what a NaN or inf in the state does. The state of every env is checked after every
+    step (rigid and MPM, with and without gradients; measured in benchmarks/results/nan_check.md):
+    "raise" (default) raises gs.errors.SimulationNaNError at the step where it appears, naming the
+    env(s), the entity and the quantity; "mask" (Genesis's way, for batched training) logs the failed
+    envs once and lets the others go on: scene.get_error_envs_mask() (alias
+    scene.rigid_solver.get_error_envs_mask()) marks them and scene.reset(envs_idx=mask) restores
+    them; backward through such a rollout gives the other envs their gradients and raises if the loss
+    depends on a failed env; "off" checks nothing after the steps (get_error_envs_mask() then checks
+    the current state)."""
 
     dt: float = 0.01
     substeps: int = 1
     gravity: Tuple[float, float, float] = (0.0, 0.0, -9.81)
     requires_grad: bool = False
     checkpoint_every: Optional[int] = None
+    nan_policy: str = "raise"
 
     def _validate(self):
+        if self.nan_policy not in ("raise", "mask", "off"):
+            self._err("nan_policy", self.nan_policy, "must be 'raise', 'mask' or 'off'")
         if not (isinstance(self.dt, (int, float)) and np.isfinite(self.dt) and self.dt > 0):
             self._err("dt", self.dt, "the time step must be a positive finite number of seconds")
         if not (isinstance(self.substeps, int) and self.substeps >= 1):

@@ -13,9 +13,9 @@ import torch
 
 from solvers.rigid.solver import RigidSolver
 
-from .errors import GenesisException, SimulationNaNError
+from .errors import GenesisException
 from .grad.functions import OutputFunction
-from .grad.indexing import as_slices, as_span, index_put, raise_if_nan_grad
+from .grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
 
 # name -> (solver field, trailing shape, axis it is indexed by). The core's parameters travel packed in one
 # tensor (RigidSolver.param_layout); contact friction lives in the contact solver's own field.
@@ -84,6 +84,7 @@ class RigidSim:
         self.init_state = (q0, torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device))
         self.set_state(*self.init_state)
         self._outputs = None
+        self._nan_count = 0  # envs with a NaN record, as the last fused launch returned it
 
     # ---------------------------------------------------------------- helpers
     def param_field(self, name):
@@ -229,13 +230,15 @@ class RigidSim:
     upload = _upload
 
     def step_fused(self, step):
-        self.solver.step(step)
+        self._nan_count = self.solver.step(step)
 
     def substep(self, i, grad, step):
         if grad:
             self.solver.substep(i)
         else:
-            self.solver.substep_fused(step, i)
+            n = self.solver.substep_fused(step, i)
+            if i == self.solver.substeps - 1:
+                self._nan_count = n
 
     def untracked_step_done(self):
         self.qpos = self.qvel = None
@@ -247,22 +250,33 @@ class RigidSim:
         self._outputs = None
         return [self._read_state(self.solver.last_slot)]
 
-    def first_nan_step(self):
-        """The first step after which the (fused-path) state was not finite, or None."""
-        return self.solver.first_nan_step()
+    def count_nonfinite(self, step, clear=None):
+        """How many envs have a record of a non-finite state: the fused step records them (per env, at
+        the step it found them) and returns the count with its launch, so this read is free; None when
+        the state is a torch tensor (gradient path: check_finite looks at it). clear (numpy bool (B,)):
+        forget those envs' records instead (scene.reset)."""
+        if clear is not None:
+            self._nan_count = self.solver.reset_nan(clear)
+            return self._nan_count
+        if self.qpos is not None:
+            return None
+        return self._nan_count
 
-    def check_finite(self, entities, step):
-        """Raise SimulationNaNError naming the entity, the quantity and the step if the state is not finite."""
-        q, v = self.get_state()
-        for name, x in (("qpos", q), ("qvel", v)):
-            bad = ~torch.isfinite(x.detach())
-            if bad.any():
-                i_b, i = [int(a) for a in torch.nonzero(bad)[0]]
-                ent, local = _entity_of(entities, i, name)
-                raise SimulationNaNError(
-                    f"entity '{ent.name}': {name}[{local}] became {x[i_b, i].item()} at step {step}"
-                    f"{f' in env {i_b}' if self.scene.n_envs else ''}. The simulation diverged: reduce dt or raise "
-                    "substeps, lower gains/stiffness, or check the inputs set before this step.")
+    def check_finite(self):
+        """{env: description} of the envs whose state is not finite now, naming the entity and the
+        first non-finite entry (the scene's NaN watch, nan_watch.py, names the step and acts)."""
+        q, v = (x.detach() for x in self.get_state())
+        bad_q, bad_v = ~torch.isfinite(q), ~torch.isfinite(v)
+        bad = bad_q.any(-1) | bad_v.any(-1)
+        out = {}
+        if not bool(bad.any()):
+            return out
+        for i_b in torch.nonzero(bad).reshape(-1).tolist():
+            name, x, b = ("qpos", q, bad_q) if bool(bad_q[i_b].any()) else ("qvel", v, bad_v)
+            i = int(torch.nonzero(b[i_b])[0])
+            ent, local = _entity_of(self.scene.rigid_entities, i, name)
+            out[i_b] = f"entity '{ent.name}': {name}[{local}] = {x[i_b, i].item()}"
+        return out
 
     # ---------------------------------------------------------------- the rigid part of the step node
     def load(self, values, mode):
@@ -356,13 +370,14 @@ class RigidSim:
         g = torch.empty(self.B, self.n_qs + 4 * self.n_dofs, dtype=self.dtype, device=self.device)
         s.kernel_get_grads(g)
         gq, gv = g[:, : self.n_qs], g[:, self.n_qs: self.n_qs + self.n_dofs]
-        raise_if_nan_grad([gq, gv], step)
+        with incoming_grads(grads, self.sim.nan_watch):
+            raise_if_nan_grad([gq, gv], step)
         return gq, gv
 
     # ---------------------------------------------------------------- rollouts
     def new_rollout(self, state):
         qpos, qvel = state
-        self.solver.reset_nan()
+        self._nan_count = self.solver.reset_nan()
         self.reset_controls()
         self.rebuild_params()
         self.set_state(qpos, qvel)

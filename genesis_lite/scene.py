@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import os
+import weakref
 from dataclasses import dataclass
 from typing import List, Optional
 
@@ -13,7 +14,9 @@ from . import materials as gmat
 from . import morphs as gm
 from . import surfaces as gs_surfaces
 from .errors import GenesisException
+from .nan_watch import NaNWatch
 from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions
+from .validation import validate_model
 
 logger = logging.getLogger("genesis_lite")
 
@@ -113,6 +116,7 @@ class Scene:
         else:
             model = load_morph(morph, material, name)
             model.validate()
+            validate_model(model)
             ent = RigidEntity(self, len(self.entities), model, morph, material)
             ent._solver_idx = len(self.rigid_entities)
             self.rigid_entities.append(ent)
@@ -174,6 +178,11 @@ class Scene:
         if self._rigid is not None:
             bridges.append(self._rigid)  # after MPM: each substep moves the MPM material, then the bodies
         self._simulator = Simulator(bridges, self.sim_options)
+        self._nan = NaNWatch(self, self.sim_options.nan_policy)
+        self._simulator.nan_watch = self._nan
+        if self._rigid is not None:
+            # Genesis's name for it: scene.rigid_solver.get_error_envs_mask() (held weakly: no cycle)
+            self._rigid.solver.get_error_envs_mask = _WeakCall(self, "get_error_envs_mask")
         self._built = True
         self._init_state = self.get_state()
 
@@ -202,11 +211,10 @@ class Scene:
         self._coupler = coupler
 
     def _build_mpm(self):
-        from .mpm_sim import MPMSim, check_time_step
+        from .mpm_sim import MPMSim, check_time_step, domain_inside
 
         opts = self.mpm_options
-        lo = np.asarray(opts.lower_bound) + 3 * opts.dx
-        hi = np.asarray(opts.upper_bound) - 3 * opts.dx
+        lo, hi = domain_inside(opts)
         p = 0
         for e in self.mpm_entities:
             below, above = e._x0.min(0) < lo, e._x0.max(0) > hi
@@ -230,23 +238,22 @@ class Scene:
         return self._simulator
 
     def step(self):
-        """Advance every solver by sim_options.dt."""
+        """Advance every solver by sim_options.dt, then check every env's state for NaN / inf
+        (SimOptions.nan_policy: raise, or record the failed envs and go on)."""
         sim = self._sim("step")
         sim.step()
-        rigid = self._rigid
-        if rigid is not None and self.rigid_options.check_nan:
-            if rigid.qpos is not None:  # the state is in torch already (gradient path): check it every step
-                rigid.check_finite(self.rigid_entities, sim.step_count)
-            elif sim.step_count % 16 == 0:  # fused path: the kernel recorded the first bad step
-                bad = rigid.first_nan_step()
-                if bad is not None:
-                    rigid.check_finite(self.rigid_entities, bad)
-        mpm = self._mpm
-        if mpm is not None:
-            if mpm._state is not None:
-                mpm.check_finite(sim.step_count)
-            elif sim.step_count % 16 == 0 and mpm.count_nonfinite():
-                mpm.check_finite(sim.step_count)
+        self._nan.after_step(sim.step_count)
+
+    def get_error_envs_mask(self):
+        """Bool tensor (n_envs,) (a 0-d one when built with n_envs=0): True for the envs whose state
+        became NaN or infinite since build or since they were last reset (SimOptions.nan_policy='mask'
+        lets the others go on). Restore them with scene.reset(envs_idx=mask)."""
+        sim = self._sim("get_error_envs_mask")
+        m = self._nan.mask(sim.step_count)
+        import genesis_lite as gs
+
+        m = m.to(gs.device)
+        return m if self.n_envs > 0 else m[0]
 
     def get_state(self) -> SimState:
         """The current state of every solver (detached copies) and the step count."""
@@ -256,15 +263,50 @@ class Scene:
         q, v = (q.detach().clone(), v.detach().clone()) if q is not None else (None, None)
         return SimState(states, sim.step_count, q, v)
 
-    def reset(self, state: Optional[SimState] = None):
+    def reset(self, state: Optional[SimState] = None, envs_idx=None):
         """Return to the state right after build() (or to `state` from get_state()). Controls and
         external forces are cleared; parameters set with setters are kept. Starts a new rollout for
-        gradients."""
+        gradients.
+
+        envs_idx (env indices, or a bool mask of n_envs such as get_error_envs_mask()): restore the
+        state (positions, velocities; MPM particles' x, v, C, F) of just those envs and forget their
+        NaN record; every other env, the controls, the step count and the rollout go on untouched."""
         sim = self._sim("reset")
         state = state if state is not None else self._init_state
         if not isinstance(state, SimState):
             raise TypeError("scene.reset(state): state must come from scene.get_state()")
+        if envs_idx is not None:
+            self._reset_envs(state, envs_idx)
+            return
         sim.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
+        self._nan.clear(np.ones(self._nan.B, dtype=bool))
+
+    def _reset_envs(self, state, envs_idx):
+        if self.n_envs == 0:
+            raise GenesisException("scene.reset(envs_idx=...): the scene was built without n_envs; call "
+                                   "scene.reset() (or build with scene.build(n_envs=N))")
+        t = torch.as_tensor(envs_idx.detach().cpu() if isinstance(envs_idx, torch.Tensor) else envs_idx)
+        if t.dtype == torch.bool:
+            if t.shape != (self.n_envs,):
+                raise GenesisException(f"scene.reset(envs_idx=mask): a bool mask must have shape ({self.n_envs},) "
+                                       f"(one entry per env), got {tuple(t.shape)}")
+            envs = torch.nonzero(t).reshape(-1)
+        else:
+            envs = _SceneParams(self)._envs(t) if t.numel() else t.reshape(-1).long()
+        mask = np.zeros(self.n_envs, dtype=bool)
+        mask[envs.cpu().numpy()] = True
+        if not mask.any():
+            return
+        sim = self._simulator
+        rows = torch.as_tensor(mask, device=envs.device)
+        for b, saved in zip(sim.bridges, state.solvers):
+            now = b.state()
+            new = []
+            for x, x0 in zip(now, saved):
+                keep = rows.to(x.device).reshape((-1,) + (1,) * (x.dim() - 1))
+                new.append(torch.where(keep, x0.to(x.dtype), x))
+            b.set_state(*new)
+        self._nan.clear(mask)
 
     def set_gravity(self, gravity, envs_idx=None):
         """Gravity (m/s^2, world frame) of every solver; differentiable."""
@@ -318,3 +360,16 @@ class _SceneParams:
         import genesis_lite as gs
 
         return gs.device
+
+
+class _WeakCall:
+    """obj.name(...) through a weak reference to obj (a method handed to an object obj owns)."""
+
+    def __init__(self, obj, name):
+        self._ref, self._name = weakref.ref(obj), name
+
+    def __call__(self, *args, **kwargs):
+        obj = self._ref()
+        if obj is None:
+            raise GenesisException("this solver's scene no longer exists")
+        return getattr(obj, self._name)(*args, **kwargs)

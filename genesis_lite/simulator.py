@@ -32,6 +32,7 @@ from solvers.buffer import StepBuffer
 from .errors import GenesisException
 from .grad.functions import StepFunction, require_token
 from .grad.growth import GrowthMonitor
+from .grad.indexing import incoming_grads
 
 
 class Simulator:
@@ -45,6 +46,7 @@ class Simulator:
         self.step_count = 0
         self._backward_done = False
         self._step_inputs = {}
+        self.nan_watch = None  # the scene's (nan_watch.py), set by the scene
         self.growth = GrowthMonitor()  # warns when a backward pass blows the gradient up (grad/growth.py)
         self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
         # the Tape's loss: <gradient torch hands a node's outputs, those outputs>
@@ -160,10 +162,11 @@ class Simulator:
             for b, g in zip(self.bridges, out_grads):
                 b.vjp(g, self.loss)
         result, state_grads = [], []
-        for b, n in zip(self.bridges, self._split(needs, counts)):
-            g = b.input_grads(n, step)
-            result.extend(g)
-            state_grads.extend(g[:b.n_state])
+        with incoming_grads(grads, self.nan_watch):
+            for b, n in zip(self.bridges, self._split(needs, counts)):
+                g = b.input_grads(n, step)
+                result.extend(g)
+                state_grads.extend(g[:b.n_state])
         self.growth.record(step, grads, state_grads)
         return result
 

@@ -118,11 +118,32 @@ class MPMEntity:
         return MPMEntityState(*(self._state_part(k, envs_idx) for k in range(4)))
 
     # ---------------------------------------------------------------- state setters
-    def _set_part(self, k, values, envs, idx):
+    def _set_part(self, k, values, envs, idx, what=None):
         sim = self._sim
+        if k == 0:
+            self._check_in_domain(values, envs, idx, what or "set_particles_pos")
         state = list(sim.state())
         state[k] = index_put(state[k], envs, idx, values)
         sim.set_state(*state)
+
+    def _check_in_domain(self, pos, envs, idx, what):
+        """Refuse positions outside the region build() admits (MPMOptions' bounds less 3 cells of wall):
+        the grid has no nodes for them, and the walls could not hold them."""
+        lo, hi = self._sim.inside
+        p = pos.detach()
+        lo_t, hi_t = (torch.as_tensor(b, dtype=p.dtype, device=p.device) for b in (lo, hi))
+        bad = (p < lo_t) | (p > hi_t)  # NaN was refused by _values already
+        if not bool(bad.any()):
+            return
+        i_e, i_p, a = [int(i) for i in torch.nonzero(bad)[0]]
+        n_bad = int(bad.any(-1).sum())
+        env = f" in env {int(envs[i_e])}" if self._scene.n_envs > 0 else ""
+        raise GenesisException(
+            f"MPM entity '{self.name}': {what} would put particle {int(idx[i_p]) - self._p_start}{env} at "
+            f"{[round(float(v), 4) for v in p[i_e, i_p]]} m ({n_bad} particle(s) in all), outside the MPM domain "
+            f"along {'xyz'[a]}: particles must stay within {np.round(lo, 4).tolist()} .. {np.round(hi, 4).tolist()} m "
+            "(MPMOptions lower_bound/upper_bound less 3 cells of wall). Move the entity inside, or build the scene "
+            "with a larger domain.")
 
     def _per_particle(self, x, envs, idx, what, trailing):
         """x as (len(envs), len(idx), *trailing): one value for all particles (shape `trailing`, or
@@ -142,7 +163,7 @@ class MPMEntity:
     def set_particles_pos(self, pos, particles_idx_local=None, envs_idx=None):
         """Set particle positions (m): (n, 3) for the particles chosen (all by default)."""
         envs, idx = self._envs(envs_idx), self._particles(particles_idx_local)
-        self._set_part(0, self._values(pos, envs, len(idx), "pos", (3,)), envs, idx)
+        self._set_part(0, self._values(pos, envs, len(idx), "pos", (3,)), envs, idx, "set_particles_pos")
 
     def set_particles_vel(self, vel, particles_idx_local=None, envs_idx=None):
         """Set particle velocities (m/s): (n, 3) for the particles chosen (all by default)."""
@@ -161,7 +182,7 @@ class MPMEntity:
         m = self._masses()
         x = self._sim.state()[0][envs][:, self._range]
         com = (x * m[None, :, None]).sum(1, keepdim=True) / m.sum()
-        self._set_part(0, x - com + c, envs, idx)
+        self._set_part(0, x - com + c, envs, idx, "set_position")
 
     def set_velocity(self, vel, envs_idx=None):
         """Velocity (m/s) of every particle: (3,) for all of them or (n_particles, 3)."""
@@ -184,6 +205,7 @@ class MPMEntity:
         checks = {"E": (0.0, None, "Pa, > 0"), "nu": (-1.0, 0.5, "in (-1, 0.5)"),
                   "yield_stress": (0.0, None, "Pa, > 0"), "friction_angle": (0.0, 90.0, "degrees, in (0, 90)"),
                   "viscosity": (None, None, "Pa s, >= 0")}
+        new = {}
         for key, value in (("E", E), ("nu", nu), ("yield_stress", yield_stress), ("friction_angle", friction_angle),
                            ("viscosity", viscosity)):
             if value is None:
@@ -195,7 +217,14 @@ class MPMEntity:
             if bad:
                 raise GenesisException(f"MPM entity '{self.name}': {key} must be {what}; got values from "
                                        f"{v.min().item():g} to {v.max().item():g}")
-            self._sim.set_param(key, vals, envs, idx)
+            new[key] = vals
+        sim = self._sim
+        if "E" in new or "nu" in new:
+            # the time-step check of build(), on the values these would make (before any is stored)
+            E_nu = [index_put(sim.values[k], envs, idx, new[k]) if k in new else sim.values[k] for k in ("E", "nu")]
+            sim.check_time_step(*E_nu, "set_material(" + ", ".join(f"{k}=..." for k in new if k in ("E", "nu")) + ")")
+        for key, vals in new.items():
+            sim.set_param(key, vals, envs, idx)
 
     def get_material(self, key, envs_idx=None):
         """Per-particle value of a material parameter ("E", "nu", "yield_stress", "friction_angle",

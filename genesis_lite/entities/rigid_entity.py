@@ -186,6 +186,11 @@ class RigidEntity(ContactMixin):
             if len(t) and (t.min() < 0 or t.max() >= n):
                 raise GenesisException(f"entity '{self.name}': {what} {t.tolist()} out of range; it has {n} "
                                        f"({what.split('_')[0]} indices 0..{n - 1})")
+            u, counts = torch.unique(t, return_counts=True)
+            if bool((counts > 1).any()):
+                raise GenesisException(
+                    f"entity '{self.name}': {what} {t.tolist()} repeats {u[counts > 1].tolist()}; give each index "
+                    "once (a setter would keep only the last of the repeated values).")
             out = t.to(self._device)
         return out + start
 
@@ -252,6 +257,45 @@ class RigidEntity(ContactMixin):
     def _out(self, t):
         return wrap(t if self._scene.n_envs > 0 else t[0])
 
+    # ---------------------------------------------------------------- physical validity of parameters
+    def _dof_label(self, d_local):
+        for j in self.joints:
+            if j.dof_start_local <= d_local < j.dof_start_local + j.n_dofs:
+                return f"dof {d_local} (joint '{j.name}')"
+        return f"dof {d_local}"
+
+    def _where(self, what, envs, k_env, label):
+        env = f" in env {int(envs[k_env])}" if self._scene.n_envs > 0 else ""
+        return f"entity '{self.name}': {what} of {label}{env}"
+
+    def _check_sign(self, what, vals, envs, labels, positive, hint, need=None):
+        """Raise if an entry of vals (E, n) is < 0 (or <= 0 where positive[k]), naming the entity, the
+        link or dof (labels[k]), the env and the value. Reads a detached copy."""
+        v = vals.detach().cpu()
+        pos = torch.as_tensor(positive, dtype=torch.bool).reshape(1, -1)
+        bad = torch.where(pos, v <= 0, v < 0)
+        if not bool(bad.any()):
+            return
+        e, k = [int(i) for i in torch.nonzero(bad)[0]]
+        need = need or ("> 0" if bool(pos[0, k]) else ">= 0")
+        env = f" in env {int(envs[e])}" if self._scene.n_envs > 0 else ""
+        raise GenesisException(f"entity '{self.name}': {what} must be {need}, got {v[e, k].item()} for {labels[k]}{env}. "
+                               f"{hint}")
+
+    def _check_inertia(self, vals, envs, ls):
+        from ..validation import INERTIA_HINT, inertia_problems
+
+        local = (ls - self._link_start).cpu().tolist()
+        strict = [self.joints[i].type == "free" for i in local]  # validation.py: a free body's must be definite
+        v = vals.detach().cpu().double().numpy()
+        for k in range(v.shape[1]):
+            bad = inertia_problems(v[:, k], strict=strict[k])
+            if bad:
+                (e,), why = bad[0]
+                label = f"link '{self.links[local[k]].name}'"
+                raise GenesisException(f"{self._where('inertia', envs, e, label)}: {v[e, k].tolist()} {why}. "
+                                       f"{INERTIA_HINT}")
+
     # ---------------------------------------------------------------- state getters
     def get_qpos(self, qs_idx_local=None, envs_idx=None):
         """Generalised positions (m, rad; free bases: xyz then quaternion wxyz)."""
@@ -283,10 +327,12 @@ class RigidEntity(ContactMixin):
 
     def get_dofs_acc(self, dofs_idx_local=None, envs_idx=None):
         """Dof accelerations of the last step (rad/s^2, m/s^2); no gradient."""
+        self._sim  # noqa: B018 - raises a clear error before build
         return self._out(self._scene._dofs_acc()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
 
     def get_dofs_force(self, dofs_idx_local=None, envs_idx=None):
         """Actuator forces (N, N m) applied at the last step after force-range clipping; no gradient."""
+        self._sim  # noqa: B018 - raises a clear error before build
         return self._out(self._scene._dofs_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
 
     def _link_out(self, k, links_idx_local, envs_idx):
@@ -327,6 +373,7 @@ class RigidEntity(ContactMixin):
 
     def get_mass_mat(self, envs_idx=None):
         """Joint-space mass matrix (armature included) of this entity, (n_dofs, n_dofs); no gradient."""
+        self._sim  # noqa: B018 - raises a clear error before build
         M = self._scene._mass_matrix()
         d = self._dofs(None)
         M = M[:, d][:, :, d] + torch.diag_embed(self._sim.params["armature"].detach()[:, d])
@@ -504,8 +551,10 @@ class RigidEntity(ContactMixin):
     def _set_dof_param(self, name, values, dofs_idx_local, envs_idx, nonneg=True):
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
         vals = self._values(values, envs, len(d), name)
-        if nonneg and (vals.detach() < 0).any():
-            raise GenesisException(f"entity '{self.name}': {name} must be >= 0, got {vals.detach().cpu().numpy()}")
+        if nonneg:
+            labels = [self._dof_label(int(i)) for i in (d - self._dof_start).cpu()]
+            self._check_sign(name, vals, envs, labels, [False] * len(d),
+                             f"A negative {name} feeds energy into the system; pass values >= 0.")
         self._sim.set_param(name, vals, envs, d)
 
     def set_dofs_kp(self, kp, dofs_idx_local=None, envs_idx=None):
@@ -533,8 +582,12 @@ class RigidEntity(ContactMixin):
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
         lo = self._values(lower, envs, len(d), "lower")
         hi = self._values(upper, envs, len(d), "upper")
-        if (lo > hi).any():
-            raise GenesisException(f"entity '{self.name}': force range lower > upper")
+        bad = (lo.detach() > hi.detach()) | torch.isnan(lo.detach()) | torch.isnan(hi.detach())
+        if bool(bad.any()):
+            e, k = [int(i) for i in torch.nonzero(bad)[0]]
+            label = self._dof_label(int(d[k]) - self._dof_start)
+            raise GenesisException(f"{self._where('force range', envs, e, label)}: lower > upper ({lo[e, k].item()} > "
+                                   f"{hi[e, k].item()}, N or N m); give lower <= upper.")
         self._sim.set_force_range(lo, hi, envs, d)
 
     def _get_param(self, name, idx, envs_idx):
@@ -564,14 +617,36 @@ class RigidEntity(ContactMixin):
         """Link masses (kg)."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
         vals = self._values(mass, envs, len(ls), "mass")
-        if (vals.detach() < 0).any():
-            raise GenesisException(f"entity '{self.name}': link masses must be >= 0")
+        local = (ls - self._link_start).cpu().tolist()
+        labels = [f"link '{self.links[i].name}'" for i in local]
+        self._check_sign("link masses", vals, envs, labels, [False] * len(local), "Masses are in kg.")
+        # a link that moves needs a positive mass (a hinge link may instead carry massive links below it)
+        m = self._sim.params["mass"].detach()[envs][:, self._link_start:self._link_start + self.n_links].clone()
+        m[:, local] = vals.detach().to(m.dtype)
+        below = m.clone()
+        for i in range(self.n_links - 1, 0, -1):  # parents come before children
+            p = self.links[i].parent_idx_local
+            if p >= 0:
+                below[:, p] += below[:, i]
+        free = torch.tensor([j.type == "free" for j in self.joints], device=m.device)
+        hinge = torch.tensor([j.type in ("revolute", "prismatic") for j in self.joints], device=m.device)
+        bad = (m <= 0) & (free | (hinge & (below <= 0)))
+        if bool(bad.any()):
+            e, i = [int(k) for k in torch.nonzero(bad)[0]]
+            env = f" in env {int(envs[e])}" if self._scene.n_envs > 0 else ""
+            raise GenesisException(
+                f"entity '{self.name}': link masses must be > 0 for a link that moves, got {m[e, i].item()} for link "
+                f"'{self.links[i].name}' ({self.joints[i].type} joint){env}"
+                f"{'' if self.joints[i].type == 'free' else ', which has no massive link below it'}: its equations "
+                "of motion would be singular. Give it a positive mass (kg).")
         self._sim.set_param("mass", vals, envs, ls)
 
     def set_links_inertia(self, inertia, links_idx_local=None, envs_idx=None):
         """Link rotational inertia about the COM in link axes, (n, 3, 3) in kg m^2."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        self._sim.set_param("inertia", self._values(inertia, envs, len(ls), "inertia", (3, 3)), envs, ls)
+        vals = self._values(inertia, envs, len(ls), "inertia", (3, 3))
+        self._check_inertia(vals, envs, ls)
+        self._sim.set_param("inertia", vals, envs, ls)
 
     def set_links_COM(self, com, links_idx_local=None, envs_idx=None):
         """Link centre of mass in the link frame (m), (n, 3)."""

@@ -1,5 +1,7 @@
 """Out-of-place, differentiable indexed writes into the torch mirrors of solver state and parameters,
 shared by every solver's bridge and entity."""
+from contextlib import contextmanager
+
 import torch
 
 from ..errors import SimulationNaNError
@@ -31,10 +33,69 @@ def index_put(base, envs, idx, values):
     return out
 
 
-def raise_if_nan_grad(grads, step):
+# the gradients handed to the node whose backward is running, and the scene's NaN record (nan_watch.py)
+_INCOMING = [None]
+
+
+@contextmanager
+def incoming_grads(grads, watch=None):
+    """Within it, raise_if_nan_grad knows the gradients the running backward call received: an env
+    whose incoming gradient is exactly zero gets exactly zero gradients (the envs of a step are
+    independent), even where its forward state was NaN (an env that failed under
+    SimOptions(nan_policy='mask') and that the loss leaves out), instead of the 0 * NaN of the
+    adjoint kernels."""
+    prev = _INCOMING[0]
+    _INCOMING[0] = (grads, watch)
+    try:
+        yield
+    finally:
+        _INCOMING[0] = prev
+
+
+def _zero_envs(grads):
+    """Bool (B,) of the envs whose incoming gradients are all exactly zero (None counts as zero)."""
+    zero = None
     for g in grads:
-        if g is not None and not torch.isfinite(g).all():
-            raise SimulationNaNError(
-                f"a gradient became NaN or infinite in the backward pass of step {step}: the rollout is not "
-                "differentiable there (a diverging state, a singular pose, or a saturated quantity). Shorten the "
-                "horizon, reduce dt, or check the loss.")
+        if g is None or g.dim() == 0:
+            continue
+        z = (g.detach().reshape(g.shape[0], -1) == 0).all(1)
+        zero = z if zero is None else zero & z
+    return zero
+
+
+def raise_if_nan_grad(grads, step):
+    if all(g is None or bool(torch.isfinite(g).all()) for g in grads):
+        return
+    envs, failed = [], ""
+    ctx = _INCOMING[0]
+    if ctx is not None:
+        incoming, watch = ctx
+        zero = _zero_envs(incoming)
+        if zero is not None and bool(zero.any()):
+            for g in grads:
+                if g is not None and g.dim() and g.shape[0] == zero.shape[0]:
+                    g[zero.to(g.device)] = 0  # in place: the bridges hand over fresh tensors
+            if all(g is None or bool(torch.isfinite(g).all()) for g in grads):
+                return
+        B = zero.shape[0] if zero is not None else 0
+        bad = torch.zeros(B, dtype=torch.bool)
+        for g in grads:
+            if g is not None and g.dim() and g.shape[0] == B:
+                bad |= ~torch.isfinite(g.detach()).reshape(B, -1).all(1).cpu()
+        envs = torch.nonzero(bad).reshape(-1).tolist()
+        if watch is not None and envs and watch.scene.n_envs > 0:
+            rec = [(i, int(watch.fail[i])) for i in envs if watch.fail[i] > 0]
+            if rec:
+                failed = (" The loss depends on env(s) " + ", ".join(f"{i} (NaN since step {k})" for i, k in rec[:8])
+                          + ", whose state became NaN (nan_policy='mask'): their gradient is undefined. Leave the "
+                          "failed envs out of the loss (e.g. weight each env by ~scene.get_error_envs_mask()), or "
+                          "reset them (scene.reset(envs_idx=...)) before the steps the loss reads.")
+    where = f" (env{'s' if len(envs) > 1 else ''} {envs[:8]})" if envs and _batched(ctx) else ""
+    raise SimulationNaNError(
+        f"a gradient became NaN or infinite in the backward pass of step {step}{where}: the rollout is not "
+        "differentiable there (a diverging state, a singular pose, or a saturated quantity). Shorten the "
+        f"horizon, reduce dt, or check the loss.{failed}")
+
+
+def _batched(ctx):
+    return ctx is not None and ctx[1] is not None and ctx[1].scene.n_envs > 0

@@ -10,6 +10,18 @@ class Tensor(torch.Tensor):
     def __torch_function__(cls, func, types, args=(), kwargs=None):
         return super().__torch_function__(func, types, args, kwargs or {})
 
+    def backward(self, gradient=None, retain_graph=None, create_graph=False, inputs=None):
+        if not self.requires_grad:
+            from ..errors import GenesisException
+
+            raise GenesisException(
+                "backward() on a tensor that does not require grad: it was computed from a scene's getters while "
+                "nothing upstream required grad. A scene gives gradients only when built with "
+                "gs.options.SimOptions(requires_grad=True) and given, through a setter or a control, a tensor "
+                "with requires_grad=True (set_dofs_velocity, control_dofs_force, set_links_mass, ...), outside "
+                "torch.no_grad().")
+        return super().backward(gradient, retain_graph, create_graph, inputs)
+
     def __format__(self, spec):
         # torch formats 0-d tensors with a spec (f"{x:.3f}") only for the exact torch.Tensor type
         return torch.Tensor.__format__(self.as_subclass(torch.Tensor), spec)

@@ -11,9 +11,13 @@ import taichi as ti
 @ti.func
 def func_stencil(s: ti.template(), x):
     """Lower corner `base` of the 3x3x3 stencil around x, the offset fx of x from it (cells) and the
-    quadratic B-spline weights per axis."""
+    quadratic B-spline weights per axis. The corner is clamped so that the stencil stays on the grid
+    whatever x is (a NaN, a position set outside the domain): the setters refuse those and g2p keeps
+    particles inside, so for every particle that may be there the clamp changes nothing; it only
+    keeps a bad value from writing outside the grid's memory."""
     xg = (x - s.lower) * s.inv_dx
-    base = ti.cast(ti.floor(xg - 0.5), ti.i32)
+    top = ti.Vector([s.grid_res[0] - 3, s.grid_res[1] - 3, s.grid_res[2] - 3])
+    base = ti.min(ti.max(ti.cast(ti.floor(xg - 0.5), ti.i32), 0), top)
     fx = xg - ti.cast(base, float)
     w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
     return base, fx, w

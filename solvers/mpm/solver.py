@@ -15,11 +15,26 @@ is one `ti.ad.grad_replaced` call on the scene's Tape, whose adjoint recomputes 
 then runs their adjoints in reverse, followed by the adjoint of the constitutive update (the
 SVD-based one hand-written, constitutive.py; the others Taichi's). The constitutive update itself is
 not replayed: its outputs (F of the next slot, tau of this one) are kept.
+
+One compile serves every scene of a class, as in the rigid solver (solvers/rigid/solver.py): Taichi
+bakes the fields a kernel touches, and every Python value it reads while compiling, into the compiled
+kernel, keyed by the object that owns the kernel. So a solver is pooled by its class (`_key`: dtype,
+gradients, envs, the particle count, state slots, the grid (lower corner, cell size, resolution), the
+walls' friction and the set of materials), and a scene takes a solver of its class from `POOL` and
+gives it back when its bridge dies (weakref.finalize in genesis_lite/mpm_sim.py). (With
+RUNTIME_PARTICLE_COUNT the class has a particle capacity instead, the fields are sized by it and the
+scene's count is read at run time from the small `cfg_i` field; see there why it is off.) A coupled scene's grid update, which
+reads that scene's rigid fields, is compiled on its coupler (solvers/coupling.py), never on the
+pooled solver.
 """
+
+import gc
 
 import numpy as np
 import taichi as ti
 import torch
+
+from .. import taichi_compat
 
 from .constitutive import (AD_MATERIALS, MAT_ELASTIC, MAT_LIQUID, MAT_NEOHOOKEAN, SVD_MATERIALS, func_ad_material,
                            func_principal, func_svd_adjoint)
@@ -29,50 +44,92 @@ from .p2g import func_p2g
 from .svd import func_svd3
 
 BOUND = 3  # grid nodes at each face that act as walls (particles live inside them)
+NAN_BIG = 1 << 30  # nan_env holds NAN_BIG - (first non-finite step) (kernel_count_nonfinite)
+# Whether the particle count is read at run time, so that scenes of nearby counts share a solver of
+# one capacity (cap_particles). Off: the count is a compile-time constant, and only scenes of the same
+# count share. Measured on an elastic + plasticine scene and a coupled one (6-8 steps and a backward
+# pass, one thread): with a run-time count the loops compile differently and trajectories and gradients
+# move in their last bit (2.8e-17 m, relative 1e-16), so switching it on is not bitwise neutral; the
+# physics and the gradients are otherwise the same (tests/test_faults_mpm.py passes either way).
+RUNTIME_PARTICLE_COUNT = False
+MIN_PARTICLES = 512  # the smallest particle capacity with a run-time count
+
+
+def cap_particles(n: int) -> int:
+    """Particle capacity of a scene of n particles: n itself (RUNTIME_PARTICLE_COUNT off), else 512,
+    768, 1024, 1536, 2048, ... (powers of two and 1.5 times them), so that nearby particle counts share
+    a solver and at most a third of it idles."""
+    if not RUNTIME_PARTICLE_COUNT:
+        return int(n)
+    c = MIN_PARTICLES
+    while c < n:
+        c = c * 3 // 2 if c & (c - 1) == 0 else c // 3 * 4
+    return c
 
 
 @ti.data_oriented
 class MPMSolver:
-    """n_envs environments of n_particles particles (positions x0 (P, 3) m, volumes vol (P,) m^3,
-    masses mass (P,) kg, material codes mat (P,)) on the grid of [lower, upper] with cells of dx m;
-    dt is one scene step (s), split into `substeps`; wall_friction is the walls' Coulomb coefficient;
-    coupler (solvers/coupling.py) adds rigid boundaries to the grid update."""
+    """n_envs environments of up to `cap` particles on the grid of [lower, upper] with cells of dx m,
+    pooled by its class (see the module docstring): made by `acquire`, which loads a scene into it
+    (`_load`). Per scene: particle positions x0 (P, 3) m, volumes vol (P,) m^3, masses mass (P,) kg,
+    material codes mat (P,); dt is one scene step (s), split into `substeps`; wall_friction is the
+    walls' Coulomb coefficient; coupler (solvers/coupling.py) adds rigid boundaries to the grid update."""
 
-    def __init__(self, n_envs, x0, vol, mass, mat, lower, upper, dx, dt, substeps, gravity, dtype, requires_grad,
-                 wall_friction, coupler=None):
+    def __init__(self, key):
+        dtype, requires_grad, n_envs, cap, n_slots, lower, dx, grid_res, wall_friction, mats = key
+        self.key = key
         self.n_envs = n_envs
-        self.n_particles = len(x0)
+        self.cap_particles = cap
+        self.runtime_count = RUNTIME_PARTICLE_COUNT
+        self._n_particles = cap  # the scene's count: the capacity itself unless it is read at run time
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
         self.dx = float(dx)
         self.inv_dx = 1.0 / self.dx
         self.lower = ti.Vector([float(v) for v in lower])
-        res = np.round((np.asarray(upper, float) - np.asarray(lower, float)) * self.inv_dx).astype(int) + 1
-        self.grid_res = tuple(int(r) for r in res)
+        self.grid_res = grid_res
         self.bound = BOUND
+        res = np.asarray(grid_res)
         upper_eff = np.asarray(lower, float) + (res - 1) * self.dx
         self.np_lower, self.np_upper = np.asarray(lower, float), upper_eff
         # plain floats: compile-time constants (a ti.Vector attribute in the clamp crashed g2p's adjoint)
         self.x_min = tuple(float(v) for v in self.np_lower + self.dx)
         self.x_max = tuple(float(v) for v in upper_eff - self.dx)
+        self.requires_grad = requires_grad
+        self.wall_friction = float(wall_friction)
+        self.mats = mats
+        self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
+        self.has_ad = any(m in AD_MATERIALS for m in self.mats)
+        self.coupler = None
+        self.coupled = False
+        self.n_slots = n_slots
+        self._allocate()
+        self._make_units()
+
+    @property
+    def n_particles(self):
+        """The scene's particle count: in Python its number, inside a kernel being compiled a read of
+        cfg_i (so the compiled kernel serves every scene of the class)."""
+        if self.runtime_count and taichi_compat.inside_kernel():
+            return taichi_compat.subscript(self.cfg_i, 0)
+        return self._n_particles
+
+    def _load(self, x0, vol, mass, mat, dt, substeps, gravity):
+        """A scene into the solver: its particles (the first len(x0) of the capacity), step and gravity."""
+        self._n_particles = len(x0)
         self.dt = dt
         self.substeps = substeps
         self.h = dt / substeps
-        self.requires_grad = requires_grad
-        self.wall_friction = float(wall_friction)
-        self.mats = tuple(sorted(set(int(m) for m in mat)))
-        self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
-        self.has_ad = any(m in AD_MATERIALS for m in self.mats)
-        self.coupler = coupler
-        self.coupled = coupler is not None
-        self.n_slots = substeps + 1 if requires_grad else 1
-        self._allocate()
+        self.coupler = None
+        self.coupled = False
+        self.cfg_i.from_numpy(np.array([len(x0)], np.int32))
+        if hasattr(self, "nan_env"):
+            self.nan_env.fill(0)  # no record of an earlier scene's divergence
         self._fill(x0, vol, mass, mat, gravity)
-        self._make_units()
 
     # ------------------------------------------------------------------ build
     def _allocate(self):
-        B, P, S = self.n_envs, self.n_particles, self.n_slots
+        B, P, S = self.n_envs, self.cap_particles, self.n_slots
         f, g = self.dtype, self.requires_grad
         V3 = lambda shape, grad=g: ti.Vector.field(3, f, shape=shape, needs_grad=grad)  # noqa: E731
         M3 = lambda shape, grad=g: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=grad)  # noqa: E731
@@ -87,6 +144,8 @@ class MPMSolver:
         G = (B,) + self.grid_res
         self.grid_m, self.grid_mv, self.grid_v = F(G), V3(G), V3(G)
         self.nan_count = ti.field(ti.i32, shape=())
+        self.cfg_i = ti.field(ti.i32, shape=1)  # the scene's particle count
+        self.nan_env = ti.field(ti.i32, shape=B)  # per env, NAN_BIG - the first step it was not finite (0: never)
         # the block of grid nodes the particles of a substep can touch: the grid loops skip the rest
         self.active_lo = ti.Vector.field(3, ti.i32, shape=())
         self.active_n = ti.Vector.field(3, ti.i32, shape=())
@@ -101,9 +160,10 @@ class MPMSolver:
 
     def _fill(self, x0, vol, mass, mat, gravity):
         nd = self.np_dtype
-        self.p_mass.from_numpy(np.asarray(mass, nd))
-        self.p_vol.from_numpy(np.asarray(vol, nd))
-        self.p_mat.from_numpy(np.asarray(mat, np.int32))
+        pad = lambda a, t: np.concatenate([np.asarray(a, t), np.zeros(self.cap_particles - len(a), t)])  # noqa: E731
+        self.p_mass.from_numpy(pad(mass, nd))
+        self.p_vol.from_numpy(pad(vol, nd))
+        self.p_mat.from_numpy(pad(mat, np.int32))
         self.gravity.from_numpy(np.tile(np.asarray(gravity, nd), (self.n_envs, 1)))
         self.x0 = np.asarray(x0, nd)
 
@@ -176,7 +236,9 @@ class MPMSolver:
         self.kernel_p2g(src, self.h)
         if self.coupler is not None:
             self.coupler.before_grid(i, self._region, taped)
-        self.kernel_grid_update(self.h, i, *self._region)
+            self.coupler.kernel_grid_update(self, self.h, i, *self._region)
+        else:
+            self.kernel_grid_update(self.h, i, *self._region)
         self.kernel_g2p(src, dst, self.h)
 
     def substep(self, i: int, grad: bool):
@@ -307,11 +369,7 @@ class MPMSolver:
         substep `sub`."""
         for i_b, i, j, k in ti.ndrange(self.n_envs, n0, n1, n2):
             I = ti.Vector([l0 + i, l1 + j, l2 + k])
-            v_walls = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
-            if ti.static(not self.coupled):
-                self.grid_v[i_b, I] = v_walls
-            else:
-                self.grid_v[i_b, I] = self.coupler.func_rigid_boundary(self, i_b, I, v_walls, h, sub)
+            self.grid_v[i_b, I] = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
 
     @ti.kernel
     def kernel_g2p(self, src: ti.i32, dst: ti.i32, h: float):
@@ -412,8 +470,11 @@ class MPMSolver:
                     x.grad[I] = ti.Matrix.zero(float, x.n, x.m)
 
     @ti.kernel
-    def kernel_count_nonfinite(self, slot: ti.i32) -> ti.i32:
-        self.nan_count[None] = 0
+    def kernel_count_nonfinite(self, slot: ti.i32, step: ti.i32) -> ti.i32:
+        """Record the `step` (>= 1) at which env i_b first had a particle whose x or v in `slot` is not
+        finite, as nan_env[i_b] = NAN_BIG - step (0: no record; an atomic max keeps the first step);
+        returns how many envs have a record.
+        One pass over the particles and an integer the scene reads after every step."""
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
             bad = 0
             for a in ti.static(range(3)):
@@ -421,5 +482,69 @@ class MPMSolver:
                 v = self.v[slot, i_b, i_p][a]
                 if ti.math.isnan(x) or ti.math.isinf(x) or ti.math.isnan(v) or ti.math.isinf(v):
                     bad = 1
-            self.nan_count[None] += bad
+            if bad:
+                ti.atomic_max(self.nan_env[i_b], NAN_BIG - step)
+        self.nan_count[None] = 0
+        for i_b in range(self.n_envs):
+            if self.nan_env[i_b] != 0:
+                ti.atomic_add(self.nan_count[None], 1)
         return self.nan_count[None]
+
+    @ti.kernel
+    def kernel_reset_nan(self, envs: ti.types.ndarray()) -> ti.i32:
+        """Forget the NaN record (kernel_count_nonfinite) of the envs with envs[i_b] != 0; returns how
+        many envs keep one."""
+        self.nan_count[None] = 0
+        for i_b in range(self.n_envs):
+            if envs[i_b] != 0:
+                self.nan_env[i_b] = 0
+            if self.nan_env[i_b] != 0:
+                ti.atomic_add(self.nan_count[None], 1)
+        return self.nan_count[None]
+
+
+def solver_key(n_envs, n_particles, mat, lower, upper, dx, substeps, dtype, requires_grad, wall_friction):
+    """The class of solver a scene needs (see the module docstring): what its kernels compile in."""
+    res = np.round((np.asarray(upper, float) - np.asarray(lower, float)) / float(dx)).astype(int) + 1
+    return (dtype, bool(requires_grad), int(n_envs), cap_particles(n_particles), substeps + 1 if requires_grad else 1,
+            tuple(float(v) for v in lower), float(dx), tuple(int(r) for r in res), float(wall_friction),
+            tuple(sorted(set(int(m) for m in mat))))
+
+
+class _Pool:
+    """Free solvers by class. A scene takes one (or has one made) and a finaliser on its bridge gives
+    it back when the scene dies (as the rigid solver's pool, solvers/rigid/solver.py)."""
+
+    def __init__(self):
+        self.free = {}
+        self.taken = {}  # key -> number of solvers held by live scenes
+
+    def acquire(self, key):
+        """(solver, reused) of class `key`."""
+        free = self.free.setdefault(key, [])
+        if not free and self.taken.get(key, 0):
+            gc.collect()  # scenes that are only garbage still hold their solvers: a collection is far cheaper than a compile
+        self.taken[key] = self.taken.get(key, 0) + 1
+        return (free.pop(), True) if free else (MPMSolver(key), False)
+
+    def release(self, solver):
+        solver.coupler = None  # the scene's rigid side goes with it
+        solver.coupled = False
+        self.taken[solver.key] -= 1
+        self.free.setdefault(solver.key, []).append(solver)
+
+    def clear(self):
+        """Forget the free solvers (their fields stay allocated until Taichi is reset)."""
+        self.free.clear()
+
+
+POOL = _Pool()
+
+
+def acquire(n_envs, x0, vol, mass, mat, lower, upper, dx, dt, substeps, gravity, dtype, requires_grad, wall_friction):
+    """A solver of the scene's class from POOL, loaded with the scene (see MPMSolver); the caller
+    gives it back with POOL.release when the scene dies. Returns (solver, reused)."""
+    key = solver_key(n_envs, len(x0), mat, lower, upper, dx, substeps, dtype, requires_grad, wall_friction)
+    solver, reused = POOL.acquire(key)
+    solver._load(x0, vol, mass, mat, dt, substeps, gravity)
+    return solver, reused

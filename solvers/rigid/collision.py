@@ -501,7 +501,8 @@ def func_plane_extent(c: ti.template(), g, R, n, branch: ti.template()):
 def func_broad_phase(s: ti.template(), i_b, e, src, h):
     """pair_active: the geom reaches within the contact margin of a plane (support function), or two
     bounding spheres do, now or within the step (the margin grows by how far the two can approach each
-    other in h at their current velocities: speculative contacts, see contact.py). Without gradients
+    other in h at their current velocities: speculative contacts, see contact.py; a turn sweeps a
+    geom's extent by at most its diameter, so the spin term is capped at 2 / h). Without gradients
     the plane and sphere tests are branches (each pair evaluates its own: a fifth of the stage on
     ANYmal); with them both are evaluated and selected (single-assignment form)."""
     c = s.contact
@@ -522,19 +523,20 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         va = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(ca)
         vb = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(cb)
         wa = s.cvel_w[i_b, la]
-        rot_a = ti.sqrt(wa.dot(wa) + TINY) * ti.min(c.geom_rbound[ga], 1e6)
+        # (a turn sweeps a geom's extent by at most its diameter, whatever the spin: 2 / h caps |w|)
+        rot_a = ti.min(ti.sqrt(wa.dot(wa) + TINY), 2.0 / h) * ti.min(c.geom_rbound[ga], 1e6)
         closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a
         gap = ti.cast(0.0, s.dtype)
         if ti.static(s.requires_grad):
             gap_plane = func_gap_plane(c, ga, Ra, Rb, ca, cb, False)
-            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb)
+            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
             gap = ti.select(is_plane, gap_plane, gap_pair)
             closing += ti.select(is_plane, 0.0, rot_b)
         else:
             if is_plane:
                 gap = func_gap_plane(c, ga, Ra, Rb, ca, cb, True)
             else:
-                gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb)
+                gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
                 gap = gap_pair
                 closing += rot_b
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
@@ -549,7 +551,7 @@ def func_gap_plane(c: ti.template(), ga, Ra, Rb, ca, cb, branch: ti.template()):
 
 
 @ti.func
-def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb):
+def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb, h):
     """Gap of the bounding spheres of geoms ga and gb (centres ca, cb), and how fast gb's rotation can
     sweep its extent."""
     c = s.contact
@@ -557,7 +559,7 @@ def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb):
     # norms with TINY under the root: no infinite derivative at 0 in the adjoint (0 * inf is NaN)
     ldc = ti.sqrt(dc.dot(dc) + TINY)
     wb = s.cvel_w[i_b, lb]
-    return ldc - c.geom_rbound[ga] - c.geom_rbound[gb], ti.sqrt(wb.dot(wb) + TINY) * ti.min(c.geom_rbound[gb], 1e6)
+    return ldc - c.geom_rbound[ga] - c.geom_rbound[gb], ti.min(ti.sqrt(wb.dot(wb) + TINY), 2.0 / h) * ti.min(c.geom_rbound[gb], 1e6)
 
 
 @ti.func

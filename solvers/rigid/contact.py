@@ -14,8 +14,24 @@ spring-damper) and for one that starts apart acts only on the part of the step s
 Because the force is a function of the end-of-step depth, a pair whose gap closes within the step is in
 contact in that step (a speculative contact): a body arriving at 20 m/s stops at the surface instead
 of being caught one step deep (the broad phase widens its margin by the distance the pair can close in
-h, and a slot counts while its current or its predicted depth is within the margin). Friction follows
+h, and a slot counts while its current or its predicted depth is within the margin). The predicted
+depth moves the two sides as the integrator does, each link turned by exactly h w about its origin
+(func_rot_excess: the tangent h (w x r) plus Rodrigues' remainder), not along the tangent: with the
+tangent alone, a box spinning at 1e3 rad/s 6 cm above the ground "reached" 1.7 m below it and the
+ground threw it at 28.8 m/s; two boxes 1 m apart pushed each other (issue #21). Friction follows
 Coulomb's law with the normal force the step actually applies, and is viscous below the slip speed eps.
+
+Limits (issue #21). A penalty contact stops a body within a step only when (k + c / h) times the
+depth it allows outweighs the body's momentum per step and its load: a box at 1e6 m/s (1e4 m per step)
+or a 400 t box on four corners of 1e6 N/m goes through. The report pass records, per env, the first
+contact that ends a step deeper than DEEP_FRACTION of the thinner geom's half thickness, and the scene
+warns once (ContactPenetrationWarning, ContactSolver.watch: a read after each of the first 16 steps,
+then every 16th), naming the geoms, the step and the remedy (smaller dt or more substeps for a fast
+body, a larger contact_stiffness for a heavy one; with 1e10 N/m the 400 t box rests within 0.1 mm).
+Known gap: a point of one box beside an edge of another box, level with its face (a box sliding over
+the edge of the one below it), is tested against the side face (the nearest feature), and the step's
+linear prediction along that face's normal closes a gap that never closes: a horizontal kick that
+breaks Coulomb's bound (tests/test_faults_contact.py, xfail).
 
 Time stepping. The forces are linearly implicit (backward Euler on the linearised force, as the
 joint-limit springs): f_n is linearised about the predicted depth d - h (u . n), which makes it
@@ -77,17 +93,30 @@ M += J^T W J), and with moving pairs the cross terms. The passes of the solve re
 for their own forces.
 """
 
+import warnings
+
 import numpy as np
 import taichi as ti
 
 from .. import taichi_compat
 from .inertia import func_factor_solve, func_factor_to, func_static_factor, func_static_solve, func_static_store, func_static_vec
-from .collision import (N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
+from .collision import (GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_SPHERE, N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, TINY, ContactBuildError, build_geoms, build_slots, candidate_pairs,
                         func_broad_phase, func_geom_pose, func_slot_geometry, geom_rotations, link_is_dynamic)
 from .layout import place_env_major
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
+# a contact whose depth at the end of a step exceeds this fraction of the thinner geom's half
+# thickness has gone (or is going) through it: the scene warns (ContactSolver.watch). Half: the
+# thinner body's middle has reached the other's surface, past which its normal can flip. (A quarter
+# warned on ANYmal's ordinary 1.6 m/s foot landing at dt = 0.01 s: 5.6 mm into a 15 mm shank.)
+DEEP_FRACTION = 0.5
+
+
+class ContactPenetrationWarning(UserWarning):
+    """A contact ended a step deeper than DEEP_FRACTION of the thinner geom's half thickness: the
+    penalty contact could not stop the body within the step (too fast for dt, or too heavy for
+    RigidOptions.contact_stiffness), so it sinks into or tunnels through the other body."""
 
 
 @ti.func
@@ -372,13 +401,68 @@ def func_normal_law(c: ti.template(), depth, depth_end, h):
 
 
 @ti.func
-def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand):
+def func_rot_excess(s: ti.template(), i_b, l, p, h, axis, axial):
+    """How far the rotation of link l over the step moves the material point at p beyond its linear
+    prediction h w x r (r = p - link origin, w the link's angular velocity): (R(h w) - I) r - h w x r,
+    by Rodrigues' formula (sinc(t) - 1) h w x r + (1 - cos t) / t^2 h^2 w x (w x r), t = h |w|. The
+    integrator turns a free body by exactly R(h w) about its origin, so the linear prediction plus this
+    is where the point ends; for a link turning many times in a step the linear prediction runs metres
+    away (a box spinning at 1e3 rad/s above the ground: its corners "reach" 1.7 m below it) while this
+    keeps the point on its circle. Series below t^2 = 1e-4 (no cancellation, no sqrt at 0: smooth in w).
+    axial (0 or 1) drops the spin about `axis` (a cylinder's: turning about it moves its material but
+    not its shape)."""
+    w = s.cvel_w[i_b, l]
+    w = w - (axial * w.dot(axis)) * axis
+    r = p - s.link_pos[i_b, l]
+    t2 = h * h * w.dot(w)
+    small = t2 < 1e-4
+    t = ti.sqrt(ti.max(t2, 1e-4))
+    st = ti.sin(0.5 * t) / (0.5 * t)
+    a = ti.select(small, t2 * (-1.0 / 6.0 + t2 / 120.0), ti.sin(t) / t - 1.0)
+    b = ti.select(small, 0.5 + t2 * (-1.0 / 24.0 + t2 / 720.0), 0.5 * st * st)
+    wr = w.cross(r)
+    return (a * h) * wr + (b * h * h) * w.cross(wr)
+
+
+@ti.func
+def func_rot_corr(s: ti.template(), i_b, i_s, h, pos, n, depth):
+    """How much further than h u.n the two sides of slot i_s approach along n over the step because
+    they turn (func_rot_excess of each side's reference point): the point side's sample point (a
+    box corner, a sphere's centre, a capsule's or cylinder cap's axis point: pos + n (radius) from its
+    surface point) and the SDF side's surface point, or its core point for a sphere or capsule (the
+    rounding radius in from the surface). Those are the points whose motion moves the surfaces: a ball
+    rolling on the ground turns its contact point up and away, not its centre."""
+    c = s.contact
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    la = c.geom_link[ga]
+    lb = c.geom_link[gb]
+    # pos is midway between the two surfaces against a moving geom and for box edge pairs, else on the
+    # point side's surface (func_slot_geometry)
+    mid = (c.link_dyn[lb] == 1) | (c.slot_kind[i_s] == SLOT_BOXEDGE)
+    sa = ti.select(mid, pos - (0.5 * depth) * n, pos)
+    tb = c.geom_type[gb]
+    rb = ti.select((tb == GEOM_SPHERE) | (tb == GEOM_CAPSULE), c.geom_size[gb][0], 0.0)
+    Ra = c.geom_xR[i_b, ga]
+    Rb = c.geom_xR[i_b, gb]
+    za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
+    zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+    ca = ti.select(c.geom_type[ga] == GEOM_CYLINDER, 1.0, 0.0)
+    cb = ti.select(tb == GEOM_CYLINDER, 1.0, 0.0)
+    ea = func_rot_excess(s, i_b, la, sa + c.slot_r[i_s] * n, h, za, ca)
+    eb = func_rot_excess(s, i_b, lb, sa + (depth - rb) * n, h, zb, cb)
+    return (ea - eb).dot(n)
+
+
+@ti.func
+def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand, corr):
     """Normal force and its implicit block of slot i_s (within the contact margin, now or at the end
     of the step), added onto its two links; the slot's data for the friction passes."""
     c = s.contact
     # the normal force is linearised about the depth predicted for the end of the step, so a contact
     # that closes its gap within the step acts in it (speculative contact, see the module docstring)
-    fn_pred, wn, fn_now = func_normal_law(c, depth, depth - h * u.dot(n), h)
+    # (corr: how much further the rotations close the gap than the linear prediction h u.n says)
+    fn_pred, wn, fn_now = func_normal_law(c, depth, depth - h * u.dot(n) - corr, h)
     # on while the force of the current state pushes (a contact creeping out of a deep overlap, whose
     # predicted force sits at ~0), the predicted one does (a gap closing within the step), or the pair
     # is a candidate (cand: its gap could close within the step if the bodies' motion changes; the
@@ -397,6 +481,7 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand):
         c.sl_Fn[i_b, i_s] = fn_pred
         c.sl_wn[i_b, i_s] = wn
         c.sl_depth[i_b, i_s] = depth
+        c.sl_corr[i_b, i_s] = corr
         c.sl_mu[i_b, i_s] = ti.max(c.geom_mu[i_b, ga], c.geom_mu[i_b, gb])
         c.c_pos[i_b, i_s] = pos
         c.c_normal[i_b, i_s] = n
@@ -413,13 +498,19 @@ def func_contact_slot(s: ti.template(), i_b, i_s, h):
     ua = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos)
     ub = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos)
     u = ua - ub
+    # the depth predicted for the end of the step is depth - h u.n - corr: the two sides' reference
+    # points (func_rot_corr; on the normal through pos, where u.n is the same) moved as the integrator
+    # moves them, each link turning by exactly h w (func_rot_excess), not along their velocity's tangent. For a slowly turning body corr is the
+    # O(h^2 w^2 r) centripetal term; for a fast-spinning one it cancels the tangent's metres of
+    # fictitious approach (a spinning box thrown by a surface it never reaches, issue #21)
+    corr = func_rot_corr(s, i_b, i_s, h, pos, n, depth)
     # within the margin now, or at the end of the step if the velocity stays
-    near = ti.max(depth, depth - h * u.dot(n)) > -c.margin
+    near = ti.max(depth, depth - h * u.dot(n) - corr) > -c.margin
     # or if either body could turn towards the other within the step (the one below stopped by a third
     # body while this one falls on): a candidate
     cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
     if near | cand:
-        func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand)
+        func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand, corr)
 
 
 @ti.func
@@ -582,7 +673,7 @@ def func_p1_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(
     # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
     # start-of-step velocity, was ~0): it acts if the law pushes there
     lin = c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / h * du
-    f1, w1, _ = func_normal_law(c, depth, depth - h * (u0.dot(n) + du), h)
+    f1, w1, _ = func_normal_law(c, depth, depth - c.sl_corr[i_b, i_s] - h * (u0.dot(n) + du), h)
     cand = c.sl_cand[i_b, i_s] == 1
     keep = ti.select(cand, f1 > 0, lin > 0)
     F1 = ti.select(keep, ti.select(cand, f1 + w1 / h * du, c.sl_Fn[i_b, i_s]), 0.0)
@@ -798,6 +889,7 @@ def func_contact_report(s: ti.template(), i_b, e):
     """The forces the step applied (normal and friction at the final velocity), for the entity API's
     readers: not differentiated, own link-velocity fields."""
     c = s.contact
+    c.eval_count[i_b] = c.eval_count[i_b] + 1
     func_link_motion(s, s.qacc, e, i_b, c.lvr_w, c.lvr_v)
     if ti.static(s.requires_grad):
         for i_s in range(c.n_slots):
@@ -826,6 +918,25 @@ def func_report_slot(s: ti.template(), i_b, i_s):
     f3 = func_normal_after(c, i_b, i_s, u0, u3, n)
     c.c_fn[i_b, i_s] = ti.max(f3, 0.0)
     c.c_force[i_b, i_s] = f3 * n - c.sl_eta[i_b, i_s] * (u3 - u3.dot(n) * n)
+    # the depth the step ends at (the linear prediction with the final velocity): far past the
+    # surface, the contact has not stopped the body. Per env, the first evaluation with such a
+    # contact is recorded (its deepest one relative to the limit) for watch()
+    depth_end = c.sl_depth[i_b, i_s] - c.sl_corr[i_b, i_s] - c.eval_h[i_b] * u3.dot(n)
+    lim = DEEP_FRACTION * ti.min(c.geom_thick[c.slot_ga[i_s]], c.geom_thick[c.slot_gb[i_s]])
+    if depth_end > lim:
+        ev = c.eval_count[i_b]
+        first = c.deep_i[i_b, 0] == 0
+        # ranked by how much deeper it went within the step (a fast impact before a slow sinking)
+        key = (depth_end - ti.max(c.sl_depth[i_b, i_s], 0.0)) / lim
+        if first | ((c.deep_i[i_b, 2] == ev) & (key > c.deep_f[i_b, 3])):
+            c.deep_i[i_b, 0] = 1
+            c.deep_i[i_b, 1] = i_s
+            c.deep_i[i_b, 2] = ev
+            c.deep_f[i_b, 0] = depth_end
+            c.deep_f[i_b, 1] = -u0.dot(n)
+            c.deep_f[i_b, 2] = lim
+            c.deep_f[i_b, 3] = key
+            c.deep_any[0] = 1
 
 
 PASS1 = (func_p1_clear, func_p1_motion, func_p1_slots, func_p1_tree, func_p1_dof, func_p1_project)
@@ -1130,6 +1241,59 @@ def _cap(n: int, least: int) -> int:
     return max(least, 1 << (max(n, 1) - 1).bit_length())
 
 
+def _user_stacklevel() -> int:
+    """warnings.warn's stacklevel, called from ContactSolver.watch, that names the first frame outside
+    this library (the user's scene.step())."""
+    import os
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    ours = (os.path.join(root, "solvers") + os.sep, os.path.join(root, "genesis_lite") + os.sep)
+    f, level = sys._getframe(2), 2  # level 1: watch, the caller of warnings.warn
+    while f is not None and f.f_code.co_filename.startswith(ours):
+        f, level = f.f_back, level + 1
+    return level
+
+
+def geom_half_thickness(geoms) -> np.ndarray:
+    """(G,) half the thinnest extent of each geom (box: smallest half size; sphere, capsule: radius;
+    cylinder: radius or half length; mesh: half the thinnest k-DOP slab; plane: inf)."""
+    out = np.full(geoms.n, np.inf)
+    for g in range(geoms.n):
+        t, sz = int(geoms.type[g]), np.asarray(geoms.size[g], dtype=float)
+        if t == GEOM_BOX:
+            out[g] = sz.min()
+        elif t in (GEOM_SPHERE, GEOM_CAPSULE):
+            out[g] = sz[0]
+        elif t == GEOM_CYLINDER:
+            out[g] = min(sz[0], sz[1])
+        elif t == GEOM_MESH:
+            k = np.asarray(geoms.kdop[g], dtype=float)
+            out[g] = 0.5 * (k[:N_KDOP // 2] + k[N_KDOP // 2:]).min()
+    return out
+
+
+def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gain):
+    """What the deep-penetration watch tells the user: who, when, how deep, why and what to do."""
+    geoms = plan.geoms
+    ga, gb = int(plan.np_slot_ga[i_s]), int(plan.np_slot_gb[i_s])
+    env = f" in env {i_b}" if n_envs > 1 else ""
+    fast = gain > 1.0  # it went deeper than the limit within this one step
+    approach = f" (approach speed {speed:.3g} m/s: {speed * h:.3g} m per step)" if speed > 0 else ""
+    why = (f"it went {gain * lim:.3g} m deeper within one step of {h:g} s{approach}: too fast for the penalty "
+           "contact to stop within a step" if fast else
+           f"its contact stiffness (RigidOptions.contact_stiffness = {plan.k:g} N/m per contact point) cannot "
+           "hold its weight and the loads on it")
+    todo = ("use a smaller dt or more substeps (SimOptions.substeps), or raise RigidOptions.contact_stiffness"
+            if fast else
+            f"raise RigidOptions.contact_stiffness (penetration ~ load / stiffness; {plan.k:g} N/m now) and "
+            "contact_damping, or lighten the body")
+    return (f"contact between {geoms.names[ga]} and {geoms.names[gb]}{env}: at step {step} it ended "
+            f"{depth:.3g} m deep, more than {lim:.3g} m ({DEEP_FRACTION:g} of the thinner geom's half thickness): "
+            f"the body is sinking into or passing through the other; {why}. To fix: {todo}. "
+            "(Warned once per scene.)")
+
+
 class ContactPlan:
     """The contact model of one scene in numpy: geoms, pairs, slots, the static flags its kernels are
     specialised on, and the capacities its fields need (see ContactSolver)."""
@@ -1250,6 +1414,9 @@ class ContactSolver:
         self.geom_R = M3(G, False)
         self.geom_rbound = F(G, False)
         self.geom_beta = F(G, False)
+        # half thickness (box: smallest half size, sphere / capsule: radius, ...; plane: huge), for the
+        # deep-penetration watch
+        self.geom_thick = F(G, False)
         self.geom_kdop = F((G, N_KDOP), False)
         # the friction parameter [env, geom]; the scene sees its block through geom_friction
         self.geom_mu = F((B, G))
@@ -1272,6 +1439,7 @@ class ContactSolver:
         self.sl_u2 = V3((B, S))
         self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_f2 = F((B, S)), F((B, S)), F((B, S)), F((B, S))
         self.sl_depth, self.sl_Fn1, self.sl_wn1 = F((B, S)), F((B, S)), F((B, S))
+        self.sl_corr = F((B, S))
         self.sl_keep1, self.sl_cand = I((B, S)), I((B, S))
         # without gradients: the slots that are on, in slot order (func_contact_slots), and their count
         self.sl_list, self.n_on = I((B, S)), I(B)
@@ -1295,6 +1463,12 @@ class ContactSolver:
         # outputs of the last evaluation (read by the entity API; no gradient)
         self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
         self.c_depth, self.c_fn = F((B, S), False), F((B, S), False)
+        # the deep-penetration watch: evaluations per env, each env's first deep contact ([hit, slot,
+        # evaluation], [depth at the end of the step, approach speed, limit, depth gained in the step /
+        # limit]), any env's
+        self.eval_count = I(B)
+        self.deep_i, self.deep_f, self.deep_any = I((B, 3)), F((B, 4), False), I(1)
+        self._deep_warned, self._watch_n = False, 0
         self.tree = tree.finalize()
 
         self.stages = CONTACT_STAGES
@@ -1302,7 +1476,7 @@ class ContactSolver:
         self.pass1_acc, self.pass3_listed = PASS1_ACC, PASS3_LISTED
         # adjoints cleared before each solve's backward (read from the passes' backward onwards)
         self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u2, self.sl_Fn, self.sl_depth,
-                                     self.sl_Fn1, self.sl_wn1,
+                                     self.sl_corr, self.sl_Fn1, self.sl_wn1,
                                      self.sl_wn, self.sl_mu, self.sl_f2, self.qacc1, self.qacc2, self.dqc, self.rhs_c,
                                      self.lv1_w, self.lv1_v, self.lv2_w, self.lv2_v, self.lvc_w, self.lvc_v]
                                     + self.bank_d.grad_fields + self.bank_c.grad_fields
@@ -1334,7 +1508,9 @@ class ContactSolver:
         G, S = plan.n_geoms, plan.n_slots
         R = geom_rotations(geoms.quat / np.linalg.norm(geoms.quat, axis=1, keepdims=True)).reshape(G, 9)
         geom_f = np.concatenate([geoms.pos, geoms.center, geoms.size, R,
-                                 np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None]], -1)
+                                 np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None],
+                                 np.minimum(geom_half_thickness(geoms), 1e30)[:, None]], -1)
+        self._deep_warned, self._watch_n = False, 0
         dyn = np.zeros(max(plan.n_links, 1), dtype=np.int32)
         dyn[: plan.n_links] = plan.link_dyn
         slot_i = np.array([[x[0], x[1], x[2], x[3], lp] for x, lp in zip(slots, plan.slot_lp)], dtype=np.int32)
@@ -1371,6 +1547,7 @@ class ContactSolver:
                 self.geom_R[g][k, l] = geom_f[g, 9 + 3 * k + l]
             self.geom_rbound[g] = geom_f[g, 18]
             self.geom_beta[g] = geom_f[g, 19]
+            self.geom_thick[g] = geom_f[g, 20]
             for k in range(kdop.shape[1]):
                 self.geom_kdop[g, k] = kdop[g, k]
         for i_b, g in ti.ndrange(mu.shape[0], mu.shape[1]):
@@ -1401,6 +1578,11 @@ class ContactSolver:
             self.qacc1[I] = 0.0
             self.qacc2[I] = 0.0
             self.dqc[I] = 0.0
+        for i_b in range(self.eval_count.shape[0]):
+            self.eval_count[i_b] = 0
+        for i_b in range(self.deep_i.shape[0]):
+            self.deep_i[i_b, 0] = 0
+        self.deep_any[0] = 0
 
     @property
     def geom_friction(self):
@@ -1529,6 +1711,26 @@ class ContactSolver:
                     x.grad[I] = ti.Vector.zero(s.dtype, x.n)
                 else:
                     x.grad[I] = ti.Matrix.zero(s.dtype, x.n, x.m)
+
+    def watch(self, step: int, evals_per_step: int, h: float):
+        """After a step without gradients (scene step number `step`): warn once per scene when a
+        contact has ended a step deep inside the other body (func_report_slot records the first one).
+        Reads one int every step for the first 16 steps, then every 16th (a read costs a few µs)."""
+        self._watch_n += 1
+        if self._deep_warned or (self._watch_n > 16 and self._watch_n % 16):
+            return
+        if self.deep_any[0] == 0:
+            return
+        self._deep_warned = True
+        di, df = self.deep_i.to_numpy()[: max(self.n_envs, 1)], self.deep_f.to_numpy()[: max(self.n_envs, 1)]
+        hit = np.nonzero(di[:, 0])[0]
+        # the earliest record, the deepest (relative to its limit) among those
+        i_b = int(hit[np.lexsort((-df[hit, 3], di[hit, 2]))[0]])  # (gain / limit in column 3)
+        i_s, e_hit = int(di[i_b, 1]), int(di[i_b, 2])
+        depth, speed, lim, gain = (float(x) for x in df[i_b, :4])
+        late = (int(self.eval_count[i_b]) - e_hit) // max(int(evals_per_step), 1)
+        warnings.warn(ContactPenetrationWarning(deep_contact_message(
+            self.plan, i_s, i_b, self.n_envs, step - late, h, depth, speed, lim, gain)), stacklevel=_user_stacklevel())
 
     def longest_loop(self) -> int:
         """Iterations of the longest loop the contact stages may run in any scene of this solver's class

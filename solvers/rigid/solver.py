@@ -218,7 +218,9 @@ class _Kernels:
     @ti.kernel
     def kernel_reset_state(self, qpos0: ti.types.ndarray()):
         """Every state slot at qpos0 with zero velocity, zero controls in force mode, no NaN seen."""
-        self.nan_step[None] = NO_NAN
+        self.nan_count[None] = 0
+        for i_b in range(self.cap_envs):
+            self.nan_step[i_b] = NO_NAN
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
@@ -235,8 +237,19 @@ class _Kernels:
                     self.ctrl_mode[i_b, i_d] = 0
 
     @ti.kernel
-    def kernel_reset_nan(self):
-        self.nan_step[None] = NO_NAN
+    def kernel_reset_nan(self, envs: ti.types.ndarray()) -> ti.i32:
+        """Forget the NaN record of the envs with envs[i_b] != 0 (all of them: a full reset); returns
+        how many envs stay recorded."""
+        self.nan_count[None] = 0
+        for i_b in range(self.cap_envs):
+            keep = self.nan_step[i_b]
+            if i_b < envs.shape[0]:
+                if envs[i_b] != 0:
+                    keep = NO_NAN
+            self.nan_step[i_b] = keep
+            if keep != NO_NAN:
+                ti.atomic_add(self.nan_count[None], 1)
+        return self.nan_count[None]
 
     # ------------------------------------------------------------------ kernels of the step
     # Every stage runs as its own top-level loop over envs (see kinematics.KINEMATICS).
@@ -310,11 +323,14 @@ class _Kernels:
                     stage(self, i_b, kind, e, base, src, dst, h)
 
     @ti.kernel
-    def kernel_step_fused(self, step: ti.i32, k0: ti.i32, k1: ti.i32, finish: ti.i32):
+    def kernel_step_fused(self, step: ti.i32, k0: ti.i32, k1: ti.i32, finish: ti.i32) -> ti.i32:
         """Ops k0..k1-1 of the schedule (the whole step, or one substep when another solver steps
         between substeps), all envs, one launch (no gradient bookkeeping). With `finish` the last slot
-        becomes slot 0 and nan_step records the first `step` after which some state is not finite
-        (checked for free here, read by the scene every few steps)."""
+        becomes slot 0 and nan_step[i_b] records the first `step` after which env i_b's state is not
+        finite (checked while copying, so nearly free). Returns how many envs have such a record: the
+        scene reads that integer after every step and looks at the state only when it grew. (A
+        return value, not an external array: an array argument costs ~6 us per launch to set, a
+        returned integer ~0.5 us through taichi_compat's fast launch.)"""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
@@ -347,7 +363,10 @@ class _Kernels:
                         self.qvel[0, i_b, i_d] = x
                         bad |= ti.math.isnan(x) or ti.math.isinf(x)
                     if bad:
-                        ti.atomic_min(self.nan_step[None], step)
+                        if self.nan_step[i_b] == NO_NAN:
+                            self.nan_step[i_b] = step
+                            ti.atomic_add(self.nan_count[None], 1)
+        return self.nan_count[None]
 
     @ti.kernel
     def kernel_mass_matrix(self, src: ti.i32):
@@ -666,7 +685,10 @@ class RigidCore(_Kernels):
         if g:
             grads = lambda xs: [x.grad for x in xs if x.grad is not None]  # noqa: E731
             _place_env_major(B, N, grads(elem), grads(mats), grads(ones), [(n, grads(xs)) for n, xs in slots])
-        self.nan_step = ti.field(ti.i32, shape=())  # first step whose state was not finite (fused path)
+        # per env, the first step after which its state was not finite (fused path), and how many envs
+        # have one
+        self.nan_step = I(B)
+        self.nan_count = I(())
         self.vjp_loss = F((), True) if g else None
         # schedule
         self.sched = I((n_ops, 6))
@@ -1107,23 +1129,30 @@ class RigidSolver:
 
     # ------------------------------------------------------------------ python entry points
     def _fused(self, step, k0, k1, finish):
+        """Launch the fused step; returns the number of envs with a NaN record (see kernel_step_fused)."""
         if self._fused_ready or self.specialized:
-            self.owner.kernel_step_fused(step, k0, k1, finish)
-        else:
-            with ForwardCompile():
-                self.owner.kernel_step_fused(step, k0, k1, finish)
-            self._fused_ready = True
+            return self.owner.kernel_step_fused(step, k0, k1, finish)
+        with ForwardCompile():
+            n = self.owner.kernel_step_fused(step, k0, k1, finish)
+        self._fused_ready = True
+        return n
 
     def step(self, step: int = 0):
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
         self._scratch = None
-        self._fused(step, 0, self.n_ops, 1)
+        n = self._fused(step, 0, self.n_ops, 1)
+        if self.contact is not None:  # a contact that ended the step deep inside a body warns once
+            self.contact.watch(step, self.n_evals, self.dt / self.substeps)
+        return n
 
     def substep_fused(self, step: int, i: int):
         """Substep i without gradient bookkeeping (scenes where another solver steps between
         substeps); the last substep makes its result the current state (slot 0)."""
         self._scratch = None
-        self._fused(step, self.substep_first_op[i], self.substep_first_op[i + 1], int(i == self.substeps - 1))
+        n = self._fused(step, self.substep_first_op[i], self.substep_first_op[i + 1], int(i == self.substeps - 1))
+        if self.contact is not None and i == self.substeps - 1:
+            self.contact.watch(step, self.n_evals, self.dt / self.substeps)
+        return n
 
     def substep(self, i: int):
         """Substep i's ops one launch each, the form a ti.ad.Tape records (gradient path). The state
@@ -1202,13 +1231,21 @@ class RigidSolver:
     def kernel_mass_matrix(self, src: int):
         self.core.kernel_mass_matrix(src)
 
+    def nan_steps(self):
+        """numpy (n_envs,): per env, the first step after which the fused path's state was not finite,
+        NO_NAN where it stayed finite."""
+        return self.core.nan_step.to_numpy()[: self.n_envs]
+
     def first_nan_step(self):
-        """The first step after which the fused path's state was not finite, or None."""
-        k = self.core.nan_step[None]
+        """The first step after which the fused path's state was not finite in some env, or None."""
+        k = int(self.nan_steps().min())
         return None if k == NO_NAN else k
 
-    def reset_nan(self):
-        self.core.kernel_reset_nan()
+    def reset_nan(self, envs=None):
+        """Forget the NaN record of the envs flagged in `envs` (numpy bool/int (n_envs,); None: all).
+        Returns how many envs stay recorded."""
+        mask = np.ones(self.n_envs, np.int32) if envs is None else np.ascontiguousarray(envs, dtype=np.int32)
+        return int(self.core.kernel_reset_nan(mask))
 
     def get_param_grad(self, x, g):
         """Adjoint of a (B, n) parameter field outside the core (contact friction) into the tensor g."""

@@ -285,16 +285,19 @@ def _install_light_traceback():
 # launches with the same template arguments (the same objects, checked through weak references, or
 # equal ints / floats / bools / strings) and only scalar run-time arguments set those scalars into a
 # launch context and launch the same compiled kernel. They fall back to Taichi's call while a tape
-# records (`ti.ad.Tape` must see the launch), in forward-mode autodiff, for kernels with a return
-# value or print, when a field was created since (Taichi must place it first), and after `ti.reset()`
-# (the kernel's compiled instances are gone). GS_TAICHI_FAST_LAUNCH=0 keeps Taichi's call everywhere.
+# records (`ti.ad.Tape` must see the launch), in forward-mode autodiff, for kernels with print or a
+# return value other than one signed integer, when a field was created since (Taichi must place it
+# first), and after `ti.reset()` (the kernel's compiled instances are gone). A kernel returning one
+# signed integer (the rigid step's count of envs with a NaN, read after every step) has it read from
+# the launch context as Taichi does, after Taichi's synchronisation on a GPU; on the CPU the launch has
+# finished when it returns (~5 us less). GS_TAICHI_FAST_LAUNCH=0 keeps Taichi's call everywhere.
 
 
 class _FastEntry:
-    __slots__ = ("refs", "key", "t_kernel")
+    __slots__ = ("refs", "key", "t_kernel", "sync")
 
-    def __init__(self, refs, key, t_kernel):
-        self.refs, self.key, self.t_kernel = refs, key, t_kernel
+    def __init__(self, refs, key, t_kernel, sync=False):
+        self.refs, self.key, self.t_kernel, self.sync = refs, key, t_kernel, sync
 
 
 _VALUE_TYPES = (int, float, bool, str, type(None))
@@ -309,6 +312,7 @@ def install_fast_launch() -> bool:
         from taichi.lang import impl
         from taichi.lang import kernel_impl as K
         from taichi.lang.enums import AutodiffMode
+        from taichi.lang import runtime_ops
         from taichi.lang.exception import handle_exception_from_cpp
         from taichi.lang.util import cook_dtype
         from taichi.types import primitive_types as P
@@ -326,6 +330,9 @@ def install_fast_launch() -> bool:
     plain_modes = (AutodiffMode.NONE, AutodiffMode.VALIDATION)
     fields_seen = [None]  # the program's field counts when the fast path last checked them
     numbers = (int, float, np.integer, np.floating)
+    import taichi
+
+    cpu_archs = tuple(a for a in (getattr(taichi, "x64", None), getattr(taichi, "arm64", None)) if a is not None)
     integers = (int, np.integer)
 
     def fields_state(rt):
@@ -368,7 +375,11 @@ def install_fast_launch() -> bool:
         d = self.__dict__
         plan = d.get("_gs_plan", False)
         if plan is False:
-            plan = d["_gs_plan"] = plan_of(self) if self.return_type is None else None
+            ret = self.return_type
+            int_ret = (ret is not None and len(ret) == 1 and ret[0] in P.integer_types
+                       and is_signed(cook_dtype(ret[0])))
+            plan = d["_gs_plan"] = plan_of(self) if ret is None or int_ret else None
+            d["_gs_ret"] = bool(int_ret)
             d["_gs_cache"] = {}
         rt = self.runtime
         if (plan is None or kwargs or len(args) != len(self.arguments) or rt.fwd_mode_manager
@@ -396,7 +407,8 @@ def install_fast_launch() -> bool:
                         cache.pop(sig, None)
                         return ret
             key = self.ensure_compiled(*args)
-            cache[sig] = _FastEntry(tuple(refs), key, self.compiled_kernels[key])
+            sync = impl.current_cfg().arch not in cpu_archs
+            cache[sig] = _FastEntry(tuple(refs), key, self.compiled_kernels[key], sync)
             fields_seen[0] = fields_state(rt)
             return ret
         t_kernel = hit.t_kernel
@@ -426,6 +438,10 @@ def install_fast_launch() -> bool:
             if impl.get_runtime().print_full_traceback:
                 raise e
             raise e from None
+        if d["_gs_ret"]:
+            if hit.sync:
+                runtime_ops.sync()
+            return ctx.get_struct_ret_int((0,))
         return None
 
     fast_call._gs_fast = True
