@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from . import materials, morphs, options, surfaces
 from .errors import GenesisException
-from .options import integrator
+from .options import constraint_solver, integrator
 
 __version__ = "0.1.0"
 
@@ -38,6 +38,8 @@ logger = logging.getLogger("genesis_lite")
 # set by init()
 device = torch.device("cpu")
 tc_float = torch.float32
+tc_int = torch.int32  # Genesis's integer and boolean tensor types
+tc_bool = torch.bool
 np_float = np.float32
 ti_float = None
 backend = None
@@ -98,7 +100,7 @@ def _remove_stale_cache_lock(folder) -> None:
 
 
 def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, taichi_speedups=None,
-         num_threads=None, **taichi_kwargs):
+         num_threads=None, performance_mode=False, **taichi_kwargs):
     """Initialise Taichi on `backend` (gs.cpu or gs.gpu, which is Taichi's CUDA backend) with
     floats of `precision` bits ("32" or "64"). One call per process; later calls with the same
     arguments are no-ops and different ones raise. `taichi_speedups=False` runs on Taichi's own
@@ -111,6 +113,11 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     examples/distributed_identification.py and README's "Several processes"."""
     global device, tc_float, np_float, ti_float, _initialized, _init_args, cpu_threads
     import taichi as ti
+
+    # Genesis's performance_mode trades its compile time for run time; genesis_lite chooses per scene
+    # (RigidOptions.specialize_kernels), so the flag is accepted and changes nothing
+    if not isinstance(performance_mode, bool):
+        raise ValueError(f"gs.init(performance_mode={performance_mode!r}): use True or False")
 
     if num_threads is None and "cpu_max_num_threads" in taichi_kwargs:
         num_threads = taichi_kwargs.pop("cpu_max_num_threads")
@@ -198,5 +205,6 @@ from . import grad  # noqa: E402
 from .grad.creation import from_torch, ones, rand, tensor, zeros  # noqa: E402
 from .scene import Scene  # noqa: E402
 
-__all__ = ["init", "default_num_threads", "Scene", "options", "morphs", "materials", "integrator", "cpu", "gpu",
+__all__ = ["init", "default_num_threads", "Scene", "options", "morphs", "materials", "integrator",
+           "constraint_solver", "tc_int", "tc_bool", "cpu", "gpu",
            "device", "tensor", "zeros", "ones", "rand", "from_torch", "grad", "surfaces", "GenesisException"]

@@ -21,19 +21,36 @@ def _positive(name, owner, v):
     return float(v)
 
 
+def euler_to_quat(euler_deg) -> np.ndarray:
+    """(w, x, y, z) of Genesis's `euler` (degrees): roll about x, then pitch about the fixed y, then yaw
+    about the fixed z (R = Rz Ry Rx, URDF's rpy)."""
+    r, p, y = np.deg2rad(np.asarray(euler_deg, dtype=float)) * 0.5
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+
+
 @dataclass
 class Morph:
-    """pos (m) and quat (w, x, y, z) of the entity's base in the world; fixed welds the base to the
-    world, otherwise it is a free floating base."""
+    """pos (m) and quat (w, x, y, z) of the entity's base in the world, or instead of quat Genesis's
+    euler (degrees, roll-pitch-yaw about the fixed x, y, z axes); fixed welds the base to the world,
+    otherwise it is a free floating base."""
 
     pos: Sequence[float] = (0.0, 0.0, 0.0)
-    quat: Sequence[float] = (1.0, 0.0, 0.0, 0.0)
+    quat: Optional[Sequence[float]] = None
     fixed: bool = False
+    euler: Optional[Sequence[float]] = None
 
     def __post_init__(self):
         owner = type(self).__name__
         self.pos = _vec("pos", owner, self.pos, 3)
-        q = _vec("quat", owner, self.quat, 4)
+        if self.euler is not None:
+            if self.quat is not None:
+                raise ValueError(f"gs.morphs.{owner}(quat={self.quat!r}, euler={self.euler!r}): give one orientation, "
+                                 "not both")
+            self.euler = _vec("euler", owner, self.euler, 3)
+            self.quat = euler_to_quat(self.euler)
+        q = _vec("quat", owner, self.quat if self.quat is not None else (1.0, 0.0, 0.0, 0.0), 4)
         n = np.linalg.norm(q)
         if n < 1e-9:
             raise ValueError(f"gs.morphs.{owner}(quat={self.quat!r}): a zero quaternion is no orientation")
@@ -76,12 +93,26 @@ class Mesh(FileMorph):
 
 @dataclass
 class Box(Morph):
-    """size: full edge lengths (m)."""
+    """size: full edge lengths (m); or Genesis's lower and upper corners (m, world frame, before any
+    rotation), which give pos (their midpoint) and size (their difference)."""
 
-    size: Sequence[float] = (1.0, 1.0, 1.0)
+    size: Optional[Sequence[float]] = None
+    lower: Optional[Sequence[float]] = None
+    upper: Optional[Sequence[float]] = None
 
     def _check(self):
-        self.size = _vec("size", "Box", self.size, 3)
+        if (self.lower is None) != (self.upper is None):
+            raise ValueError("gs.morphs.Box: give both lower and upper, or neither (then size and pos)")
+        if self.lower is not None:
+            lo, hi = _vec("lower", "Box", self.lower, 3), _vec("upper", "Box", self.upper, 3)
+            if self.size is not None or np.any(self.pos != 0.0):
+                raise ValueError(f"gs.morphs.Box(lower={self.lower!r}, upper={self.upper!r}): the corners set pos and "
+                                 "size; do not give those too")
+            if not np.all(hi > lo):
+                raise ValueError(f"gs.morphs.Box(lower={self.lower!r}, upper={self.upper!r}): upper must exceed lower "
+                                 "on every axis")
+            self.pos, self.size = 0.5 * (lo + hi), hi - lo
+        self.size = _vec("size", "Box", self.size if self.size is not None else (1.0, 1.0, 1.0), 3)
         for s in self.size:
             _positive("size", "Box", s)
 

@@ -16,6 +16,25 @@ class integrator(enum.IntEnum):
     RK4 = 2            # classic 4th-order Runge-Kutta on (q, v)
 
 
+class constraint_solver(enum.IntEnum):
+    """Genesis's constraint solvers (RigidOptions(constraint_solver=...)). genesis_lite has one contact
+    model, a smooth penalty law solved implicitly with the dynamics (solvers/rigid/contact.py): either
+    value is accepted and gives that model."""
+
+    CG = 0
+    Newton = 1
+
+
+def _finite_vec(opts, name, n):
+    v = getattr(opts, name)
+    if v is None:
+        return
+    a = np.asarray(v, dtype=float) if np.ndim(v) else None
+    if a is None or a.shape != (n,) or not np.all(np.isfinite(a)):
+        opts._err(name, v, f"must be {n} finite numbers")
+    setattr(opts, name, tuple(float(x) for x in a))
+
+
 class _Options:
     def __post_init__(self):
         self._validate()
@@ -110,8 +129,46 @@ class RigidOptions(_Options):
     max_mesh_contact_points: int = 32
     ignore_unsupported_pairs: bool = False
     specialize_kernels: Optional[bool] = None
+    # Genesis's names. dt / gravity: None takes SimOptions'; a value must agree with SimOptions' (one
+    # scene steps every solver with one dt and one gravity: gs.Scene checks). The constraint solver's
+    # settings (constraint_solver, iterations, tolerance, ls_iterations, ls_tolerance), the collision
+    # pair budget (max_collision_pairs) and box_box_detection are accepted: genesis_lite's contact is a
+    # penalty law solved with the dynamics, its contact pairs are sized from the scene at build, and
+    # box-box contact is always its own (solvers/rigid/collision.py). batch_dofs_info /
+    # batch_links_info: parameters are per environment in genesis_lite whatever they say.
+    dt: Optional[float] = None
+    gravity: Optional[Tuple[float, float, float]] = None
+    constraint_solver: constraint_solver = constraint_solver.Newton
+    iterations: int = 100
+    tolerance: float = 1e-8
+    ls_iterations: int = 50
+    ls_tolerance: float = 1e-2
+    max_collision_pairs: int = 300
+    box_box_detection: bool = True
+    batch_dofs_info: bool = False
+    batch_links_info: bool = False
+    use_contact_island: bool = False
+    use_hibernation: bool = False
 
     def _validate(self):
+        if self.dt is not None and not (isinstance(self.dt, (int, float)) and np.isfinite(self.dt) and self.dt > 0):
+            self._err("dt", self.dt, "must be None (SimOptions' dt) or a positive number of seconds")
+        _finite_vec(self, "gravity", 3)
+        try:
+            self.constraint_solver = constraint_solver(self.constraint_solver)
+        except ValueError:
+            self._err("constraint_solver", self.constraint_solver, "use gs.constraint_solver.CG or Newton")
+        for name in ("iterations", "ls_iterations", "max_collision_pairs"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
+                self._err(name, v, "must be a positive integer")
+        for name in ("tolerance", "ls_tolerance"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                self._err(name, v, "must be a positive number")
+        for name in ("box_box_detection", "batch_dofs_info", "batch_links_info", "use_contact_island", "use_hibernation"):
+            if not isinstance(getattr(self, name), bool):
+                self._err(name, getattr(self, name), "must be True or False")
         try:
             self.integrator = integrator(self.integrator)
         except ValueError:
@@ -191,6 +248,62 @@ class CouplerOptions(_Options):
 
 @dataclass
 class ViewerOptions(_Options):
-    """Accepted for Genesis compatibility; genesis_lite is headless."""
+    """Genesis's interactive viewer's options. genesis_lite is headless (no viewer): they are accepted
+    and checked so that Genesis's scripts run, and nothing reads them; recordings come from cameras
+    (scene.add_camera(res=, pos=, lookat=, fov=), Genesis's own defaults)."""
 
-    pass
+    res: Optional[Tuple[int, int]] = None
+    refresh_rate: int = 60
+    max_FPS: Optional[int] = 60
+    camera_pos: Tuple[float, float, float] = (3.5, 0.5, 2.5)
+    camera_lookat: Tuple[float, float, float] = (0.0, 0.0, 0.5)
+    camera_up: Tuple[float, float, float] = (0.0, 0.0, 1.0)
+    camera_fov: float = 40.0
+    enable_interaction: bool = False
+    run_in_thread: Optional[bool] = None
+
+    def _validate(self):
+        for name in ("camera_pos", "camera_lookat", "camera_up"):
+            _finite_vec(self, name, 3)
+        if not (isinstance(self.camera_fov, (int, float)) and 0 < self.camera_fov < 180):
+            self._err("camera_fov", self.camera_fov, "must be a vertical field of view in degrees, in (0, 180)")
+        if self.res is not None:
+            r = tuple(self.res) if np.ndim(self.res) == 1 else ()
+            if len(r) != 2 or not all(isinstance(x, (int, np.integer)) and x > 0 for x in r):
+                self._err("res", self.res, "must be (width, height) in pixels, or None")
+            self.res = tuple(int(x) for x in r)
+        for name in ("refresh_rate", "max_FPS"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                self._err(name, v, "must be a positive number (or None for max_FPS)")
+
+
+@dataclass
+class VisOptions(_Options):
+    """Genesis's visualisation options (its renderer's frames, shadows, reflections, lights, which envs
+    to draw), accepted and checked so that Genesis's scripts run. genesis_lite's cameras are its own
+    numpy rasteriser (genesis_lite/vis) and do not read them."""
+
+    show_world_frame: bool = False
+    world_frame_size: float = 1.0
+    show_link_frame: bool = False
+    link_frame_size: float = 0.2
+    show_cameras: bool = False
+    shadow: bool = True
+    plane_reflection: bool = False
+    env_separate_rigid: bool = False
+    background_color: Tuple[float, float, float] = (0.04, 0.08, 0.12)
+    ambient_light: Tuple[float, float, float] = (0.1, 0.1, 0.1)
+    visualize_mpm_boundary: bool = False
+    segmentation_level: str = "link"
+    render_particle_as: str = "sphere"
+    particle_size_scale: float = 1.0
+    n_rendered_envs: Optional[int] = None
+    rendered_envs_idx: Optional[Tuple[int, ...]] = None
+    lights: Optional[list] = None
+
+    def _validate(self):
+        for name in ("background_color", "ambient_light"):
+            _finite_vec(self, name, 3)
+        if self.segmentation_level not in ("entity", "link", "geom"):
+            self._err("segmentation_level", self.segmentation_level, "must be 'entity', 'link' or 'geom'")

@@ -15,7 +15,7 @@ from . import morphs as gm
 from . import surfaces as gs_surfaces
 from .errors import GenesisException
 from .nan_watch import NaNWatch
-from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions
+from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions, ViewerOptions, VisOptions
 from .validation import validate_model
 
 logger = logging.getLogger("genesis_lite")
@@ -55,9 +55,17 @@ class Scene:
         if coupler_options is not None and not isinstance(coupler_options, CouplerOptions):
             raise TypeError(f"coupler_options must be gs.options.CouplerOptions, got {type(coupler_options).__name__}")
         self.coupler_options = coupler_options if coupler_options is not None else CouplerOptions()
-        unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options"}
+        unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options", "show_FPS"}
         if unknown:
             raise TypeError(f"gs.Scene got unexpected arguments {sorted(unknown)}")
+        # Genesis's viewer and renderer options: checked, kept, not read (headless; see their docstrings)
+        for name, value, cls in (("viewer_options", viewer_options, ViewerOptions),
+                                 ("vis_options", kwargs.get("vis_options"), VisOptions)):
+            if value is not None and not isinstance(value, cls):
+                raise TypeError(f"{name} must be gs.options.{cls.__name__}, got {type(value).__name__}")
+        self.viewer_options = viewer_options if viewer_options is not None else ViewerOptions()
+        self.vis_options = kwargs.get("vis_options") or VisOptions()
+        self._reconcile_rigid_options(sim_options is not None)
         self.entities: List = []
         self.rigid_entities: List = []
         self.mpm_entities: List = []
@@ -68,6 +76,23 @@ class Scene:
         self._coupler = None
         self._simulator = None
         self.n_envs = 0
+
+    def _reconcile_rigid_options(self, sim_given):
+        """RigidOptions(dt=, gravity=) are Genesis's per-solver copies of SimOptions': one scene steps
+        every solver with one dt and one gravity. Given without sim_options they set the scene's;
+        given with it they must agree."""
+        ro, so = self.rigid_options, self.sim_options
+        for name in ("dt", "gravity"):
+            v = getattr(ro, name)
+            if v is None:
+                continue
+            if not sim_given:
+                self.sim_options = so = so.copy(**{name: v})
+            elif not np.allclose(np.atleast_1d(v), np.atleast_1d(getattr(so, name)), rtol=0, atol=0):
+                raise GenesisException(
+                    f"RigidOptions({name}={v!r}) differs from SimOptions({name}={getattr(so, name)!r}): genesis_lite "
+                    f"steps every solver of a scene with one {name}. Set it in SimOptions only (or give both the "
+                    "same value).")
 
     # ---------------------------------------------------------------- construction
     @property

@@ -1,0 +1,121 @@
+"""Genesis's option surface (issue #25, "Options surface"): the options Genesis's own scripts pass are accepted,
+checked, and, where genesis_lite has the same notion, act as in Genesis.
+
+- ViewerOptions(camera_pos=, camera_lookat=, camera_fov=, max_FPS=, res=), VisOptions(...), Scene(show_FPS=,
+  show_viewer=False): accepted (headless: nothing reads them), bad values refused naming the option.
+- RigidOptions(dt=, gravity=): Genesis's per-solver copies of SimOptions'. Alone they set the scene's step and
+  gravity (checked by a free fall against v = g t, exact for the integrator's velocity update); with a
+  SimOptions that disagrees, refused.
+- RigidOptions(constraint_solver=, iterations=, tolerance=, max_collision_pairs=, box_box_detection=,
+  batch_dofs_info=, batch_links_info=), gs.constraint_solver, gs.tc_int / tc_bool, gs.init(performance_mode=).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import genesis_lite as gs
+from genesis_lite.errors import GenesisException
+
+
+def test_viewer_and_vis_options_of_genesis_scripts_are_accepted():
+    scene = gs.Scene(
+        viewer_options=gs.options.ViewerOptions(camera_pos=(3.5, 0.0, 2.5), camera_lookat=(0.0, 0.0, 0.5),
+                                                camera_fov=40, max_FPS=60, res=(1280, 960)),
+        vis_options=gs.options.VisOptions(show_world_frame=True, world_frame_size=1.0, show_link_frame=False,
+                                          show_cameras=False, plane_reflection=True, ambient_light=(0.1, 0.1, 0.1)),
+        show_viewer=False, show_FPS=False)
+    assert scene.viewer_options.camera_pos == (3.5, 0.0, 2.5)
+    assert scene.viewer_options.res == (1280, 960)
+    assert scene.vis_options.show_world_frame is True
+
+
+@pytest.mark.parametrize("kw, name", [({"camera_fov": 200}, "camera_fov"), ({"camera_pos": (1, 2)}, "camera_pos"),
+                                      ({"res": (640,)}, "res"), ({"max_FPS": -1}, "max_FPS")])
+def test_bad_viewer_options_are_refused_by_name(kw, name):
+    with pytest.raises(ValueError, match=f"ViewerOptions.{name}="):
+        gs.options.ViewerOptions(**kw)
+
+
+def test_vis_options_of_the_wrong_type_are_refused():
+    with pytest.raises(TypeError, match="vis_options must be gs.options.VisOptions"):
+        gs.Scene(vis_options=gs.options.ViewerOptions())
+    with pytest.raises(ValueError, match="segmentation_level"):
+        gs.options.VisOptions(segmentation_level="pixel")
+
+
+def test_constraint_solver_options_are_accepted_and_checked():
+    ro = gs.options.RigidOptions(constraint_solver=gs.constraint_solver.Newton, iterations=50, tolerance=1e-6,
+                                 max_collision_pairs=100, box_box_detection=True, batch_dofs_info=True,
+                                 batch_links_info=True)
+    assert ro.constraint_solver == gs.constraint_solver.Newton
+    gs.Scene(rigid_options=ro)
+    with pytest.raises(ValueError, match="constraint_solver"):
+        gs.options.RigidOptions(constraint_solver=7)
+    with pytest.raises(ValueError, match="max_collision_pairs"):
+        gs.options.RigidOptions(max_collision_pairs=0)
+    assert gs.tc_int == torch.int32 and gs.tc_bool == torch.bool
+
+
+def test_performance_mode_is_accepted():
+    # the session's gs.init was backend=gs.cpu, precision="64" (conftest): the same call with Genesis's flag
+    # is the same initialisation (a no-op), not a different one
+    gs.init(backend=gs.cpu, precision="64", performance_mode=True)
+    with pytest.raises(ValueError, match="performance_mode"):
+        gs.init(backend=gs.cpu, precision="64", performance_mode="yes")
+
+
+def test_rigid_dt_and_gravity_alone_set_the_scenes():
+    scene = gs.Scene(rigid_options=gs.options.RigidOptions(dt=0.005, gravity=(0.0, 0.0, -5.0)))
+    assert scene.dt == 0.005
+    box = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.0, 0.0, 1.0)))
+    scene.build()
+    for _ in range(10):
+        scene.step()
+    v = box.get_dofs_velocity().numpy()
+    # semi-implicit Euler's velocity update is exact for a constant force: v = g t, t = 10 x 0.005 s
+    np.testing.assert_allclose(v[:3], [0.0, 0.0, -5.0 * 0.05], rtol=0, atol=1e-12)
+
+
+def test_rigid_dt_or_gravity_that_disagree_with_sim_options_are_refused():
+    with pytest.raises(GenesisException, match=r"RigidOptions\(dt=0.005\) differs from SimOptions\(dt=0.01\)"):
+        gs.Scene(sim_options=gs.options.SimOptions(dt=0.01), rigid_options=gs.options.RigidOptions(dt=0.005))
+    with pytest.raises(GenesisException, match="RigidOptions.gravity="):
+        gs.Scene(sim_options=gs.options.SimOptions(gravity=(0, 0, -9.81)),
+                 rigid_options=gs.options.RigidOptions(gravity=(0, 0, -1.0)))
+    # the same value in both is fine
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.02), rigid_options=gs.options.RigidOptions(dt=0.02))
+    assert scene.dt == 0.02
+
+
+def test_euler_gives_genesis_orientation():
+    """Genesis's `euler` (degrees, roll-pitch-yaw about the fixed axes) against scipy's extrinsic 'xyz'."""
+    from scipy.spatial.transform import Rotation
+
+    euler = (30.0, -45.0, 120.0)
+    m = gs.morphs.Box(size=(0.1, 0.2, 0.3), euler=euler)
+    x, y, z, w = Rotation.from_euler("xyz", euler, degrees=True).as_quat()
+    q = np.asarray(m.quat)
+    np.testing.assert_allclose(q * np.sign(q[0]), np.array([w, x, y, z]) * np.sign(w), rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="give one orientation"):
+        gs.morphs.Sphere(radius=0.1, quat=(1, 0, 0, 0), euler=(0, 0, 90))
+
+
+def test_box_from_lower_and_upper_corners():
+    m = gs.morphs.Box(lower=(0.1, -0.2, 0.0), upper=(0.3, 0.2, 0.05))
+    np.testing.assert_allclose(m.pos, [0.2, 0.0, 0.025], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(m.size, [0.2, 0.4, 0.05], rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="do not give those too"):
+        gs.morphs.Box(lower=(0, 0, 0), upper=(1, 1, 1), size=(1, 1, 1))
+    with pytest.raises(ValueError, match="upper must exceed lower"):
+        gs.morphs.Box(lower=(0, 0, 0), upper=(1, 0, 1))
+    with pytest.raises(ValueError, match="both lower and upper"):
+        gs.morphs.Box(lower=(0, 0, 0))
+    # built: the body sits where its corners say, turned as its euler says
+    scene = gs.Scene()
+    box = scene.add_entity(gs.morphs.Box(lower=(0.1, -0.2, 1.0), upper=(0.3, 0.2, 1.1), euler=(0.0, 0.0, 90.0),
+                                         fixed=True))
+    scene.build()
+    np.testing.assert_allclose(box.get_pos().numpy(), [0.2, 0.0, 1.05], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(box.get_quat().numpy()), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], rtol=0, atol=1e-12)
