@@ -77,6 +77,22 @@ class Scene:
         self._simulator = None
         self.n_envs = 0
 
+    @property
+    def entity_names(self):
+        """The entities' names, in the order they were added (Genesis's `scene.entity_names`)."""
+        return [e.name for e in self.entities]
+
+    def get_entity(self, name=None, uid=None):
+        """The entity called `name` (or with index `uid` in the order of add_entity), as Genesis's
+        `scene.get_entity`."""
+        if (name is None) == (uid is None):
+            raise ValueError("scene.get_entity: give name= or uid=, one of them")
+        for i, e in enumerate(self.entities):
+            if (name is not None and e.name == name) or (uid is not None and i == uid):
+                return e
+        what = f"name {name!r}" if name is not None else f"uid {uid!r}"
+        raise GenesisException(f"scene.get_entity: no entity with {what}; the scene has {self.entity_names}")
+
     def _reconcile_rigid_options(self, sim_given):
         """RigidOptions(dt=, gravity=) are Genesis's per-solver copies of SimOptions': one scene steps
         every solver with one dt and one gravity. Given without sim_options they set the scene's;

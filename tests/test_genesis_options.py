@@ -119,3 +119,19 @@ def test_box_from_lower_and_upper_corners():
     scene.build()
     np.testing.assert_allclose(box.get_pos().numpy(), [0.2, 0.0, 1.05], rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.abs(box.get_quat().numpy()), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], rtol=0, atol=1e-12)
+
+
+def test_entities_by_name_and_uid_and_the_control_force():
+    scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_collision=False))
+    scene.add_entity(gs.morphs.Plane())
+    arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True), name="arm")
+    assert scene.entity_names == ["plane_0", "arm"]
+    assert scene.get_entity("arm") is arm and scene.get_entity(uid=1) is arm and arm.uid == 1
+    with pytest.raises(GenesisException, match="no entity with name 'hand'"):
+        scene.get_entity("hand")
+    scene.build()
+    # a force control inside the force range is what the actuators apply (Genesis's get_dofs_control_force)
+    u = torch.tensor([0.3, -0.2, 0.1, 0.05], dtype=torch.float64)[: arm.n_dofs]
+    arm.control_dofs_force(u)
+    scene.step()
+    np.testing.assert_allclose(arm.get_dofs_control_force().numpy(), u.numpy(), rtol=0, atol=1e-12)

@@ -37,6 +37,11 @@ class MPMEntity:
     _values = RigidEntity._values
     _device = RigidEntity._device
 
+    @property
+    def uid(self) -> int:
+        """Genesis's entity id: its index in the scene, in the order of add_entity."""
+        return self.idx
+
     def __init__(self, scene, idx, morph, material, name, particles, vol):
         self._scene = scene
         self.idx = idx

@@ -110,6 +110,11 @@ def _raise_if_not_finite(t, who, what, batched):
 class RigidEntity(ContactMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
+    @property
+    def uid(self) -> int:
+        """Genesis's entity id: its index in the scene, in the order of add_entity."""
+        return self.idx
+
     def __init__(self, scene, idx: int, model: EntityModel, morph, material):
         self._scene = scene
         self.idx = idx
@@ -334,6 +339,12 @@ class RigidEntity(ContactMixin):
         """Actuator forces (N, N m) applied at the last step after force-range clipping; no gradient."""
         self._sim  # noqa: B018 - raises a clear error before build
         return self._out(self._scene._dofs_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+
+    def get_dofs_control_force(self, dofs_idx_local=None, envs_idx=None):
+        """Genesis's name for the actuator forces (N, N m): the PD or force controls applied at the last
+        step, after force-range clipping; no gradient. (get_dofs_force returns the same here; in Genesis
+        it is the total generalised force.)"""
+        return self.get_dofs_force(dofs_idx_local, envs_idx)
 
     def _link_out(self, k, links_idx_local, envs_idx):
         out = self._sim.link_outputs()[k]
