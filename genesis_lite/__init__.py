@@ -23,7 +23,7 @@ import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)
 from solvers.taichi_compat import adstack, checked_runtime  # noqa: E402  (isort: skip)
 import torch  # noqa: E402
 
-from . import materials, morphs, options, surfaces
+from . import materials, morphs, options, surfaces, utils
 from .errors import GenesisException
 from .options import constraint_solver, integrator
 

@@ -24,10 +24,9 @@ def _positive(name, owner, v):
 def euler_to_quat(euler_deg) -> np.ndarray:
     """(w, x, y, z) of Genesis's `euler` (degrees): roll about x, then pitch about the fixed y, then yaw
     about the fixed z (R = Rz Ry Rx, URDF's rpy)."""
-    r, p, y = np.deg2rad(np.asarray(euler_deg, dtype=float)) * 0.5
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    from .utils.geom import xyz_to_quat
+
+    return xyz_to_quat(np.asarray(euler_deg, dtype=float), rpy=True, degrees=True)
 
 
 @dataclass

@@ -135,3 +135,27 @@ def test_entities_by_name_and_uid_and_the_control_force():
     arm.control_dofs_force(u)
     scene.step()
     np.testing.assert_allclose(arm.get_dofs_control_force().numpy(), u.numpy(), rtol=0, atol=1e-12)
+
+
+def test_utils_geom_rotations_against_scipy():
+    from scipy.spatial.transform import Rotation
+
+    xyz = np.array([[0.3, -1.1, 2.0], [1.5, 0.2, -0.7]])
+    for rpy, seq in ((True, "xyz"), (False, "XYZ")):  # scipy: lower case = fixed axes, upper case = moving axes
+        q = gs.utils.geom.xyz_to_quat(xyz, rpy=rpy)
+        ref = Rotation.from_euler(seq, xyz).as_matrix()
+        np.testing.assert_allclose(gs.utils.geom.quat_to_R(q), ref, rtol=0, atol=1e-14)
+        qt = gs.utils.geom.xyz_to_quat(torch.tensor(np.rad2deg(xyz)), rpy=rpy, degrees=True)
+        np.testing.assert_allclose(gs.utils.geom.quat_to_R(qt).numpy(), ref, rtol=0, atol=1e-13)
+
+
+def test_link_mass_and_set_qpos_skip_forward():
+    scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_collision=False))
+    arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True))
+    scene.build()
+    link = arm.links[-1]
+    link.set_mass(torch.tensor(0.75, dtype=torch.float64))
+    assert float(link.get_mass()) == 0.75 == float(arm.get_links_mass()[-1])
+    q = torch.tensor([0.2, -0.3, 0.4, 0.1], dtype=torch.float64)[: arm.n_dofs]
+    arm.set_qpos(q, skip_forward=True)
+    np.testing.assert_array_equal(arm.get_qpos().numpy(), q.numpy())

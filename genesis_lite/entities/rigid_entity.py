@@ -33,6 +33,15 @@ class RigidLink:
     def joint(self):
         return self.entity.joints[self.idx_local]
 
+    def get_mass(self, envs_idx=None):
+        """This link's mass (kg), per env in a batched scene (Genesis's RigidLink.get_mass)."""
+        return self.entity.get_links_mass([self.idx_local], envs_idx)[..., 0]
+
+    def set_mass(self, mass, envs_idx=None):
+        """Set this link's mass (kg); differentiable, as entity.set_links_mass."""
+        m = torch.as_tensor(mass) if not torch.is_tensor(mass) else mass
+        self.entity.set_links_mass(m.reshape(*m.shape, 1), [self.idx_local], envs_idx)
+
 
 @dataclass
 class RigidJoint:
@@ -429,8 +438,9 @@ class RigidEntity(ContactMixin):
         q0, v0 = sim.get_state()
         sim.set_state(q if q is not None else q0, v if v is not None else v0)
 
-    def set_qpos(self, qpos, qs_idx_local=None, envs_idx=None, zero_velocity=True):
-        """Set generalised positions (free bases: xyz then quaternion wxyz); zeroes the velocity like Genesis."""
+    def set_qpos(self, qpos, qs_idx_local=None, envs_idx=None, zero_velocity=True, skip_forward=False):
+        """Set generalised positions (free bases: xyz then quaternion wxyz); zeroes the velocity like Genesis.
+        skip_forward (Genesis's) changes nothing: link poses are computed when they are read."""
         self._set_qpos(qpos, qs_idx_local, envs_idx, zero_velocity, "qpos")
 
     def _set_qpos(self, qpos, qs_idx_local, envs_idx, zero_velocity, what):

@@ -1,0 +1,2 @@
+"""Genesis's `gs.utils` helpers that its scripts call (`gs.utils.geom`)."""
+from . import geom  # noqa: F401
