@@ -36,7 +36,10 @@ EXAMPLES = {
     "distributed_identification": ["fit.md", "loss.csv", "distributed_identification.png"],
     "distributed_policy": ["loss.csv", "policy.pt", "distributed_policy.png"],
 }
-SLOW = set()  # examples whose --quick run takes longer than ~40 s on the project's 2-core machine
+SLOW = {  # examples whose --quick run takes longer than ~40 s on the project's 2-core machine, and:
+    # the distributed examples, whose single-process --quick runs tests/test_distributed.py (slow) compares with
+    # their torchrun runs; the default suite keeps its two-rank gloo test (suite time)
+    "distributed_identification", "distributed_policy"}
 
 
 def _run(name, tmp_path):
