@@ -518,26 +518,6 @@ def _mj_bad(d):
     return sum(int(d.warning[int(k)].number) for k in (w.mjWARN_BADQACC, w.mjWARN_BADQPOS, w.mjWARN_BADQVEL))
 
 
-def _mj_model(spec, dt):
-    import mujoco
-
-    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1])
-    m = spec.compile()
-    m.opt.timestep = dt
-    m.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
-    return m
-
-
-def _mj_box_body(spec, name, pos, size, mass):
-    import mujoco
-
-    b = spec.worldbody.add_body(name=name, pos=list(pos))
-    b.add_freejoint()
-    b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[size / 2] * 3, mass=mass)
-    return b
-
-
 def _mj_run(m, d, n, probe):
     import mujoco
 
@@ -552,9 +532,9 @@ def _mj_stiff(dt, t_end=2.0):
     import mujoco
 
     spec = mujoco.MjSpec()
-    b = _mj_box_body(spec, "box", (0, 0, 0.2), 0.2, 1.0)
+    b = S.mujoco_free_box(spec, "box", (0, 0, 0.2), 0.2, 1.0)
     b.geoms[0].solref = [-STIFF_K, -STIFF_C]
-    m = _mj_model(spec, dt)
+    m = S.mujoco_on_floor(spec, dt)
     d = mujoco.MjData(m)
     st = {"zmin": 1e9, "zmax_after": -1e9, "landed": False}
 
@@ -575,9 +555,9 @@ def _mj_ratio(dt, ratio, t_end=2.0):
 
     a = 0.2
     spec = mujoco.MjSpec()
-    _mj_box_body(spec, "light", (0, 0, a / 2), a, 1.0)
-    _mj_box_body(spec, "heavy", (0, 0, 1.5 * a + 0.005), a, float(ratio))
-    m = _mj_model(spec, dt)
+    S.mujoco_free_box(spec, "light", (0, 0, a / 2), a, 1.0)
+    S.mujoco_free_box(spec, "heavy", (0, 0, 1.5 * a + 0.005), a, float(ratio))
+    m = S.mujoco_on_floor(spec, dt)
     d = mujoco.MjData(m)
     _mj_run(m, d, int(round(t_end / dt)), lambda i: None)
     v = max(float(np.linalg.norm(d.qvel[0:3])), float(np.linalg.norm(d.qvel[6:9])))
@@ -593,7 +573,7 @@ def _mj_impact(dt, t_end=2.0):
         b = spec.worldbody.add_body(name="ball", pos=[0, 0, _impact_z0(dt, phase)])
         b.add_freejoint()
         b.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.1, 0, 0], mass=1.0)
-        m = _mj_model(spec, dt)
+        m = S.mujoco_on_floor(spec, dt)
         d = mujoco.MjData(m)
         d.qvel[2] = -20.0
         st = {"zmin": 1e9, "up": 0.0}

@@ -189,3 +189,26 @@ def mujoco_initial_states(m, qpos, qvel, n_envs: int):
 def mujoco_state_slices(m):
     """Slices of qpos and qvel inside a full-physics state vector ([time, qpos, qvel, act, ...])."""
     return slice(1, 1 + m.nq), slice(1 + m.nq, 1 + m.nq + m.nv)
+
+
+def mujoco_on_floor(spec, dt):
+    """Compile a mujoco.MjSpec with a ground plane added, stepped like genesis_lite's defaults: implicitfast
+    at dt, elliptic friction cones (MuJoCo's own soft contacts)."""
+    import mujoco
+
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1])
+    m = spec.compile()
+    m.opt.timestep = dt
+    m.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    return m
+
+
+def mujoco_free_box(spec, name, pos, size, mass):
+    """A free-floating cube of edge `size` (m) and `mass` (kg) at `pos` in a mujoco.MjSpec."""
+    import mujoco
+
+    b = spec.worldbody.add_body(name=name, pos=list(pos))
+    b.add_freejoint()
+    b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[size / 2] * 3, mass=mass)
+    return b

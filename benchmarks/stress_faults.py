@@ -73,27 +73,14 @@ def mj_spin(dt, omega):
     import mujoco
 
     spec = mujoco.MjSpec()
-    b = spec.worldbody.add_body(name="box", pos=[0, 0, BOX / 2 + SPIN_GAP])
-    b.add_freejoint()
-    b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[BOX / 2] * 3, mass=1.0)
-    m = _mj_compile(spec, dt)
+    S.mujoco_free_box(spec, "box", (0, 0, BOX / 2 + SPIN_GAP), BOX, 1.0)
+    m = S.mujoco_on_floor(spec, dt)
     d = mujoco.MjData(m)
     d.qvel[3] = omega  # body frame; the cube's inertia is isotropic, so the spin stays about the world's x
     for _ in range(SPIN_STEPS):
         mujoco.mj_step(m, d)
     w = _quat_to_R(d.qpos[3:7]) @ d.qvel[3:6]
     return _spin_verdict(d.qvel[:3], w, (0, 0, -S.G * dt * SPIN_STEPS), (omega, 0, 0), omega)
-
-
-def _mj_compile(spec, dt):
-    import mujoco
-
-    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1])
-    m = spec.compile()
-    m.opt.timestep = dt
-    m.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
-    return m
 
 
 def _said(caught):
@@ -144,10 +131,8 @@ def mj_fast(dt, t_end=1.0):
     import mujoco
 
     spec = mujoco.MjSpec()
-    b = spec.worldbody.add_body(name="box", pos=[0, 0, FAST_Z0])
-    b.add_freejoint()
-    b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[BOX / 2] * 3, mass=1.0)
-    m = _mj_compile(spec, dt)
+    S.mujoco_free_box(spec, "box", (0, 0, FAST_Z0), BOX, 1.0)
+    m = S.mujoco_on_floor(spec, dt)
     d = mujoco.MjData(m)
     d.qvel[2] = -FAST_V
     zmin = math.inf
@@ -185,10 +170,8 @@ def mj_heavy(dt, t_end=2.0):
     import mujoco
 
     spec = mujoco.MjSpec()
-    b = spec.worldbody.add_body(name="box", pos=[0, 0, BOX / 2])
-    b.add_freejoint()
-    b.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[BOX / 2] * 3, mass=HEAVY_MASS)
-    m = _mj_compile(spec, dt)
+    S.mujoco_free_box(spec, "box", (0, 0, BOX / 2), BOX, HEAVY_MASS)
+    m = S.mujoco_on_floor(spec, dt)
     d = mujoco.MjData(m)
     for _ in range(int(round(t_end / dt))):
         mujoco.mj_step(m, d)

@@ -75,18 +75,18 @@ class NaNWatch:
             return
         batched = self.scene.n_envs > 0
         envs = sorted(new)
+        more = " ..." if len(envs) > 8 else ""
+        in_envs = f"in env{'s' if len(envs) > 1 else ''} {envs[:8]}{more}"
         if self.policy == "raise":
             if batched:
-                where = "; ".join(f"env {i}: {new[i]}" for i in envs[:8]) + (" ..." if len(envs) > 8 else "")
+                where = "; ".join(f"env {i}: {new[i]}" for i in envs[:8]) + more
                 raise SimulationNaNError(
-                    f"the state became NaN or infinite at step {step} in env{'s' if len(envs) > 1 else ''} "
-                    f"{envs[:8]}{' ...' if len(envs) > 8 else ''} ({where}). {ADVICE} To let the other envs go on, "
+                    f"the state became NaN or infinite at step {step} {in_envs} ({where}). {ADVICE} To let the other envs go on, "
                     "build with SimOptions(nan_policy='mask') and restore the failed ones with "
                     "scene.reset(envs_idx=scene.get_error_envs_mask()).")
             raise SimulationNaNError(f"{new[0]} at step {step}: the state became NaN or infinite. {ADVICE}")
         logger.warning(
-            f"scene: the state became NaN or infinite at step {step} in env{'s' if len(envs) > 1 else ''} "
-            f"{envs[:8]}{' ...' if len(envs) > 8 else ''} ({new[envs[0]]}); nan_policy='mask': "
+            f"scene: the state became NaN or infinite at step {step} {in_envs} ({new[envs[0]]}); nan_policy='mask': "
             f"{'they go' if len(envs) > 1 else 'it goes'} on as NaN, the other envs are not affected. "
             "scene.get_error_envs_mask() marks the failed envs; scene.reset(envs_idx=mask) restores them.")
 

@@ -1231,16 +1231,6 @@ class RigidSolver:
     def kernel_mass_matrix(self, src: int):
         self.core.kernel_mass_matrix(src)
 
-    def nan_steps(self):
-        """numpy (n_envs,): per env, the first step after which the fused path's state was not finite,
-        NO_NAN where it stayed finite."""
-        return self.core.nan_step.to_numpy()[: self.n_envs]
-
-    def first_nan_step(self):
-        """The first step after which the fused path's state was not finite in some env, or None."""
-        k = int(self.nan_steps().min())
-        return None if k == NO_NAN else k
-
     def reset_nan(self, envs=None):
         """Forget the NaN record of the envs flagged in `envs` (numpy bool/int (n_envs,); None: all).
         Returns how many envs stay recorded."""
