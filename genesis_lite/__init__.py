@@ -87,6 +87,19 @@ def default_num_threads() -> int | None:
 STALE_CACHE_LOCK_S = 120.0
 
 
+def kernel_cache_cap_bytes() -> int:
+    """The size cap of Taichi's kernel cache that gs.init sets: GS_KERNEL_CACHE_MB (MiB, 1 to 2047: Taichi
+    holds the cap in a 32-bit int), default 1024."""
+    env = os.environ.get("GS_KERNEL_CACHE_MB", "1024")
+    try:
+        mb = int(env)
+        if not 1 <= mb <= 2047:
+            raise ValueError
+    except ValueError:
+        raise GenesisException(f"GS_KERNEL_CACHE_MB={env!r}: give a number of MiB from 1 to 2047") from None
+    return mb << 20
+
+
 def _remove_stale_cache_lock(folder) -> None:
     lock = os.path.join(folder, "ticache.lock")
     try:
@@ -100,7 +113,7 @@ def _remove_stale_cache_lock(folder) -> None:
 
 
 def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, taichi_speedups=None,
-         num_threads=None, performance_mode=False, **taichi_kwargs):
+         num_threads=None, performance_mode=False, assets_dir=None, **taichi_kwargs):
     """Initialise Taichi on `backend` (gs.cpu or gs.gpu, which is Taichi's CUDA backend) with
     floats of `precision` bits ("32" or "64"). One call per process; later calls with the same
     arguments are no-ops and different ones raise. `taichi_speedups=False` runs on Taichi's own
@@ -110,7 +123,9 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     every core, except under torchrun with N processes on the node, where each gets cores // N
     (`default_num_threads`; GS_NUM_THREADS overrides); `gs.cpu_threads` says what it got. Seeds and
     the environments a rank simulates are the script's business: see
-    examples/distributed_identification.py and README's "Several processes"."""
+    examples/distributed_identification.py and README's "Several processes". `assets_dir` is a
+    folder that morphs' relative file names are looked up in (genesis_lite/loaders/assets.py: like
+    the GS_ASSETS_DIR variable; a Genesis install's assets are found without it)."""
     global device, tc_float, np_float, ti_float, _initialized, _init_args, cpu_threads
     import taichi as ti
 
@@ -119,6 +134,10 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     if not isinstance(performance_mode, bool):
         raise ValueError(f"gs.init(performance_mode={performance_mode!r}): use True or False")
 
+    if assets_dir is not None:
+        from .loaders.assets import set_init_dir
+
+        set_init_dir(assets_dir)  # (not part of the init identity: it changes no kernel)
     if num_threads is None and "cpu_max_num_threads" in taichi_kwargs:
         num_threads = taichi_kwargs.pop("cpu_max_num_threads")
     args = (backend, str(precision), bool(debug), tuple(sorted(taichi_kwargs.items())))
@@ -162,6 +181,10 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     kw = dict(arch=arch, default_fp=ti_float, default_ip=ti.i32, debug=debug, unrolling_limit=0,
               advanced_optimization=str(precision) == "32",
               log_level=ti.ERROR if logger.level > logging.INFO else ti.INFO, offline_cache=True)
+    # Taichi caps its kernel cache at 100 MB and evicts a quarter of it when over: the library's kernels
+    # alone pass that (the test suite's checked-runtime cache is ~120 MB), so scenes evicted each other and
+    # recompiled on later runs. GS_KERNEL_CACHE_MB sets the cap (default 1024).
+    kw["offline_cache_max_size_of_files"] = kernel_cache_cap_bytes()
     kw.update(taichi_kwargs)
     threads = None
     if arch == ti.cpu:

@@ -69,9 +69,10 @@ class FileMorph(Morph):
         owner = type(self).__name__
         if not self.file:
             raise ValueError(f"gs.morphs.{owner}: `file` is required")
-        self.file = os.fspath(self.file)
-        if not os.path.isfile(self.file):
-            raise FileNotFoundError(f"gs.morphs.{owner}(file={self.file!r}): no such file; give a path to an existing file")
+        from .loaders.assets import resolve
+
+        # Genesis's relative asset paths ("urdf/panda_bullet/panda.urdf") resolve against the asset folders
+        self.file = resolve(os.fspath(self.file), owner)
         _positive("scale", owner, self.scale)
 
 
@@ -84,10 +85,44 @@ class URDF(FileMorph):
 
 
 @dataclass
-class Mesh(FileMorph):
-    """A single rigid body from a mesh file (STL, OBJ, DAE, ...); collision uses its convex hull."""
+class MJCF(FileMorph):
+    """A robot from a MuJoCo MJCF (.xml) file, compiled by MuJoCo itself (pip install mujoco). pos (m) and
+    quat / euler place the whole model (its worldbody) in the world; `scale` scales it uniformly (lengths
+    times scale, masses scale^3). fixed: None (the default) keeps what the file says (a body with a
+    <freejoint/> floats, one without joints is welded to the world); True welds free bodies too; False
+    also frees the worldbody's bodies that have no joint."""
 
-    pass
+    fixed: Optional[bool] = None
+    requires_jac_and_IK: bool = False
+
+
+@dataclass
+class Mesh(FileMorph):
+    """A single rigid body from a mesh file (STL, OBJ, DAE, ...). Collision shapes are convex (as in
+    Genesis): a convex mesh collides as itself; a non-convex one is split into convex parts by CoACD
+    (pip install coacd) when its convex hull exceeds its volume by more than `decompose_error_threshold`
+    (relative, Genesis's decompose_object_error_threshold, default 0.15), or always with
+    decompose_nonconvex=True; with decompose_nonconvex=False it collides as its convex hull (and a
+    warning says so). convexify=False (Genesis: collide the raw mesh) decomposes too: parts are how
+    genesis_lite collides a non-convex surface. coacd_options go to coacd.run_coacd (e.g. threshold,
+    the concavity each part may keep, default 0.05). Mass and inertia come from the mesh's own volume
+    when it is closed, else from the parts (or the hull)."""
+
+    convexify: bool = True
+    decompose_nonconvex: Optional[bool] = None
+    decompose_error_threshold: float = 0.15
+    coacd_options: Optional[dict] = None
+
+    def _check(self):
+        super()._check()
+        if self.decompose_nonconvex not in (None, True, False):
+            raise ValueError(f"gs.morphs.Mesh(decompose_nonconvex={self.decompose_nonconvex!r}): use None, True or False")
+        t = self.decompose_error_threshold
+        if not (isinstance(t, (int, float)) and t >= 0):
+            raise ValueError(f"gs.morphs.Mesh(decompose_error_threshold={t!r}): give a relative volume error >= 0")
+        if self.coacd_options is not None and not isinstance(self.coacd_options, dict):
+            raise ValueError(f"gs.morphs.Mesh(coacd_options={self.coacd_options!r}): give a dict of coacd.run_coacd "
+                             "keyword arguments")
 
 
 @dataclass

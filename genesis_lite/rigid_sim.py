@@ -11,6 +11,7 @@ from __future__ import annotations
 import taichi as ti
 import torch
 
+from solvers.rigid.model import JOINT_NV
 from solvers.rigid.solver import RigidSolver
 
 from .errors import GenesisException
@@ -31,6 +32,7 @@ PARAMS = {
     "gravity": ("gravity", (3,), "env"),
     "friction": ("contact.geom_friction", (), "geom"),  # only when the scene has contacts
 }
+DEFAULT_KP, DEFAULT_KV = 100.0, 10.0  # Genesis's gains of a joint whose file sets none (N m/rad, N m s/rad)
 CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dofs)
 
 
@@ -71,13 +73,15 @@ class RigidSim:
         base = s.initial_params(sim_options.gravity)
         self.param_base = {k: torch.as_tensor(v, device=self.device).to(self.dtype) for k, v in base.items()
                            if k in self.core_params}
+        self._default_gains(scene.rigid_entities)
         if s.contact is not None:
             self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
         self.param_ops = {k: [] for k in self.param_names}
         self.params = dict(self.param_base)
-        self._loaded_params = dict(self.params)  # the tensors whose values are in the fields now
         self.force_lo = torch.as_tensor(base["force_lo"], device=self.device).to(self.dtype)
         self.force_hi = torch.as_tensor(base["force_hi"], device=self.device).to(self.dtype)
+        self._upload_core_params()  # the fields hold the model's values, not the default gains: one launch
+        self._loaded_params = dict(self.params)  # the tensors whose values are in the fields now
         self._params_dirty = set()
         self.reset_controls()
         q0 = torch.as_tensor(s.np_qpos0, dtype=self.dtype, device=self.device).reshape(1, -1).repeat(self.B, 1)
@@ -85,6 +89,22 @@ class RigidSim:
         self.set_state(*self.init_state)
         self._outputs = None
         self._nan_count = 0  # envs with a NaN record, as the last fused launch returned it
+
+    def _default_gains(self, entities):
+        """Genesis's PD gains for what the model leaves unset: kp 100, kv 10 on revolute and prismatic
+        joints (a URDF's <safety_controller> or an MJCF actuator sets its own), 0 on free joints.
+        They act only on dofs given a position or velocity target."""
+        kp, kv = self.param_base["kp"].clone(), self.param_base["kv"].clone()
+        d = 0
+        for ent in entities:
+            for link in ent.model.links:
+                n = JOINT_NV[link.joint_type]
+                if link.joint_type in ("revolute", "prismatic"):
+                    kp[:, d] = DEFAULT_KP if link.kp is None else link.kp
+                    kv[:, d] = DEFAULT_KV if link.kv is None else link.kv
+                d += n
+        assert d == self.n_dofs, (d, self.n_dofs)
+        self.param_base["kp"], self.param_base["kv"] = kp, kv
 
     # ---------------------------------------------------------------- helpers
     def param_field(self, name):

@@ -132,6 +132,16 @@ class Scene:
     def mpm_solver(self):
         return self._mpm.solver if self._mpm is not None else None
 
+    @property
+    def solvers(self):
+        """The solvers this scene built (Genesis's scene.solvers): the rigid and/or the MPM solver."""
+        return [x for x in (self.rigid_solver, self.mpm_solver) if x is not None]
+
+    @property
+    def sim(self):
+        """Genesis's scene.sim: the scene's solvers (rigid_solver, mpm_solver, solvers), dt and substeps."""
+        return _SimView(self)
+
     def add_entity(self, morph, material=None, surface=None, visualize_contact=False, name=None):
         """Add an entity described by `morph` (gs.morphs.*) made of `material`: gs.materials.Rigid (the
         default) makes a rigid body or robot, a gs.materials.MPM.* material fills the morph's volume
@@ -381,6 +391,20 @@ class Scene:
     def _dofs_force(self):
         s = self._rigid.solver
         return s.dof_tau.to_torch(device=self._rigid.device).to(self._rigid.dtype)
+
+
+class _SimView:
+    """What Genesis scripts read from scene.sim; the stepping itself stays in simulator.py."""
+
+    def __init__(self, scene):
+        self._scene = scene
+
+    rigid_solver = property(lambda self: self._scene.rigid_solver)
+    mpm_solver = property(lambda self: self._scene.mpm_solver)
+    solvers = property(lambda self: self._scene.solvers)
+    dt = property(lambda self: self._scene.sim_options.dt)
+    substeps = property(lambda self: self._scene.sim_options.substeps)
+    substep_dt = property(lambda self: self._scene.sim_options.dt / self._scene.sim_options.substeps)
 
 
 class _SceneParams:

@@ -11,6 +11,8 @@ checked, and, where genesis_lite has the same notion, act as in Genesis.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -159,3 +161,103 @@ def test_link_mass_and_set_qpos_skip_forward():
     q = torch.tensor([0.2, -0.3, 0.4, 0.1], dtype=torch.float64)[: arm.n_dofs]
     arm.set_qpos(q, skip_forward=True)
     np.testing.assert_array_equal(arm.get_qpos().numpy(), q.numpy())
+
+
+def _genesis_layout_robot(root):
+    """A URDF in Genesis's asset layout (urdf/<robot>/<robot>.urdf) whose mesh is `package://cube.obj`, a
+    package-less name some of Genesis's own URDFs use: it is relative to the URDF's folder."""
+    import trimesh
+
+    d = root / "urdf" / "cube_bot"
+    d.mkdir(parents=True)
+    trimesh.creation.box(extents=(0.2, 0.4, 0.6)).export(d / "cube.obj")
+    (d / "cube_bot.urdf").write_text(
+        '<robot name="cube_bot"><link name="base"><inertial><mass value="2"/>'
+        '<inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial>'
+        '<collision><geometry><mesh filename="package://cube.obj"/></geometry></collision></link></robot>')
+    return "urdf/cube_bot/cube_bot.urdf"
+
+
+def test_relative_asset_paths_resolve_against_asset_folders(tmp_path, monkeypatch):
+    from genesis_lite.loaders import load_morph
+    from genesis_lite.loaders import assets
+
+    rel = _genesis_layout_robot(tmp_path / "my_assets")
+    monkeypatch.chdir(tmp_path)  # the relative name is not a path from here
+    monkeypatch.delenv("GS_ASSETS_DIR", raising=False)
+    with pytest.raises(FileNotFoundError, match="GS_ASSETS_DIR"):
+        gs.morphs.URDF(file=rel)
+    monkeypatch.setenv("GS_ASSETS_DIR", str(tmp_path / "elsewhere") + os.pathsep + str(tmp_path / "my_assets"))
+    morph = gs.morphs.URDF(file=rel)
+    assert os.path.samefile(morph.file, tmp_path / "my_assets" / rel)
+    geom = load_morph(morph, name="cube").links[0].geoms[0]
+    np.testing.assert_allclose(np.ptp(geom.vertices, axis=0), [0.2, 0.4, 0.6], atol=1e-12)
+    # gs.init(assets_dir=) is the same lookup (assets.set_init_dir is what it calls; a second gs.init with
+    # other arguments would raise in this process)
+    monkeypatch.delenv("GS_ASSETS_DIR")
+    monkeypatch.setattr(assets, "_init_dir", None)
+    assets.set_init_dir(tmp_path / "my_assets")
+    assert os.path.samefile(gs.morphs.URDF(file=rel).file, tmp_path / "my_assets" / rel)
+    with pytest.raises(FileNotFoundError, match="assets_dir"):
+        assets.set_init_dir(tmp_path / "missing")
+
+
+def test_pd_gains_default_to_genesis_and_drive_a_target_unset():
+    """Genesis's gains where the file sets none: kp 100, kv 10 on revolute and prismatic joints, the URDF's
+    <safety_controller k_position k_velocity> where it has one (as Genesis reads it), 0 on a free joint. A
+    position target without set_dofs_kp then moves the joint as the PD law says: one revolute joint of
+    inertia I about its axis, no gravity, q'' = (kp (q* - q) - kv q') / I, a damped oscillator whose
+    solution is known in closed form."""
+    import trimesh  # noqa: F401  (the URDF below has primitive geometry only)
+
+    I, kp, kv, target = 0.5, 100.0, 10.0, 0.3
+    urdf = ('<robot name="r"><link name="base"/><link name="bar"><inertial><origin xyz="0 0 0"/><mass value="1"/>'
+            f'<inertia ixx="{I}" iyy="{I}" izz="{I}" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+            '<link name="tip"><inertial><mass value="0.1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" '
+            'ixz="0" iyz="0"/></inertial></link>'
+            '<joint name="hinge" type="continuous"><parent link="base"/><child link="bar"/><axis xyz="0 0 1"/></joint>'
+            '<joint name="slide" type="prismatic"><parent link="bar"/><child link="tip"/><axis xyz="1 0 0"/>'
+            '<limit lower="-1" upper="1" effort="50" velocity="2"/>'
+            '<safety_controller k_position="42" k_velocity="7" soft_lower_limit="-1" soft_upper_limit="1"/></joint>'
+            '</robot>')
+    import tempfile
+
+    Iz = I + 0.01  # the hinge carries the bar and the tip (the tip's COM on the axis)
+    wn, zeta = np.sqrt(kp / Iz), kv / (2 * np.sqrt(kp * Iz))
+    wd, t = wn * np.sqrt(1 - zeta ** 2), 0.15
+    expect = target * (1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta * wn / wd * np.sin(wd * t)))
+    errors = []
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "r.urdf")
+        with open(path, "w") as f:
+            f.write(urdf)
+        for dt in (2e-3, 1e-3):
+            scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, gravity=(0, 0, 0)), show_viewer=False)
+            arm = scene.add_entity(gs.morphs.URDF(file=path, fixed=True))
+            box = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(2, 0, 1)))
+            scene.build()
+            np.testing.assert_array_equal(arm.get_dofs_kp().numpy(), [kp, 42.0])
+            np.testing.assert_array_equal(arm.get_dofs_kv().numpy(), [kv, 7.0])
+            np.testing.assert_array_equal(box.get_dofs_kp().numpy(), np.zeros(6))
+            arm.control_dofs_position([target], dofs_idx_local=[0])
+            for _ in range(round(t / dt)):
+                scene.step()
+            q = float(arm.get_dofs_position()[0])
+            errors.append(abs(q - expect))
+    # first order in dt (the default integrator treats the PD law implicitly), converging to the solution
+    assert errors[1] < 0.6 * errors[0] and errors[1] < 5e-3 * target, (errors, expect)
+    assert abs(expect - target) > 0.05 * target  # still on its way at t: the check sees the law, not the end point
+
+
+def test_kernel_cache_cap_fits_the_library(monkeypatch):
+    """Taichi's default 100 MB kernel-cache cap is smaller than the library's kernels (the suite's cache
+    passes it), so scenes evicted each other and recompiled; gs.init raises it (GS_KERNEL_CACHE_MB)."""
+    from solvers import taichi_compat
+
+    assert taichi_compat.config().offline_cache_max_size_of_files >= 1 << 30
+    monkeypatch.setenv("GS_KERNEL_CACHE_MB", "2047")
+    assert gs.kernel_cache_cap_bytes() == 2047 << 20
+    for bad in ("lots", "4096"):  # Taichi holds the cap in a 32-bit int
+        monkeypatch.setenv("GS_KERNEL_CACHE_MB", bad)
+        with pytest.raises(GenesisException, match="GS_KERNEL_CACHE_MB"):
+            gs.kernel_cache_cap_bytes()

@@ -315,7 +315,10 @@ def _gain_warnings(fn):
 
 def test_position_target_on_zero_kp_warns_once_per_set_of_dofs():
     scene, arm = _arm()
-    assert np.all(arm.get_dofs_kp().numpy() == 0) and np.all(arm.get_dofs_kv().numpy() == 0)  # the defaults
+    # Genesis's default gains (kp 100, kv 10) drive a target: no warning until kp is set to 0
+    assert np.all(arm.get_dofs_kp().numpy() == 100) and np.all(arm.get_dofs_kv().numpy() == 10)
+    assert _gain_warnings(lambda: arm.control_dofs_position(np.zeros(4))) == []
+    arm.set_dofs_kp([0.0] * 4)
     names = [j.name for j in arm.joints if j.n_dofs]
     msgs = _gain_warnings(lambda: arm.control_dofs_position(np.zeros(4)))
     assert len(msgs) == 1, msgs
@@ -338,7 +341,7 @@ def test_position_target_on_zero_kp_warns_once_per_set_of_dofs():
 
 def test_velocity_target_on_zero_kv_warns():
     scene, arm = _arm()
-    arm.set_dofs_kp([100.0] * 4)  # kp does not act on velocity targets
+    arm.set_dofs_kv([0.0] * 4)  # kp (100 by default) does not act on velocity targets
     msgs = _gain_warnings(lambda: arm.control_dofs_velocity(np.ones(4)))
     assert len(msgs) == 1 and "control_dofs_velocity on dofs [0, 1, 2, 3]" in msgs[0] and "kv is 0" in msgs[0]
     assert "set_dofs_kv(" in msgs[0]

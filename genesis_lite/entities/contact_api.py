@@ -64,6 +64,26 @@ class ContactMixin:
         idx = torch.arange(n, device=vals.device) + self._geom_start()
         sim.set_param("friction", vals, envs, idx)
 
+    def set_friction_ratio(self, friction_ratio, links_idx_local=None, envs_idx=None):
+        """Genesis's domain randomisation of friction: the geoms of each link named get the model's friction
+        coefficient times that link's ratio (dimensionless, >= 0), one ratio per link, (n,) or (n_envs, n).
+        The other geoms keep their current coefficient. Differentiable in the ratio, as set_friction."""
+        envs, ls = self._envs(envs_idx), self._links(links_idx_local)
+        ratio = self._values(friction_ratio, envs, len(ls), "friction_ratio")
+        base = torch.tensor([g.friction if g.friction is not None else self.material.friction
+                             for l in self.model.links for g in l.geoms], dtype=ratio.dtype, device=ratio.device)
+        cur = self.get_friction(envs_idx)
+        cur = (cur if self._scene.n_envs > 0 else cur.reshape(1, -1)).detach().to(ratio.dtype)
+        starts = np.cumsum([0] + [len(l.geoms) for l in self.model.links])
+        cols = [cur[:, k:k + 1] for k in range(self.n_geoms)]
+        for k, li in enumerate((ls - self._link_start).tolist()):
+            for gi in range(starts[li], starts[li + 1]):
+                cols[gi] = base[gi] * ratio[:, k:k + 1]
+        if not cols:
+            return
+        new = torch.cat(cols, -1)
+        self.set_friction(new if self._scene.n_envs > 0 else new[0], envs_idx)
+
     def get_friction(self, envs_idx=None):
         """Friction coefficients of the entity's collision geoms, (n_geoms,) (batched: (n_envs, n_geoms))."""
         sim = self._sim

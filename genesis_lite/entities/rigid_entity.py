@@ -19,6 +19,7 @@ from ..errors import GenesisException, ZeroGainWarning
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
 from .contact_api import ContactMixin
+from .kinematics_api import KinematicsMixin
 
 
 @dataclass
@@ -116,7 +117,7 @@ def _raise_if_not_finite(t, who, what, batched):
         f"({int(bad.sum())} of {bad.numel()}; {what}{where} = {value}). Pass finite values.{hint}")
 
 
-class RigidEntity(ContactMixin):
+class RigidEntity(ContactMixin, KinematicsMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
     @property
@@ -165,6 +166,10 @@ class RigidEntity(ContactMixin):
         return self.links[0]
 
     @property
+    def base_joint(self):
+        return self.joints[0]
+
+    @property
     def is_built(self):
         return self._scene.is_built
 
@@ -190,10 +195,18 @@ class RigidEntity(ContactMixin):
         return self._scene._rigid
 
     def _idx(self, idx, n, what, start):
+        if isinstance(idx, slice):  # Genesis scripts pass slices (dofs_idx_local=slice(6, 18))
+            idx = list(range(n))[idx]
         if idx is None:
             out = torch.arange(n, device=self._device)
         else:
             t = torch.as_tensor(idx.detach().cpu() if isinstance(idx, torch.Tensor) else idx)
+            if t.dtype == torch.bool and what == "envs_idx":
+                # Genesis's boolean env mask (e.g. scene.get_error_envs_mask())
+                if t.shape != (n,):
+                    raise GenesisException(f"entity '{self.name}': a boolean envs_idx must have shape ({n},) (one flag "
+                                           f"per env), got {tuple(t.shape)}")
+                t = torch.nonzero(t).reshape(-1)
             if t.dtype == torch.bool or t.is_floating_point():
                 raise GenesisException(f"entity '{self.name}': {what} must be integers, got dtype {t.dtype}")
             t = t.reshape(-1).long()
@@ -391,6 +404,50 @@ class RigidEntity(ContactMixin):
         """Base link angular velocity (rad/s)."""
         return self._link_out(3, [0], envs_idx)[..., 0, :]
 
+    def get_AABB(self, envs_idx=None):
+        """World-frame axis-aligned bounding box of the entity's collision geometry at the current state:
+        (2, 3) rows min and max (m), batched (n_envs, 2, 3). Exact for spheres, boxes, capsules and
+        cylinders, the convex hull's vertices for meshes; planes (unbounded) are left out. Differentiable
+        in the state."""
+        import genesis_lite as gs
+
+        envs = self._envs(envs_idx)
+        pos, quat = self._sim.link_outputs()[:2]
+        pos, quat = pos[envs], quat[envs]
+        lows, highs = [], []
+        for li, link in enumerate(self.model.links):
+            l = self._link_start + li
+            R = _quat_to_R(quat[:, l])
+            for g in link.geoms:
+                if g.type == "plane":
+                    continue
+                Rl = _quat_to_R(torch.as_tensor(g.quat, dtype=R.dtype, device=R.device))
+                Rg = R @ Rl
+                c = pos[:, l] + R @ torch.as_tensor(g.pos, dtype=R.dtype, device=R.device)
+                if g.type == "mesh":
+                    v = torch.as_tensor(np.asarray(g.hull["vertices"] if g.hull is not None else g.vertices),
+                                        dtype=R.dtype, device=R.device)
+                    w = c[:, None, :] + torch.einsum("eij,kj->eki", Rg, v)
+                    lows.append(w.amin(1))
+                    highs.append(w.amax(1))
+                    continue
+                size = torch.as_tensor(g.size, dtype=R.dtype, device=R.device)
+                if g.type == "sphere":
+                    e = size[0].expand(c.shape)
+                elif g.type == "box":
+                    e = Rg.abs() @ size
+                else:  # capsule, cylinder: radius, half length along the geom's z
+                    a = Rg[..., :, 2]
+                    radial = size[0] if g.type == "capsule" else size[0] * torch.sqrt((1 - a * a).clamp_min(0))
+                    e = a.abs() * size[1] + radial
+                lows.append(c - e)
+                highs.append(c + e)
+        if not lows:
+            raise GenesisException(f"entity '{self.name}': get_AABB needs bounded collision geometry; it has "
+                                   "only planes or none")
+        out = torch.stack([torch.stack(lows, 0).amin(0), torch.stack(highs, 0).amax(0)], -2).to(gs.tc_float)
+        return self._out(out)
+
     def get_mass_mat(self, envs_idx=None):
         """Joint-space mass matrix (armature included) of this entity, (n_dofs, n_dofs); no gradient."""
         self._sim  # noqa: B018 - raises a clear error before build
@@ -531,6 +588,13 @@ class RigidEntity(ContactMixin):
         self._sim.set_ctrl("vel", torch.zeros(len(envs), len(d), device=self._device), envs, d, None)
         self._warn_if_zero_gain("kp", envs, d)
 
+    def control_dofs_position_velocity(self, position, velocity, dofs_idx_local=None, envs_idx=None):
+        """PD targets of position and velocity together (Genesis's): force = kp (q* - q) + kv (v* - v),
+        clipped to the force range."""
+        self.control_dofs_position(position, dofs_idx_local, envs_idx)
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        self._sim.set_ctrl("vel", self._values(velocity, envs, len(d), "velocity target"), envs, d, None)
+
     def control_dofs_velocity(self, velocity, dofs_idx_local=None, envs_idx=None):
         """Velocity targets (m/s, rad/s): force = kv (target - v), clipped to the force range."""
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
@@ -539,8 +603,8 @@ class RigidEntity(ContactMixin):
 
     def _warn_if_zero_gain(self, gain, envs, d):
         """Warn (once per entity, gain and set of dofs) when a PD target lands on dofs whose gain is 0 in
-        some of the envs addressed: the target then does nothing. The gains default to 0 (set_dofs_kp /
-        set_dofs_kv). The zero mask is recomputed only when the gain tensor changes (a setter call or a
+        some of the envs addressed: the target then does nothing. The gains default to Genesis's (kp 100,
+        kv 10 on revolute and prismatic joints, the file's where it gives them, 0 on free joints). The zero mask is recomputed only when the gain tensor changes (a setter call or a
         reset), so a control call in a loop pays one identity test."""
         params = self._sim.params[gain]
         tensor, zero = self._zero_gain.get(gain, (None, None))
@@ -565,7 +629,7 @@ class RigidEntity(ContactMixin):
         warnings.warn(
             f"entity '{self.name}': {call} on dofs {list(dofs)} (joints {joints}) whose {gain} is 0"
             f"{' in some of the envs' if self._scene.n_envs else ''}, so their targets have no effect (the "
-            f"actuator force is {law}; gains default to 0). Set the gains first with set_dofs_{gain}(...), or drive "
+            f"actuator force is {law}). Set the gains first with set_dofs_{gain}(...), or drive "
             "these dofs with control_dofs_force.", ZeroGainWarning, stacklevel=3)
 
     # ---------------------------------------------------------------- parameters
@@ -673,6 +737,45 @@ class RigidEntity(ContactMixin):
         """Link centre of mass in the link frame (m), (n, 3)."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
         self._sim.set_param("com", self._values(com, envs, len(ls), "com", (3,)), envs, ls)
+
+    def set_links_inertial_mass(self, mass, links_idx_local=None, envs_idx=None):
+        """Genesis's name of set_links_mass (kg): the mass alone, the inertia tensor is kept."""
+        self.set_links_mass(mass, links_idx_local, envs_idx)
+
+    def get_links_inertial_mass(self, links_idx_local=None, envs_idx=None):
+        return self.get_links_mass(links_idx_local, envs_idx)
+
+    def _unbatch(self, t):
+        """(envs, ...) values as a setter takes them: without the env axis in an unbatched scene."""
+        return t if self._scene.n_envs > 0 else t[0]
+
+    def _base_param(self, name, envs, idx):
+        """The model's value of a parameter (before any setter), (len(envs), len(idx), ...)."""
+        base = self._sim.param_base[name]
+        return base[envs][:, idx]
+
+    def set_mass_shift(self, mass_shift, links_idx_local=None, envs_idx=None):
+        """Genesis's domain randomisation: each link's mass becomes its model mass plus `mass_shift` (kg).
+        Differentiable in the shift."""
+        envs, ls = self._envs(envs_idx), self._links(links_idx_local)
+        shift = self._values(mass_shift, envs, len(ls), "mass_shift")
+        self.set_links_mass(self._unbatch(self._base_param("mass", envs, ls) + shift),
+                            (ls - self._link_start).tolist(), envs_idx)
+
+    def set_COM_shift(self, com_shift, links_idx_local=None, envs_idx=None):
+        """Genesis's domain randomisation: each link's centre of mass becomes the model's plus `com_shift`
+        (m, in the link frame), (n, 3)."""
+        envs, ls = self._envs(envs_idx), self._links(links_idx_local)
+        shift = self._values(com_shift, envs, len(ls), "com_shift", (3,))
+        self.set_links_COM(self._unbatch(self._base_param("com", envs, ls) + shift), (ls - self._link_start).tolist(),
+                           envs_idx)
+
+    def get_dofs_invweight(self, dofs_idx_local=None, envs_idx=None):
+        """Diagonal of the inverse joint-space mass matrix at the current state (1/kg, 1/(kg m^2)): Genesis's
+        dofs_invweight, which it computes once at the initial configuration; no gradient."""
+        M = self.get_mass_mat(envs_idx)
+        d = self._dofs(dofs_idx_local) - self._dof_start
+        return wrap(torch.diagonal(torch.linalg.inv(M), dim1=-2, dim2=-1)[..., d])
 
     def get_links_inertia(self, links_idx_local=None, envs_idx=None):
         return self._get_param("inertia", self._links(links_idx_local), envs_idx)

@@ -8,6 +8,7 @@ Every body here is one link whose frame is the shape's own frame: primitives are
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Dict, Optional, Tuple
 
 import numpy as np
@@ -305,7 +306,53 @@ def load_mesh(morph, material, name) -> EntityModel:
     from .cache import cached
 
     path = os.path.abspath(morph.file)
-    return cached(path, morph, material, name, lambda: _load_mesh(morph, material, name))
+    model = cached(path, morph, material, name, lambda: _load_mesh(morph, material, name))
+    for msg in getattr(model, "load_warnings", ()):  # kept with the model, so a cached load says it too
+        warnings.warn(msg, stacklevel=3)
+    return model
+
+
+def _convex_parts(morph, V, F, hull, what, notes):
+    """[None] (collide as the hull: the mesh is convex, or decomposition is off) or the vertex arrays of
+    CoACD's convex parts of the mesh (V, F), per gs.morphs.Mesh's decomposition options."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=V, faces=F, process=True)
+    if mesh.is_watertight and hull.volume > 0:
+        # closed (overlapping closed parts count their overlap twice: the error is then underestimated)
+        error = max(0.0, 1.0 - abs(float(mesh.volume)) / float(hull.volume))
+    else:
+        # an open surface has no volume to compare: how deep its surface lies inside the hull (sampled: a
+        # notch's inner corner need not be a vertex), relative to the hull's thinnest extent (the most a
+        # point can lie inside it)
+        pts = np.vstack([mesh.vertices, trimesh.sample.sample_surface(mesh, 2000, seed=0)[0]])
+        d = np.abs(trimesh.proximity.signed_distance(hull, pts)).max()
+        error = float(d) / max(0.5 * float(np.ptp(hull.vertices, axis=0).min()), 1e-12)
+    decompose = morph.decompose_nonconvex
+    if decompose is None:
+        decompose = (not morph.convexify) or error > morph.decompose_error_threshold
+    if not decompose or error <= 1e-9:
+        if error > morph.decompose_error_threshold:
+            notes.append(f"{what}: the mesh is not convex (its convex hull is {100 * error:.0f} % off it) and "
+                         "collides as its convex hull because decompose_nonconvex=False; leave it None or True to "
+                         "split it into convex parts")
+        return [None]
+    try:
+        import coacd
+    except ImportError as e:
+        raise ImportError(f"{what}: the mesh is not convex ({100 * error:.0f} % off its hull) and splitting it into "
+                          "convex parts needs CoACD: pip install coacd (or pass decompose_nonconvex=False to collide "
+                          "as the convex hull)") from e
+    coacd.set_log_level("error")
+    opts = {"threshold": 0.05, "seed": 0}
+    opts.update(morph.coacd_options or {})
+    parts = coacd.run_coacd(coacd.Mesh(np.asarray(mesh.vertices, dtype=np.float64),
+                                       np.asarray(mesh.faces, dtype=np.int64)), **opts)
+    out = [np.asarray(pv, dtype=np.float64) for pv, _ in parts if len(pv) >= 4]
+    if not out:
+        raise ValueError(f"{what}: CoACD returned no convex parts; pass decompose_nonconvex=False to collide as the "
+                         "convex hull")
+    return out
 
 
 def _load_mesh(morph, material, name) -> EntityModel:
@@ -317,13 +364,28 @@ def _load_mesh(morph, material, name) -> EntityModel:
     V, F = scale_mesh(V, F, morph.scale)
     hull = convex_hull(V, what)
     hull.density = float(material.rho)
-    g = GeomDesc(
-        type="mesh",
-        vertices=np.array(hull.vertices, dtype=np.float64),
-        faces=np.array(hull.faces, dtype=np.int64),
-    )
-    g.hull = mesh_hull(g.vertices)
-    model = _root_link(morph, name, hull.mass, hull.center_mass, hull.moment_inertia, [g])
+    notes = []
+    parts = _convex_parts(morph, V, F, hull, what, notes)
+    geoms = []
+    for pv in parts:
+        ph = hull if pv is None else convex_hull(pv, what)
+        g = GeomDesc(type="mesh", vertices=np.array(ph.vertices, dtype=np.float64),
+                     faces=np.array(ph.faces, dtype=np.int64))
+        g.hull = mesh_hull(g.vertices)
+        geoms.append(g)
+    body = hull
+    if parts != [None]:
+        # the solid is the mesh itself when it is closed (a tank's walls, not its hull's volume), else the parts
+        import trimesh
+
+        closed = trimesh.Trimesh(vertices=V, faces=F, process=True)
+        if closed.is_volume:
+            body = closed
+        else:
+            body = trimesh.util.concatenate([convex_hull(pv, what) for pv in parts])
+        body.density = float(material.rho)
+    model = _root_link(morph, name, body.mass, body.center_mass, body.moment_inertia, geoms)
+    model.load_warnings = notes
     # cameras draw the file's own surface, not the hull that stands in for it in the physics
     scale = np.broadcast_to(np.asarray(morph.scale, dtype=float), (3,)).copy()
     model.links[0].visuals.append(VisualDesc("mesh", file=path, filename=morph.file, scale=scale))

@@ -143,7 +143,8 @@ def _mesh_candidates(filename: str, urdf_path: str) -> List[str]:
 
     package://PKG/sub is looked for as <dir>/PKG/sub and, when <dir> itself is named PKG, as
     <dir>/sub, for every folder above the URDF and then for each ROS_PACKAGE_PATH entry: that covers
-    both source trees (robots/<pkg>/urdf/x.urdf) and installed share/ layouts without any ROS.
+    both source trees (robots/<pkg>/urdf/x.urdf) and installed share/ layouts without any ROS. Last,
+    everything after package:// relative to the URDF's folder (package://mesh.obj).
     """
     urdf_dir = os.path.dirname(urdf_path)
     fn = filename.strip()
@@ -152,10 +153,14 @@ def _mesh_candidates(filename: str, urdf_path: str) -> List[str]:
         pkg, _, sub = rest.partition("/")
         bases = _ancestors(urdf_dir) + [p for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
         out = []
-        for d in bases:
-            out.append(os.path.join(d, pkg, sub))
-            if os.path.basename(os.path.normpath(d)) == pkg:
-                out.append(os.path.join(d, sub))
+        if sub:
+            for d in bases:
+                out.append(os.path.join(d, pkg, sub))
+                if os.path.basename(os.path.normpath(d)) == pkg:
+                    out.append(os.path.join(d, sub))
+        # package://file.obj (no package folder; Genesis's assets have some) or a package-less path:
+        # relative to the URDF's folder, as Genesis reads it
+        out.append(os.path.join(urdf_dir, rest))
         return out
     if fn.startswith("file://"):
         fn = fn[len("file://"):]
@@ -468,9 +473,16 @@ def _moving_link(path, j, parent_idx, TJ, s) -> LinkDesc:
             multiplier=1.0 if j.mimic.multiplier is None else float(j.mimic.multiplier),
             offset=0.0 if j.mimic.offset is None else float(j.mimic.offset) * lin,
         )
+    # Genesis reads <safety_controller k_position k_velocity> as the joint's PD gains (ROS means the
+    # soft-limit controller's gains by them); we follow Genesis, so its scripts drive robots alike
+    sc = getattr(j, "safety_controller", None)
+    kp = None if sc is None or sc.k_position is None else float(sc.k_position)
+    kv = None if sc is None or sc.k_velocity is None else float(sc.k_velocity)
     return LinkDesc(
         name=j.child,
         parent=parent_idx,
+        kp=kp,
+        kv=kv,
         joint_name=j.name,
         joint_type="prismatic" if j.type == "prismatic" else "revolute",
         joint_pos=TJ[:3, 3].copy(),

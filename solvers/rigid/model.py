@@ -101,6 +101,8 @@ class LinkDesc:
     frictionloss: float = 0.0
     armature: float = 0.0
     mimic: Optional[MimicDesc] = None
+    kp: Optional[float] = None  # PD gains of a 1-dof joint as the file gives them; None: the scene's default
+    kv: Optional[float] = None
     mass: float = 0.0
     com: np.ndarray = field(default_factory=lambda: np.zeros(3))
     inertia: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))

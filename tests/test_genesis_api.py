@@ -1,0 +1,151 @@
+"""Genesis's rigid-entity API names that its example scripts use (issue #25), written as a Genesis user
+writes them, each checked against what the name means rather than against our own output:
+- control_dofs_position_velocity: the PD law with both targets, on a joint whose motion is known in
+  closed form (no gravity, one inertia);
+- set_mass_shift / set_COM_shift / set_links_inertial_mass: the model's values plus the shift, seen in the
+  total mass and in the static torque gravity puts on a joint;
+- set_friction_ratio: the model's coefficient times the ratio on the named links' geoms only, and a box
+  that slides or sticks on a slope as Coulomb's law says for tan(slope) against the new coefficient;
+- get_AABB: against the corners of the boxes and spheres it encloses;
+- a slice as dofs_idx_local, a boolean envs_idx mask, base_joint, get_dofs_invweight (diag of M^-1).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+import pytest
+import torch
+
+import genesis_lite as gs
+
+ARM = ('<robot name="arm"><link name="base"/>'
+       '<link name="upper"><inertial><origin xyz="0.3 0 0"/><mass value="2.0"/>'
+       '<inertia ixx="0.01" iyy="0.05" izz="0.05" ixy="0" ixz="0" iyz="0"/></inertial>'
+       '<collision><origin xyz="0.3 0 0"/><geometry><box size="0.6 0.1 0.1"/></geometry></collision></link>'
+       '<link name="fore"><inertial><origin xyz="0.2 0 0"/><mass value="1.0"/>'
+       '<inertia ixx="0.005" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial>'
+       '<collision><origin xyz="0.2 0 0"/><geometry><sphere radius="0.05"/></geometry></collision></link>'
+       '<joint name="shoulder" type="revolute"><parent link="base"/><child link="upper"/><axis xyz="0 1 0"/>'
+       '<limit lower="-3" upper="3" effort="100" velocity="10"/></joint>'
+       '<joint name="elbow" type="revolute"><parent link="upper"/><child link="fore"/><origin xyz="0.6 0 0"/>'
+       '<axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="100" velocity="10"/></joint></robot>')
+
+
+@pytest.fixture(scope="module")
+def arm_path():
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "arm.urdf")
+        with open(p, "w") as f:
+            f.write(ARM)
+        yield p
+
+
+def _arm_scene(path, n_envs=0, gravity=(0, 0, -9.81), dt=1e-3):
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, gravity=gravity), show_viewer=False)
+    arm = scene.add_entity(gs.morphs.URDF(file=path, fixed=True), name="arm")
+    scene.build(n_envs=n_envs)
+    return scene, arm
+
+
+def test_position_velocity_control_follows_the_pd_law(arm_path):
+    """Without gravity, kp (q* - q) + kv (v* - v) with a constant v* != 0 comes to rest where the law alone
+    says: q = q* + kv v* / kp (the elbow is held at 0 by a stiff PD)."""
+    scene, arm = _arm_scene(arm_path, gravity=(0, 0, 0))
+    kp, kv, q_t, v_t = 200.0, 40.0, 0.4, 0.5
+    arm.set_dofs_kp([kp, 5000.0])
+    arm.set_dofs_kv([kv, 200.0])
+    arm.control_dofs_position_velocity([q_t, 0.0], [v_t, 0.0])
+    for _ in range(3000):
+        scene.step()
+    q = arm.get_dofs_position().numpy()
+    np.testing.assert_allclose(q[0], q_t + kv * v_t / kp, atol=1e-4)
+    assert abs(arm.get_dofs_velocity()[0].item()) < 1e-4
+    assert abs(q[1]) < 1e-4
+
+
+def test_mass_and_com_shifts_act_as_in_genesis(arm_path):
+    """Held at the horizontal by a known torque: the static torque gravity puts on the shoulder is
+    g * sum(m_i x_i) over the links' centres of mass; the shifts change m and x by what they say."""
+    scene, arm = _arm_scene(arm_path)
+    g = 9.81
+
+    def shoulder_gravity_torque():
+        # one step from rest with zero control: the shoulder's acceleration times the mass matrix row gives
+        # the generalised gravity force (elbow locked by a stiff PD at 0)
+        arm.set_dofs_kp([1e6], dofs_idx_local=[1])
+        arm.set_dofs_kv([1e4], dofs_idx_local=[1])
+        arm.control_dofs_force([0.0], dofs_idx_local=[0])
+        arm.control_dofs_position([0.0], dofs_idx_local=[1])
+        arm.set_dofs_position([0.0, 0.0])
+        arm.set_dofs_velocity([0.0, 0.0])
+        M = arm.get_mass_mat().numpy()
+        scene.step()
+        a = arm.get_dofs_acc().numpy()
+        return float(M[0] @ a)  # the elbow's row carries the PD's reaction, the shoulder's does not
+
+    base = shoulder_gravity_torque()
+    # links: upper 2 kg at x = 0.3, fore 1 kg at x = 0.6 + 0.2; y is the axis, -z gravity: torque = +g sum m x
+    np.testing.assert_allclose(base, g * (2.0 * 0.3 + 1.0 * 0.8), rtol=2e-3)
+    arm.set_mass_shift([0.5, -0.25], links_idx_local=[1, 2])
+    np.testing.assert_allclose(arm.get_links_mass([1, 2]).numpy(), [2.5, 0.75], atol=1e-12)
+    arm.set_COM_shift([[0.1, 0.0, 0.0]], links_idx_local=[2])
+    np.testing.assert_allclose(arm.get_links_COM([2]).numpy(), [[0.3, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(shoulder_gravity_torque(), g * (2.5 * 0.3 + 0.75 * 0.9), rtol=2e-3)
+    # a second shift replaces the first (it is relative to the model, not cumulative)
+    arm.set_mass_shift([0.0, 0.0], links_idx_local=[1, 2])
+    arm.set_links_inertial_mass([3.0], links_idx_local=[1])
+    np.testing.assert_allclose(arm.get_links_mass([1, 2]).numpy(), [3.0, 1.0], atol=1e-12)
+
+
+def test_friction_ratio_decides_slide_or_stick_on_a_slope():
+    """A box on a plane tilted by 20 degrees (tan = 0.364) slides when its coefficient is below that and
+    sticks above: with the model's 0.5 times ratio 0.5 (0.25) it slides, times 1.0 (0.5) it stays."""
+    angle = np.deg2rad(20.0)
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3), show_viewer=False)
+    tilt = (np.cos(angle / 2), np.sin(angle / 2), 0.0, 0.0)
+    # a contact takes the larger coefficient of its two geoms (as MuJoCo and Genesis): the plane's is 0
+    scene.add_entity(gs.morphs.Plane(quat=tilt), material=gs.materials.Rigid(friction=0.0))
+    normal = np.array([0.0, -np.sin(angle), np.cos(angle)])
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=tuple(0.1 * normal), quat=tilt),
+                           material=gs.materials.Rigid(friction=0.5))
+    scene.build(n_envs=2)
+    box.set_friction_ratio(np.array([[0.5], [1.0]]), links_idx_local=[0])
+    np.testing.assert_allclose(box.get_friction().numpy().reshape(2), [0.25, 0.5], atol=1e-12)
+    for _ in range(250):
+        scene.step()
+    speed = box.get_vel().norm(dim=-1).numpy()
+    assert speed[0] > 0.3 and speed[1] < 1e-2, speed
+    # the slide follows Coulomb: a = g (sin - mu cos) along the slope; after 0.5 s from rest
+    expect = 9.81 * (np.sin(angle) - 0.25 * np.cos(angle)) * 0.5
+    assert abs(speed[0] - expect) < 0.05 * expect, (speed[0], expect)
+
+
+def test_aabb_slices_masks_and_small_names(arm_path):
+    scene = gs.Scene(show_viewer=False, rigid_options=gs.options.RigidOptions(enable_collision=False))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.4, 0.6), pos=(1.0, 2.0, 3.0), euler=(0, 0, 90)))
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.25, pos=(-1.0, 0.0, 0.5)))
+    arm = scene.add_entity(gs.morphs.URDF(file=arm_path, fixed=True))
+    scene.build(n_envs=4)
+    # a box turned 90 degrees about z swaps its x and y extents
+    np.testing.assert_allclose(box.get_AABB()[0].numpy(), [[0.8, 1.9, 2.7], [1.2, 2.1, 3.3]], atol=1e-12)
+    np.testing.assert_allclose(ball.get_AABB(envs_idx=[2]).numpy(), [[[-1.25, -0.25, 0.25], [-0.75, 0.25, 0.75]]],
+                               atol=1e-12)
+    # the arm straight along x: the box of link 1 spans x 0..0.6, the sphere of link 2 sits at x = 0.8
+    np.testing.assert_allclose(arm.get_AABB()[1].numpy(), [[0.0, -0.05, -0.05], [0.85, 0.05, 0.05]], atol=1e-12)
+
+    arm.set_dofs_position(torch.tensor([0.3, -0.2]), dofs_idx_local=slice(0, 2))
+    np.testing.assert_allclose(arm.get_dofs_position(dofs_idx_local=slice(1, None))[:, 0].numpy(), -0.2)
+    mask = torch.tensor([True, False, True, False])
+    arm.set_dofs_position(torch.tensor([0.1, 0.1]), envs_idx=mask)
+    np.testing.assert_allclose(arm.get_dofs_position()[:, 0].numpy(), [0.1, 0.3, 0.1, 0.3])
+    with pytest.raises(gs.GenesisException, match="boolean envs_idx"):
+        arm.set_dofs_position(torch.tensor([0.1, 0.1]), envs_idx=torch.tensor([True, False]))
+    assert arm.base_joint is arm.joints[0] and box.base_joint.type == "free"
+    M = arm.get_mass_mat()[0].numpy()
+    np.testing.assert_allclose(arm.get_dofs_invweight()[0].numpy(), np.diag(np.linalg.inv(M)), rtol=1e-12)
+    assert scene.sim.rigid_solver is scene.rigid_solver and scene.sim.solvers == [scene.rigid_solver]
+    assert scene.sim.mpm_solver is None and scene.sim.dt == scene.dt
+    mask = scene.rigid_solver.get_error_envs_mask()  # Genesis's spelling of it
+    assert tuple(mask.shape) == (4,) and not bool(mask.any())
