@@ -78,10 +78,22 @@ class FileMorph(Morph):
 
 @dataclass
 class URDF(FileMorph):
-    """A robot from a URDF file. Joints named in `links_to_keep` are not merged even if fixed."""
+    """A robot from a URDF file. Links attached by fixed joints are merged into their parent (their mass,
+    inertia and shapes added to it), except with merge_fixed_links=False (none merged) or for the links
+    named in `links_to_keep` (Genesis's: e.g. a hand or a camera mount whose pose a script reads). A kept
+    link moves with its parent; it has no dofs. `convexify` is Genesis's switch; a robot's meshes collide
+    as their convex hulls either way (Genesis does not decompose robot meshes by default either)."""
 
     merge_fixed_links: bool = True
     requires_jac_and_IK: bool = False
+    links_to_keep: Sequence[str] = ()
+    convexify: bool = True
+
+    def _check(self):
+        super()._check()
+        if isinstance(self.links_to_keep, str):
+            raise ValueError(f"gs.morphs.URDF(links_to_keep={self.links_to_keep!r}): give a list of link names")
+        self.links_to_keep = tuple(str(n) for n in self.links_to_keep)
 
 
 @dataclass

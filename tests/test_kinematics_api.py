@@ -117,3 +117,34 @@ def test_inverse_kinematics_per_env_targets_and_bad_input():
         panda.inverse_kinematics(link)
     with pytest.raises(gs.GenesisException, match="expected"):
         panda.inverse_kinematics(link, pos=np.zeros((2, 3)))
+
+
+def test_kept_fixed_link_moves_with_its_parent_and_changes_no_dynamics(panda_go2):
+    """Genesis's links_to_keep: panda_hand (fixed to panda_link8, itself fixed to panda_link7) stays a link of
+    its own. Its pose is Pinocchio's frame placement; the mass matrix and a 30-step rollout equal those of the
+    robot with the hand merged (the same rigid body, described twice)."""
+    _, merged, _ = panda_go2
+    scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_collision=False))
+    kept = scene.add_entity(gs.morphs.URDF(file=str(robot_urdf("panda")), fixed=True, links_to_keep=["panda_hand"]))
+    scene.build()
+    names = [l.name for l in kept.links]
+    assert "panda_hand" in names and "panda_hand" not in [l.name for l in merged.links]
+    assert kept.get_joint("panda_hand_joint").type == "fixed" and kept.n_dofs == merged.n_dofs
+    q = _random_panda_q(np.random.default_rng(2), merged)
+    for ent in (merged, kept):
+        ent.set_qpos(q)
+        ent.set_dofs_velocity(np.zeros(ent.n_dofs))
+    np.testing.assert_allclose(kept.get_mass_mat().numpy(), merged.get_mass_mat().numpy(), atol=1e-12)
+    model, data = _pin_panda()
+    pin.framesForwardKinematics(model, data, q)
+    hand = kept.get_link("panda_hand")
+    np.testing.assert_allclose(kept.get_links_pos()[hand.idx_local].numpy(),
+                               data.oMf[model.getFrameId("panda_hand")].translation, atol=1e-12)
+    merged._scene.reset()
+    merged.set_qpos(q)
+    for _ in range(30):
+        scene.step()
+        merged._scene.step()
+    np.testing.assert_allclose(kept.get_qpos().numpy(), merged.get_qpos().numpy(), atol=1e-10)
+    with pytest.raises(ValueError, match="links_to_keep"):
+        gs.morphs.URDF(file=str(robot_urdf("panda")), links_to_keep="panda_hand")

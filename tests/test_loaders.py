@@ -329,10 +329,13 @@ def test_joint_properties(tmp_path):
     assert (b.mimic.joint, b.mimic.multiplier, b.mimic.offset) == ("j1", -2.0, 0.1)
 
 
-def test_merge_fixed_links_false_is_refused(tmp_path):
+def test_merge_fixed_links_false_keeps_welded_links(tmp_path):
     p = write(tmp_path, "\n".join([link("base"), link("a"), joint("weld", "base", "a", type="fixed")]))
-    with pytest.raises(ValueError, match="weld.*merge_fixed_links"):
-        urdf(p, merge_fixed_links=False)
+    m = urdf(p, merge_fixed_links=False)
+    assert [(l.name, l.joint_name, l.joint_type, l.parent) for l in m.links] == [
+        ("base", m.links[0].joint_name, "free", -1), ("a", "weld", "fixed", 0)]
+    with pytest.raises(ValueError, match="links_to_keep names \\['nope'\\]"):
+        urdf(p, links_to_keep=["nope"])
 
 
 # --------------------------------------------------------------------------------------------

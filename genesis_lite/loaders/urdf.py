@@ -362,6 +362,11 @@ def _load_urdf(morph, material, name) -> EntityModel:
     robot, capsules = _parse(path)
     links, children, root = _check_tree(path, robot)
     merge = getattr(morph, "merge_fixed_links", True)
+    keep = set(getattr(morph, "links_to_keep", ()))
+    missing = sorted(keep - set(links))
+    if missing:
+        raise _err(path, f"links_to_keep names {missing}, which are not links of this robot; its links are "
+                         f"{sorted(links)}")
 
     # A massless, shapeless placeholder root ('world' with one fixed joint, or any such link with one
     # floating joint) only says where the robot sits: fold that offset into the base placement.
@@ -404,6 +409,12 @@ def _load_urdf(morph, material, name) -> EntityModel:
             parts.append([])
             moving[j.name] = j
             di, T = len(descs) - 1, np.eye(4)
+        elif j is not None and (not merge or ln in keep):
+            # a kept fixed link: a link of its own, welded to the one it hangs from
+            descs.append(LinkDesc(name=ln, parent=di, joint_name=j.name, joint_type="fixed",
+                                  joint_pos=T[:3, 3].copy(), joint_quat=mat_to_quat(T[:3, :3])))
+            parts.append([])
+            di, T = len(descs) - 1, np.eye(4)
         link = links[ln]
         geoms = _collision_geoms(path, link, s, capsules)
         m, c, I = _link_inertia(path, link, s, geoms, rho)
@@ -419,9 +430,6 @@ def _load_urdf(morph, material, name) -> EntityModel:
             descs[di].visuals.append(v)
 
         for cj in reversed(children[ln]):  # reversed: children pop in ascending joint-name order
-            if cj.type == "fixed" and not merge:
-                raise _err(path, f"joint '{cj.name}' is fixed and merge_fixed_links=False, but the model has no "
-                                 "fixed joints below the root; load with merge_fixed_links=True")
             if cj.type in ("floating", "planar"):
                 raise _err(path, f"joint '{cj.name}' has type '{cj.type}', which is not supported inside a URDF "
                                  "(only revolute, continuous, prismatic and fixed joints; a floating base comes from "

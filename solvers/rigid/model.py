@@ -7,10 +7,12 @@ here imports taichi or torch.
 Conventions (SI units throughout):
 - Quaternions are (w, x, y, z), unit norm.
 - Links are listed parent-before-child in depth-first order of the kinematic tree, so joint/dof order
-  matches Pinocchio's and Genesis's. Fixed joints are merged into their parent: their child's mass,
-  inertia and geometry move into the parent link, expressed in the parent's frame.
+  matches Pinocchio's and Genesis's. Fixed joints are merged into their parent (their child's mass,
+  inertia and geometry move into the parent link, expressed in the parent's frame) unless the user
+  asks to keep the child (Genesis's links_to_keep, merge_fixed_links=False).
 - Each link has exactly one joint connecting it to its parent (`parent == -1`: the world):
-  'fixed' (0 dofs; only for a root welded to the world), 'free' (7 qs: pos xyz + quat wxyz,
+  'fixed' (0 dofs: a root welded to the world, or a link welded to its parent that a loader kept
+  rather than merged), 'free' (7 qs: pos xyz + quat wxyz,
   6 dofs: world-frame linear velocity of the link origin, then world-frame angular velocity),
   'revolute' (1 dof; a URDF `continuous` joint is revolute with infinite limits) or 'prismatic' (1 dof).
 - The joint frame sits at `joint_pos, joint_quat` in the parent link frame (for a root: in the world);
@@ -138,8 +140,8 @@ class EntityModel:
                 raise ValueError(f"{where}: unknown joint type '{l.joint_type}'; expected one of {JOINT_TYPES}")
             if not (-1 <= l.parent < i):
                 raise ValueError(f"{where}: parent index {l.parent} must name an earlier link (-1 for the world)")
-            if l.joint_type in ("fixed", "free") and l.parent != -1:
-                raise ValueError(f"{where}: a '{l.joint_type}' joint is only allowed on a root link")
+            if l.joint_type == "free" and l.parent != -1:
+                raise ValueError(f"{where}: a 'free' joint is only allowed on a root link")
             if not np.isfinite(l.mass) or l.mass < 0:
                 raise ValueError(f"{where}: mass {l.mass} must be finite and >= 0")
             if l.joint_type in ("revolute", "prismatic") and abs(np.linalg.norm(l.joint_axis) - 1) > 1e-6:
