@@ -13,7 +13,8 @@ class Rigid:
     friction: Coulomb coefficient (dimensionless, >= 0) against other rigid bodies. Coupling with MPM
     materials (Genesis's names): needs_coup (the body is a boundary for MPM particles), coup_friction
     (Coulomb coefficient against them), coup_softness (m: width of the band outside the surface over
-    which the boundary fades in; None: half an MPM grid cell)."""
+    which the boundary fades in; None: half an MPM grid cell; 0: none, the boundary acts from the
+    surface in)."""
 
     rho: float = 200.0
     friction: float = 1.0
@@ -28,9 +29,9 @@ class Rigid:
             raise ValueError(f"gs.materials.Rigid(friction={self.friction!r}): friction must be a finite number >= 0")
         if not (np.isfinite(self.coup_friction) and self.coup_friction >= 0):
             raise ValueError(f"gs.materials.Rigid(coup_friction={self.coup_friction!r}): must be a finite number >= 0")
-        if self.coup_softness is not None and not (np.isfinite(self.coup_softness) and self.coup_softness > 0):
-            raise ValueError(f"gs.materials.Rigid(coup_softness={self.coup_softness!r}): must be None or a positive "
-                             "number (m)")
+        if self.coup_softness is not None and not (np.isfinite(self.coup_softness) and self.coup_softness >= 0):
+            raise ValueError(f"gs.materials.Rigid(coup_softness={self.coup_softness!r}): must be None or a number "
+                             ">= 0 (m; 0: a hard boundary, as in Genesis)")
 
 
 def _check_positive(owner, name, v, unit):
@@ -143,3 +144,33 @@ def sand_alpha(friction_angle_deg):
         return (2.0 / 3.0) ** 0.5 * 2.0 * s / (3.0 - s)
     s = np.sin(np.deg2rad(friction_angle_deg))
     return float(np.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s))
+
+
+class _OutOfScopeMaterial:
+    """A material of a Genesis solver genesis_lite does not have: it can be created (so a script's set-up
+    runs) and is refused, with what to use instead, when an entity is made of it."""
+
+    solver, instead = "", ""
+
+    def __init__(self, **kwargs):
+        self.__dict__.update(kwargs)
+
+    def refuse(self, what: str):
+        from .errors import GenesisException
+
+        raise GenesisException(
+            f"{what}: gs.materials.{self.solver}.{type(self).__name__} needs Genesis's {self.solver} solver, which is "
+            f"out of genesis_lite's scope (rigid bodies and MPM only). {self.instead}")
+
+
+def _out_of_scope_family(solver, instead, names):
+    family = type(solver, (), {"__doc__": f"Genesis's {solver} materials: out of scope (see _OutOfScopeMaterial)."})
+    for n in names:
+        setattr(family, n, type(n, (_OutOfScopeMaterial,), {"solver": solver, "instead": instead}))
+    return family
+
+
+SPH = _out_of_scope_family("SPH", "For a liquid use gs.materials.MPM.Liquid().", ("Liquid",))
+PBD = _out_of_scope_family("PBD", "For cloth or ropes there is no substitute; for a soft body use gs.materials.MPM.Elastic().",
+                           ("Cloth", "Elastic", "Liquid", "Particle"))
+FEM = _out_of_scope_family("FEM", "For a soft body use gs.materials.MPM.Elastic().", ("Elastic", "Muscle"))

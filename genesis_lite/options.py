@@ -7,13 +7,11 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from solvers.rigid.schedule import Integrator
 
-class integrator(enum.IntEnum):
-    """Time integrators of the rigid solver."""
 
-    Euler = 0          # semi-implicit (symplectic) Euler
-    implicitfast = 1   # semi-implicit Euler, implicit in joint damping and PD gains
-    RK4 = 2            # classic 4th-order Runge-Kutta on (q, v)
+# time integrators of the rigid solver: the solver's one enum (Euler, implicitfast, RK4)
+integrator = Integrator
 
 
 class constraint_solver(enum.IntEnum):
@@ -135,7 +133,7 @@ class RigidOptions(_Options):
     # pair budget (max_collision_pairs) and box_box_detection are accepted: genesis_lite's contact is a
     # penalty law solved with the dynamics, its contact pairs are sized from the scene at build, and
     # box-box contact is always its own (solvers/rigid/collision.py). batch_dofs_info /
-    # batch_links_info: parameters are per environment in genesis_lite whatever they say.
+    # batch_links_info / batch_joints_info: parameters are per environment in genesis_lite whatever they say.
     dt: Optional[float] = None
     gravity: Optional[Tuple[float, float, float]] = None
     constraint_solver: constraint_solver = constraint_solver.Newton
@@ -147,6 +145,7 @@ class RigidOptions(_Options):
     box_box_detection: bool = True
     batch_dofs_info: bool = False
     batch_links_info: bool = False
+    batch_joints_info: bool = False
     use_contact_island: bool = False
     use_hibernation: bool = False
 
@@ -166,7 +165,8 @@ class RigidOptions(_Options):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 self._err(name, v, "must be a positive number")
-        for name in ("box_box_detection", "batch_dofs_info", "batch_links_info", "use_contact_island", "use_hibernation"):
+        for name in ("box_box_detection", "batch_dofs_info", "batch_links_info", "batch_joints_info",
+                     "use_contact_island", "use_hibernation"):
             if not isinstance(getattr(self, name), bool):
                 self._err(name, getattr(self, name), "must be True or False")
         try:
@@ -307,3 +307,33 @@ class VisOptions(_Options):
             _finite_vec(self, name, 3)
         if self.segmentation_level not in ("entity", "link", "geom"):
             self._err("segmentation_level", self.segmentation_level, "must be 'entity', 'link' or 'geom'")
+
+
+class _OutOfScopeOptions:
+    """Options of a Genesis solver genesis_lite does not have (SPH, PBD, FEM, SF): accepted with any fields,
+    so a script that sets them up runs its in-scope part; an entity made of that solver's material is
+    refused at add_entity (gs.materials.SPH / PBD / FEM)."""
+
+    solver = ""
+
+    def __init__(self, **kwargs):
+        self.__dict__.update(kwargs)
+
+    def __repr__(self):
+        return f"gs.options.{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in self.__dict__.items())})"
+
+
+class SPHOptions(_OutOfScopeOptions):
+    solver = "SPH"
+
+
+class PBDOptions(_OutOfScopeOptions):
+    solver = "PBD"
+
+
+class FEMOptions(_OutOfScopeOptions):
+    solver = "FEM"
+
+
+class SFOptions(_OutOfScopeOptions):
+    solver = "SF"

@@ -17,6 +17,7 @@ from .errors import GenesisException
 from .nan_watch import NaNWatch
 from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions, ViewerOptions, VisOptions
 from .validation import validate_model
+from solvers.rigid.schedule import Integrator, rk4_combine
 
 logger = logging.getLogger("genesis_lite")
 
@@ -30,6 +31,11 @@ class SimState:
     step: int
     qpos: Optional[torch.Tensor] = None
     qvel: Optional[torch.Tensor] = None
+
+    @property
+    def solvers_state(self):
+        """Genesis's name of `solvers`."""
+        return list(self.solvers)
 
 
 class Scene:
@@ -55,7 +61,9 @@ class Scene:
         if coupler_options is not None and not isinstance(coupler_options, CouplerOptions):
             raise TypeError(f"coupler_options must be gs.options.CouplerOptions, got {type(coupler_options).__name__}")
         self.coupler_options = coupler_options if coupler_options is not None else CouplerOptions()
-        unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options", "show_FPS"}
+        # Genesis's options of solvers genesis_lite does not have: accepted (their entities are refused)
+        unknown = set(kwargs) - {"vis_options", "renderer", "profiling_options", "show_FPS", "sph_options",
+                                 "pbd_options", "fem_options", "sf_options", "tool_options", "avatar_options"}
         if unknown:
             raise TypeError(f"gs.Scene got unexpected arguments {sorted(unknown)}")
         # Genesis's viewer and renderer options: checked, kept, not read (headless; see their docstrings)
@@ -154,6 +162,8 @@ class Scene:
         if not isinstance(morph, gm.Morph):
             raise TypeError(f"add_entity expects a gs.morphs.* instance, got {type(morph).__name__}")
         material = material if material is not None else gmat.Rigid()
+        if isinstance(material, gmat._OutOfScopeMaterial):
+            material.refuse("scene.add_entity")
         if not isinstance(material, (gmat.Rigid, gmat.MPM.Base)):
             raise TypeError(f"add_entity: material must be gs.materials.Rigid or gs.materials.MPM.*, got "
                             f"{type(material).__name__}")
@@ -255,6 +265,7 @@ class Scene:
         dx = self.mpm_options.dx
         mats = [self.rigid_entities[int(geoms.entity[i])].material for i in idx]
         softness = min(m.coup_softness if m.coup_softness is not None else 0.5 * dx for m in mats)
+        softness = max(softness, 1e-6 * dx)  # 0 (Genesis's hard boundary): a band far below the grid's resolution
         solver = self._mpm.solver
         coupler = RigidMPMCoupler(self._rigid.solver, geoms, idx, [m.coup_friction for m in mats], softness,
                                   self.coupler_options.mpm_reaction, solver.grid_res, solver.np_lower, dx, solver.dtype)
@@ -384,8 +395,8 @@ class Scene:
     def _dofs_acc(self):
         s = self._rigid.solver
         a = s.qacc.to_torch(device=self._rigid.device).to(self._rigid.dtype)
-        if s.integrator == 2:
-            return (a[-4] + 2 * a[-3] + 2 * a[-2] + a[-1]) / 6.0
+        if s.integrator == Integrator.RK4:
+            return rk4_combine(a[-4], a[-3], a[-2], a[-1])
         return a[-1]
 
     def _dofs_force(self):

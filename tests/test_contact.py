@@ -387,12 +387,12 @@ def test_contact_fields_are_placed_env_major():
     scene.build(n_envs=3)
     c = scene.rigid_solver.contact
     B = scene.rigid_solver.core.cap_envs
-    for owner in (c, c.bank_n, c.bank_d, c.bank_c, c.bank_t):
+    for owner in (c, c.bank_normal, c.bank_relinearise, c.bank_coulomb, c.bank_friction):
         per_env = [f for f in vars(owner).values() if isinstance(f, ti.Field) and f.shape[0] == B]
         assert len(per_env) >= 3
         assert len({_top_node(f) for f in per_env}) == 1, type(owner).__name__
     # the fields with a leading axis of 1 before the env axis: env-major among themselves
-    slots = [c.qacc1, c.qacc2, c.dqc, c.solve_tmp]
+    slots = [c.qacc_candidates, c.qacc_normal, c.dqacc_coulomb, c.solve_tmp]
     assert len({_top_node(f) for f in slots}) == 1
 
 

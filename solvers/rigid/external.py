@@ -15,7 +15,7 @@ contacts does.
 import numpy as np
 import taichi as ti
 
-from .contact import func_acc
+from .contact.banks import func_acc
 
 
 @ti.data_oriented

@@ -9,22 +9,30 @@ import taichi as ti
 from .kinematics import JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE
 from .math3d import func_quat_mul, func_rotvec_quat
 
-INT_EULER, INT_RK_STAGE, INT_RK_FINAL = 0, 1, 2
+from .schedule import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, RK4_WEIGHT_SUM, RK4_WEIGHTS
+
+
+@ti.func
+def func_rk4_combine(k0, k1, k2, k3):
+    """schedule.rk4_combine in Taichi: the weights are compile-time constants (the 1.0s fold away, so
+    the sum is the one written out before the tableau had one home)."""
+    w = ti.static(RK4_WEIGHTS)
+    return (w[0] * k0 + w[1] * k1 + w[2] * k2 + w[3] * k3) / ti.static(RK4_WEIGHT_SUM)
 
 
 @ti.func
 def func_integrate_qpos(s: ti.template(), i_b, kind, e, base, src, dst, h):
-    """qpos[dst] = qpos[base] advanced by velocity veff[e] over time h (quaternions on the sphere)."""
+    """qpos[dst] = qpos[base] advanced by velocity qvel_move[e] over time h (quaternions on the sphere)."""
     for i_l in range(s.n_links):
         jt = s.link_jtype[i_l]
         qs = s.link_q_start[i_l]
         d0 = s.link_dof_start[i_l]
         if jt == JOINT_REVOLUTE or jt == JOINT_PRISMATIC:
-            s.qpos[dst, i_b, qs] = s.qpos[base, i_b, qs] + h * s.veff[e, i_b, d0]
+            s.qpos[dst, i_b, qs] = s.qpos[base, i_b, qs] + h * s.qvel_move[e, i_b, d0]
         elif jt == JOINT_FREE:
             for k in ti.static(range(3)):
-                s.qpos[dst, i_b, qs + k] = s.qpos[base, i_b, qs + k] + h * s.veff[e, i_b, d0 + k]
-            w = ti.Vector([s.veff[e, i_b, d0 + 3], s.veff[e, i_b, d0 + 4], s.veff[e, i_b, d0 + 5]])
+                s.qpos[dst, i_b, qs + k] = s.qpos[base, i_b, qs + k] + h * s.qvel_move[e, i_b, d0 + k]
+            w = ti.Vector([s.qvel_move[e, i_b, d0 + 3], s.qvel_move[e, i_b, d0 + 4], s.qvel_move[e, i_b, d0 + 5]])
             q0 = ti.Vector([s.qpos[base, i_b, qs + 3], s.qpos[base, i_b, qs + 4], s.qpos[base, i_b, qs + 5], s.qpos[base, i_b, qs + 6]])
             q1 = func_quat_mul(func_rotvec_quat(w, h), q0)
             qn = q1 / ti.sqrt(q1.dot(q1))
@@ -38,8 +46,8 @@ def func_dof_update(s: ti.template(), i_b, kind, e, base, src, h, j):
     INT_RK_STAGE: the RK4 trial state at h from the derivative at slot src. INT_RK_FINAL: combine the
     4 stage derivatives e-3..e over h. Indices of the other kinds' slots are clamped (masked out)."""
     last = s.n_slots - 1
-    a_rk = (s.qacc[ti.max(e - 3, 0), i_b, j] + 2.0 * s.qacc[ti.max(e - 2, 0), i_b, j]
-            + 2.0 * s.qacc[ti.max(e - 1, 0), i_b, j] + s.qacc[e, i_b, j]) / 6.0
+    a_rk = func_rk4_combine(s.qacc[ti.max(e - 3, 0), i_b, j], s.qacc[ti.max(e - 2, 0), i_b, j],
+                            s.qacc[ti.max(e - 1, 0), i_b, j], s.qacc[e, i_b, j])
     final = kind == INT_RK_FINAL
     v_new = s.qvel[base, i_b, j] + h * ti.select(final, a_rk, s.qacc[e, i_b, j])
     # the RK stage slots base+1..3, read only by INT_RK_FINAL; the other kinds read slot base there
@@ -48,14 +56,14 @@ def func_dof_update(s: ti.template(), i_b, kind, e, base, src, h, j):
     r1 = ti.select(final, ti.min(base + 1, last), base)
     r2 = ti.select(final, ti.min(base + 2, last), base)
     r3 = ti.select(final, ti.min(base + 3, last), base)
-    v_rk = (s.qvel[base, i_b, j] + 2.0 * s.qvel[r1, i_b, j] + 2.0 * s.qvel[r2, i_b, j] + s.qvel[r3, i_b, j]) / 6.0
+    v_rk = func_rk4_combine(s.qvel[base, i_b, j], s.qvel[r1, i_b, j], s.qvel[r2, i_b, j], s.qvel[r3, i_b, j])
     v_move = ti.select(final, v_rk, ti.select(kind == INT_RK_STAGE, s.qvel[src, i_b, j], v_new))
     return v_new, v_move
 
 
 @ti.func
 def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
-    """New velocities, and the velocities veff[e] that func_integrate_qpos moves positions with.
+    """New velocities, and the velocities qvel_move[e] that func_integrate_qpos moves positions with.
     A URDF <mimic> follower copies its leader: v_f = m v_l, and its position is carried onto
     m q_l + offset within the step (a kinematic constraint; the follower exerts no force back)."""
     for i_d in range(s.n_dofs):
@@ -68,7 +76,7 @@ def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
             v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
             gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
             s.qvel[dst, i_b, i_d] = ti.select(follower, m * v_lead, v_own)
-            s.veff[e, i_b, i_d] = ti.select(follower, m * move_lead + gap / h, move_own)
+            s.qvel_move[e, i_b, i_d] = ti.select(follower, m * move_lead + gap / h, move_own)
         else:
             # without gradients a branch: the leader's update only for followers, and the Euler update
             # without the RK slots' reads (the same numbers as the selects above)
@@ -76,11 +84,11 @@ def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
                 v_lead, move_lead = func_dof_update_branch(s, i_b, kind, e, base, src, h, j)
                 gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
                 s.qvel[dst, i_b, i_d] = m * v_lead
-                s.veff[e, i_b, i_d] = m * move_lead + gap / h
+                s.qvel_move[e, i_b, i_d] = m * move_lead + gap / h
             else:
                 v_own, move_own = func_dof_update_branch(s, i_b, kind, e, base, src, h, i_d)
                 s.qvel[dst, i_b, i_d] = v_own
-                s.veff[e, i_b, i_d] = move_own
+                s.qvel_move[e, i_b, i_d] = move_own
 
 
 @ti.func

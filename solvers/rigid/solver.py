@@ -42,15 +42,14 @@ from .actuation import func_generalized_force
 from .bias import BIAS
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
 from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
-from .integrate import INT_EULER, INT_RK_FINAL, INT_RK_STAGE, INTEGRATE
+from .integrate import INTEGRATE
 from .kinematics import (JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE, KINEMATICS, LINK_STATE,
                          func_dof_subspace, func_forward_kinematics, func_world_inertia)
 from .layout import place_env_major
 from .model import JOINT_NQ, JOINT_NV, EntityModel
+from .schedule import OP_DYN, OP_INT, OP_SOLVE, Integrator, StepSchedule
 
-OP_DYN, OP_SOLVE, OP_INT, OP_COPY = 0, 1, 2, 3
 JTYPE = {"fixed": JOINT_FIXED, "free": JOINT_FREE, "revolute": JOINT_REVOLUTE, "prismatic": JOINT_PRISMATIC}
-INTEGRATOR_EULER, INTEGRATOR_IMPLICITFAST, INTEGRATOR_RK4 = 0, 1, 2
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
 SERIAL_MAX_ENVS = 16
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_generalized_force,)
@@ -660,7 +659,7 @@ class RigidCore(_Kernels):
         self.ctrl_mode = ti.field(ti.i32)
         # state
         self.qpos, self.qvel = s3(), s3()
-        self.qacc, self.veff = s3(), s3()
+        self.qacc, self.qvel_move = s3(), s3()  # qvel_move[e]: the velocity integration e moves qpos with
         # per-evaluation scratch
         self.link_pos, self.link_quat, self.link_R = v3(), ti.Vector.field(4, f, needs_grad=g), m3()
         self.link_cpos, self.link_h, self.link_J = v3(), v3(), m3()
@@ -680,7 +679,7 @@ class RigidCore(_Kernels):
                 self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n,
                 self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force, self.dof_tau]
         mats, ones = [self.mass_mat, self.mass_fac], [self.gravity]
-        slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.veff]), (1, [self.solve_tmp])]
+        slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.qvel_move]), (1, [self.solve_tmp])]
         _place_env_major(B, N, elem, mats, ones, slots)
         if g:
             grads = lambda xs: [x.grad for x in xs if x.grad is not None]  # noqa: E731
@@ -695,7 +694,7 @@ class RigidCore(_Kernels):
         self.sched_h = F(n_ops, False)
         self.n_ops = n_ops
         # per-env fields by position of their env axis (zeroed at load), and the differentiable ones
-        state = [self.qpos, self.qvel, self.qacc, self.veff]
+        state = [self.qpos, self.qvel, self.qacc, self.qvel_move]
         params = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
                   self.dof_frictionloss, self.dof_kp, self.dof_kv, self.gravity, self.ctrl_force, self.ctrl_pos,
                   self.ctrl_vel]
@@ -834,7 +833,7 @@ class RigidSolver:
     """Generalised-coordinate rigid dynamics of all rigid entities of one scene.
 
     models: the entities' numpy descriptions; n_envs >= 1 parallel environments; dt the step (s);
-    substeps per step; integrator one of INTEGRATOR_*; requires_grad allocates adjoint storage.
+    substeps per step; integrator a schedule.Integrator; requires_grad allocates adjoint storage.
     The fields live in `self.core` (a pooled RigidCore, see the module docstring).
     """
 
@@ -850,7 +849,7 @@ class RigidSolver:
         self.dt = dt
         self.substeps = substeps
         self.integrator = integrator
-        self.implicit = integrator == INTEGRATOR_IMPLICITFAST
+        self.implicit = integrator == Integrator.implicitfast
         self.implicit_on = 1.0 if self.implicit else 0.0
         self.requires_grad = requires_grad
         self.enable_joint_limit = enable_joint_limit
@@ -904,8 +903,11 @@ class RigidSolver:
         if self.contact is not None:
             self.contact.load(plan, self.n_envs, self.np_dtype)
         if requires_grad:
-            # reverse-mode loops run over the core's element capacity and the contact tables (taichi_compat/adstack.py)
-            loops = [self.core.cap_elems] + ([self.contact.longest_loop()] if self.contact is not None else [])
+            # the reverse-mode loops that carry a local from one iteration to the next walk the kinematic tree
+            # (at most the core's element capacity); the contact stages' loops over slots, pairs and cross
+            # terms carry none, so they must not size the stacks (taichi_compat/adstack.py: sized to them,
+            # five boxes on a plane got 4096-entry stacks that overflowed the native stack: a segfault)
+            loops = [self.core.cap_elems]
             if self.external is not None:
                 loops.append(self.n_links * self.n_dofs)  # its dof x link double loop
             require_ad_stack(max(loops))
@@ -1031,39 +1033,11 @@ class RigidSolver:
         self.np_anc_pairs = np.array(pairs, dtype=np.int32).reshape(-1, 2)
 
     def _schedule(self):
-        """The ops of one step, (op, kind, e, base, src, dst, h), and where each substep's begin in
-        that list (substep i moves the state from slot substep_slot[i] to substep_slot[i + 1])."""
-        h = self.dt / self.substeps
-        ops, first = [], []
-        if self.integrator == INTEGRATOR_RK4:
-            for i in range(self.substeps):
-                first.append(len(ops))
-                base = 4 * i
-                for k, c in enumerate((0.5, 0.5, 1.0, 1.0)):
-                    e = 4 * i + k
-                    ops.append((OP_DYN, 0, e, base, base + k, 0, c * h))
-                    ops.append((OP_SOLVE, 0, e, base, base + k, 0, 0.0))
-                    if k < 3:
-                        ops.append((OP_INT, INT_RK_STAGE, e, base, base + k, base + k + 1, c * h))
-                    else:
-                        ops.append((OP_INT, INT_RK_FINAL, e, base, base + k, base + 4, h))
-            self.n_slots, self.n_evals = 4 * self.substeps + 1, 4 * self.substeps
-            self.evals_per_substep = 4
-        else:
-            for i in range(self.substeps):
-                first.append(len(ops))
-                ops.append((OP_DYN, 0, i, i, i, 0, h))
-                ops.append((OP_SOLVE, 0, i, i, i, 0, 0.0))
-                ops.append((OP_INT, INT_EULER, i, i, i, i + 1, h))
-            self.n_slots, self.n_evals = self.substeps + 1, self.substeps
-            self.evals_per_substep = 1
-        self.ops = ops
-        self.n_ops = len(ops)
-        self.substep_first_op = first + [len(ops)]
-        self.substep_ops = [ops[first[i]:self.substep_first_op[i + 1]] for i in range(self.substeps)]
-        per = (self.n_slots - 1) // self.substeps
-        self.substep_slot = [per * i for i in range(self.substeps + 1)]
-        self.last_slot = self.n_slots - 1
+        """The step's ops and slots (schedule.StepSchedule) as attributes of the solver."""
+        sched = StepSchedule(self.integrator, self.dt, self.substeps)
+        for name in ("ops", "n_ops", "n_slots", "n_evals", "evals_per_substep", "substep_first_op", "substep_ops",
+                     "substep_slot", "last_slot"):
+            setattr(self, name, getattr(sched, name))
 
     def _cfg(self):
         cfg = [0] * N_CFG_I + [0.0] * N_CFG_F

@@ -17,7 +17,12 @@ gradient is exact in a fresh process on Taichi's own runtime):
 
 So `gs.init` fixes the size at `FLOOR` entries before any kernel compiles, and each solver that
 records reverse-mode kernels declares at build, before its kernels compile, the longest loop over
-scene-sized data that its kernels run (`require`). The deepest stacks measured with the checked
+scene-sized data that carries a local from one iteration to the next (`require`): a walk up the
+kinematic tree, at most the rigid core's element capacity. Loops whose body starts afresh each iteration
+(over contact slots, pairs, cross terms) push nothing across iterations and must not be declared: the
+stacks live on the native stack of the thread running the kernel, and sized to the contact tables (4096
+entries for five boxes on a plane) they overflowed it, a segfault in the backward, checked runtime or not
+(tests/test_adstack.py runs six boxes in a fresh process against central differences). The deepest stacks measured with the checked
 runtime: 11 entries for every rigid scene tried (a box, a double pendulum, a 30-link chain, the
 Panda, ANYmal on the ground, a stack of boxes), 29 for MPM and rigid-MPM coupling (the unrolled
 3x3x3 stencil), whatever the scene's size; FLOOR leaves twice that.

@@ -1,0 +1,139 @@
+"""Bitwise fingerprint of three scenes' trajectories and gradients, for refactors that must not change a number.
+
+    python benchmarks/trajectory_fingerprint.py [--out FILE]
+
+Scenes (all at the default build options: collision on, default integrator, float64 on the CPU backend):
+  contact  three boxes and a sphere on a plane and on each other, 4 envs, per-env initial velocities, 40 steps,
+           requires_grad; loss.backward() to the initial velocities, a mass and a friction coefficient
+  anymal   ANYmal B (example-robot-data) on a plane, 8 envs, PD control towards per-env targets, 40 steps
+  coupling a rigid box pushing an elastic MPM cube (two-way coupling), 10 steps, gradient to the box's
+           initial velocity and mass
+Prints the sha256 of the raw float64 bytes of every recorded tensor, then one line per scene (a hash of
+the tensors' hashes). Two runs on one tree must print the same lines; a refactor that claims to change no
+numerics must too (diff the output).
+"""
+import argparse
+import hashlib
+import os
+import sys
+
+import numpy as np
+import torch
+
+import genesis_lite as gs
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from common import find_robots_dir  # noqa: E402
+
+F64 = dict(dtype=torch.float64)
+
+
+def _digest(x) -> str:
+    a = np.ascontiguousarray((x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)).astype(np.float64))
+    return hashlib.sha256(a.tobytes()).hexdigest()
+
+
+def contact_scene():
+    B = 4
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True))
+    scene.add_entity(gs.morphs.Plane())
+    lower = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0.0, 0.0, 0.1)))
+    upper = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.03, 0.0, 0.25), quat=(0.995, 0.0, 0.0, 0.1)))
+    # (a fifth free body, box or sphere, makes the backward pass of this scene segfault at 52d1430: reported)
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.04, pos=(0.02, 0.01, 0.4)))
+    slider = scene.add_entity(gs.morphs.Box(size=(0.2, 0.1, 0.1), pos=(-0.6, 0.0, 0.06), quat=(0.999, 0.02, 0.03, 0.01)))
+    scene.build(n_envs=B)
+    rng = np.random.default_rng(7)
+    v_upper = torch.tensor(rng.normal(0, 0.5, (B, 6)), **F64).requires_grad_(True)
+    v_ball = torch.tensor(rng.normal(0, 1.0, (B, 6)), **F64).requires_grad_(True)
+    v_slider = torch.tensor(np.c_[rng.uniform(0.5, 2.0, (B, 1)), rng.normal(0, 0.3, (B, 4)), rng.normal(0, 2.0, (B, 1))], **F64).requires_grad_(True)
+    mass = torch.tensor(0.7, **F64).requires_grad_(True)
+    mu = torch.tensor(0.6, **F64).requires_grad_(True)
+    upper.set_links_mass(mass.reshape(1))
+    slider.set_friction(mu)
+    upper.set_dofs_velocity(v_upper)
+    ball.set_dofs_velocity(v_ball)
+    slider.set_dofs_velocity(v_slider)
+    traj = []
+    for _ in range(40):
+        scene.step()
+        traj.append(torch.cat([b.get_qpos() for b in (lower, upper, ball, slider)], dim=-1))
+    traj = torch.stack(traj)
+    w = torch.tensor(np.random.default_rng(3).normal(0, 1, tuple(traj.shape)), **F64)
+    loss = (w * traj).sum()
+    loss.backward()
+    return {"qpos": traj, "loss": loss.reshape(1), "grad_v_upper": v_upper.grad, "grad_v_ball": v_ball.grad,
+            "grad_v_slider": v_slider.grad, "grad_mass": mass.grad.reshape(1), "grad_mu": mu.grad.reshape(1)}
+
+
+def anymal_scene():
+    B = 8
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+    scene.add_entity(gs.morphs.Plane())
+    urdf = find_robots_dir() / "anymal_b_simple_description" / "robots" / "anymal.urdf"
+    robot = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=False, pos=(0.0, 0.0, 0.62)))
+    scene.build(n_envs=B)
+    names = [j.name for j in robot.joints if j.n_dofs == 1]
+    dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]
+    q0 = torch.tensor([0.0 if "HAA" in n else (0.4 if n[1] == "F" else -0.4) if "HFE" in n else (-0.8 if n[1] == "F" else 0.8)
+                       for n in names], **F64)
+    rng = np.random.default_rng(11)
+    robot.set_dofs_kp(torch.full((12,), 300.0, **F64), dofs)
+    robot.set_dofs_kv(torch.full((12,), 10.0, **F64), dofs)
+    robot.set_dofs_position(q0.expand(B, 12).clone(), dofs)
+    target = q0 + torch.tensor(rng.normal(0, 0.2, (B, 12)), **F64)
+    robot.control_dofs_position(target, dofs)
+    traj, vel = [], []
+    for _ in range(40):
+        scene.step()
+        traj.append(robot.get_qpos())
+        vel.append(robot.get_dofs_velocity())
+    return {"qpos": torch.stack(traj), "qvel": torch.stack(vel)}
+
+
+def coupling_scene():
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=5, requires_grad=True),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5), grid_density=32))
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.25, 0.25), size=(0.1, 0.1, 0.1)),
+                            material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
+    pusher = scene.add_entity(gs.morphs.Box(pos=(0.215, 0.26, 0.24), size=(0.05, 0.12, 0.1), quat=(0.99, 0.05, 0.1, 0.0)),
+                              material=gs.materials.Rigid(rho=2000, coup_friction=0.4))
+    scene.build()
+    vel = torch.tensor([1.2, 0.1, -0.05, 0.5, -0.3, 1.0], **F64).requires_grad_(True)
+    mass = torch.tensor([pusher.get_mass()], **F64).requires_grad_(True)
+    pusher.set_links_mass(mass)
+    pusher.set_dofs_velocity(vel)
+    traj, parts = [], []
+    for _ in range(10):
+        scene.step()
+        traj.append(pusher.get_qpos())
+        parts.append(cube.get_particles_pos())
+    traj, parts = torch.stack(traj), torch.stack(parts)
+    loss = (torch.tensor([1.0, -0.7, 0.4], **F64) * parts[-1].mean(0)).sum() + traj[:, :3].sum()
+    loss.backward()
+    return {"pusher_qpos": traj, "particles": parts, "loss": loss.reshape(1), "grad_vel": vel.grad, "grad_mass": mass.grad}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=None, help="also write the lines to this file")
+    ap.add_argument("--scenes", default="contact,anymal,coupling", help="comma-separated subset")
+    args = ap.parse_args()
+    gs.init(backend=gs.cpu, precision="64", logging_level="warning")
+    lines = []
+    for name in args.scenes.split(","):
+        tensors = {"contact": contact_scene, "anymal": anymal_scene, "coupling": coupling_scene}[name]()
+        hashes = []
+        for k, v in tensors.items():
+            h = _digest(v)
+            hashes.append(h)
+            lines.append(f"  {name}.{k} {tuple(v.shape)} {h}")
+        lines.append(f"{name} {hashlib.sha256(''.join(hashes).encode()).hexdigest()}")
+        print("\n".join(lines[-len(hashes) - 1:]), flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,109 @@
+"""Stage 7, contact: smooth penalty forces with Coulomb friction, treated implicitly.
+
+The model, per contact slot (see collision.py for where slots come from), with depth d > 0 meaning
+penetration, n the normal from the SDF side towards the point side, u the velocity of the point side
+relative to the other at the contact point, h the step and d' = d - h (u' . n) the depth at the end
+of the step (u' the velocity after it):
+
+    normal     f_n = k delta softplus(d' / delta) + (c / h) delta (softplus(d' / delta) - softplus(d / delta))
+    friction   f_t = -mu f_n u_t' / sqrt(|v|^2 + eps^2)        mu = max(mu_a, mu_b)
+
+The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
+step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
+spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.
+Because the force is a function of the end-of-step depth, a pair whose gap closes within the step is in
+contact in that step (a speculative contact): a body arriving at 20 m/s stops at the surface instead
+of being caught one step deep (the broad phase widens its margin by the distance the pair can close in
+h, and a slot counts while its current or its predicted depth is within the margin). The predicted
+depth moves the two sides as the integrator does, each link turned by exactly h w about its origin
+(func_rot_excess: the tangent h (w x r) plus Rodrigues' remainder), not along the tangent: with the
+tangent alone, a box spinning at 1e3 rad/s 6 cm above the ground "reached" 1.7 m below it and the
+ground threw it at 28.8 m/s; two boxes 1 m apart pushed each other (issue #21). Friction follows
+Coulomb's law with the normal force the step actually applies, and is viscous below the slip speed eps.
+
+Limits (issue #21). A penalty contact stops a body within a step only when (k + c / h) times the
+depth it allows outweighs the body's momentum per step and its load: a box at 1e6 m/s (1e4 m per step)
+or a 400 t box on four corners of 1e6 N/m goes through. The report pass records, per env, the first
+contact that ends a step deeper than DEEP_FRACTION of the thinner geom's half thickness, and the scene
+warns once (ContactPenetrationWarning, ContactSolver.watch: a read after each of the first 16 steps,
+then every 16th), naming the geoms, the step and the remedy (smaller dt or more substeps for a fast
+body, a larger contact_stiffness for a heavy one; with 1e10 N/m the 400 t box rests within 0.1 mm).
+Known gap: a point of one box beside an edge of another box, level with its face (a box sliding over
+the edge of the one below it), is tested against the side face (the nearest feature), and the step's
+linear prediction along that face's normal closes a gap that never closes: a horizontal kick that
+breaks Coulomb's bound (tests/test_faults_contact.py, xfail).
+
+Time stepping. The forces are linearly implicit (backward Euler on the linearised force, as the
+joint-limit springs): f_n is linearised about the predicted depth d - h (u . n), which makes it
+linear in u' with slope B = (c + h k) sigmoid; each contact contributes J^T W J to the generalised mass
+matrix (W the 3x3 block on the contact's relative velocity) and J^T f to the force. One evaluation's
+solve runs in steps (func_contact_solve), because Coulomb's law ties the friction to a normal force that
+only the solve determines (a stiff implicit contact is a velocity constraint: its force is whatever
+stops the approach, far from the explicit penalty force of the state), and because a speculative
+contact's linear force pulls where another contact stops the body first:
+
+ 1. every candidate normal contact: A1 = M + sum J^T (h B n n^T) J, qacc_candidates = A1^-1 force; each
+    contact's normal force in it, f1 = f_n(u1), from the implicit law at the resulting velocity.
+ 2. without the contacts whose linear force at u1 pulls (a speculative contact that another contact
+    stopped first, or one that separates), and with the candidates (below) linearised again about u1:
+    A2, qacc_normal (the normal solve), and its normal forces f2. (Dropping a contact whose force is 0 at the
+    solution leaves the solution unchanged, so the removal is continuous.)
+ 3. Coulomb's forces -mu f2 g2 (g2 the smoothed slip direction of u2) applied to A2 (a back-substitution
+    with its factor) predict each contact's slip speed at the end of the step, v = (u2 + h J A2^-1 J^T
+    f_c)_t . g2, smoothly clipped at 0 (a slip that would reverse sticks).
+ 4. the final system adds friction as a viscosity eta = mu f2 / sqrt(v^2 + eps^2) (the secant of the
+    law at the predicted slip, so the implicit step can stop a contact but never reverse it: while a
+    contact slides, eta |u_t'| = mu f2 to the accuracy of the prediction, exact for a body whose contact
+    points slip alike; a sticking contact gets eta = mu f2 / eps, the static friction of a stiff
+    damper), and drops the speculative contacts whose f2 pulled: A3 = A2 + sum J^T dW J, qacc = A3^-1
+    (force + sum J^T dF).
+Steps 1, 2 and 4 factorise, 3 reuses the second factor. Candidates: the linearisation at the
+start-of-step velocity misses a gap that closes only because the motion changes within the step (two
+boxes falling together, the lower one stopped: their relative velocity is ~0 at the start). A slot whose
+gap the two bodies' speeds could close within the step is in the system from step 1 with the ~0 force
+and slope of that linearisation; between steps 1 and 2 its law is linearised again at the velocity of
+the first solve (a Newton step), and it acts if the law pushes there. Contacts acting at the start keep
+their first linearisation (linearising them again too left a 30-link chain on the ground swinging). The passes between the solves (link velocities
+of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
+solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse). Friction uses the
+normal forces of a frictionless solve: where friction carries load (legs, chains), the final normal
+forces differ from f2 and so does the friction bound.
+
+Every term is differentiable in the state and in mu, k and c; the kinks are the contact's on/off (at
+the margin, where the force is below 1e-8 k delta, and where the force of the current and of the
+predicted state both stop pushing: fast separation), and the removals of steps 2 and 4 (continuous,
+see above). Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
+tests/test_contact.py checks against finite differences); they approach those of hard contact and
+exact Coulomb friction only as delta, eps and dt go to 0.
+
+The part of J^T W J that lives on one kinematic tree (a contact against a static geom, and the two
+diagonal blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and b) is accumulated like
+composite inertia (a 6x6 block per link, summed up the tree: AccBank), so it fits the tree sparsity of
+M. The coupling -(J_a^T W J_b + J_b^T W J_a) between two moving links does not: scenes with such contact
+pairs (objects stacked or touching each other, self-collision) accumulate it per link pair into
+`mass_cross` and factor M densely (func_factor_solve_dense); scenes whose contacts all involve a static
+geom (robots on the ground) keep the tree factorisation. (Dropping the coupling is not an option:
+stacked bodies then close the gap between them twice per step, or half of it when the blocks are
+doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
+
+Dynamics stages (each one loop over elements, see solver.py): geom poses, broad phase, clear the
+per-link (and per-link-pair) accumulators, slots (geometry + normal force, accumulated onto the two
+links, and the slot's data for the passes), sum up the tree, project onto the dofs (force += J^T f,
+M += J^T W J), and with moving pairs the cross terms. The passes of the solve repeat the accumulation
+for their own forces.
+
+(The stages live one concern a file: law.py the force law, slots.py the dynamics stages, banks.py the
+per-link sums, passes.py the passes between the solves, linalg.py the factorisations and solves with their
+adjoints, solve.py their order, plan.py the host-side model, solver.py the fields and launches,
+report.py what the user is told.)
+"""
+from .linalg import func_factor_solve_dense, func_solve_grad_dense
+from .plan import ContactPlan
+from .report import ContactPenetrationWarning
+from .slots import CONTACT_STAGES
+from .solve import func_contact_solve
+from .solver import ContactSolver
+from ..collision import ContactBuildError
+
+__all__ = ["ContactPlan", "ContactSolver", "ContactBuildError", "ContactPenetrationWarning", "CONTACT_STAGES",
+           "func_contact_solve", "func_factor_solve_dense", "func_solve_grad_dense"]

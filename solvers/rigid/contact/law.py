@@ -1,0 +1,93 @@
+"""The contact force law (see the package docstring): the smoothed normal force of the depth now and
+at the end of the step, and the rotational correction of the predicted depth. Pure functions of one
+slot's numbers; the friction law is applied where its inputs are known (passes.py)."""
+import taichi as ti
+
+from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE
+
+# slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
+MARGIN_WIDTHS = 20.0
+
+
+@ti.func
+def func_softplus(x, xc):
+    """log(1 + e^x), with xc = x clamped to [-60, 60] (exp stays finite in the adjoint). Each branch is
+    exact on its side (x + log(1 + e^-x) above 0, log(1 + e^x) at and below), so the derivative Taichi's
+    reverse mode takes is the sigmoid everywhere, x = 0 included. Spelled max(x, 0) + log(1 + e^-|x|)
+    (the same values) its adjoint at x == 0 was 0, not 1/2: Taichi sends max's adjoint to its second
+    argument at a tie and takes abs's as sign(0) = 0. A body placed exactly on the ground starts its
+    contacts at depth 0 with no normal velocity, so z = zp = 0 there, and the first step's gradient
+    dropped the force's dependence on the depth."""
+    return ti.select(x > 0, x + ti.log(1.0 + ti.exp(-xc)), ti.log(1.0 + ti.exp(xc)))
+
+
+@ti.func
+def func_normal_law(c: ti.template(), depth, depth_end, h):
+    """(normal force, slope h * dF/d(approach speed)) of the implicit law for the depth now and the
+    depth predicted for the end of the step, and the force of the current state alone (the spring on
+    the current depth and the damper on the current approach)."""
+    z = depth / c.delta
+    zp = depth_end / c.delta
+    # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
+    zc = ti.min(ti.max(z, -60.0), 60.0)
+    zpc = ti.min(ti.max(zp, -60.0), 60.0)
+    sp = func_softplus(z, zc)
+    spp = func_softplus(zp, zpc)
+    sg = 1.0 / (1.0 + ti.exp(-zpc))
+    ch = c.d / h
+    fn = (c.k + ch) * c.delta * spp - ch * c.delta * sp
+    return fn, h * (c.d + h * c.k) * sg, c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+
+
+@ti.func
+def func_rot_excess(s: ti.template(), i_b, l, p, h, axis, axial):
+    """How far the rotation of link l over the step moves the material point at p beyond its linear
+    prediction h w x r (r = p - link origin, w the link's angular velocity): (R(h w) - I) r - h w x r,
+    by Rodrigues' formula (sinc(t) - 1) h w x r + (1 - cos t) / t^2 h^2 w x (w x r), t = h |w|. The
+    integrator turns a free body by exactly R(h w) about its origin, so the linear prediction plus this
+    is where the point ends; for a link turning many times in a step the linear prediction runs metres
+    away (a box spinning at 1e3 rad/s above the ground: its corners "reach" 1.7 m below it) while this
+    keeps the point on its circle. Series below t^2 = 1e-4 (no cancellation, no sqrt at 0: smooth in w).
+    axial (0 or 1) drops the spin about `axis` (a cylinder's: turning about it moves its material but
+    not its shape)."""
+    w = s.cvel_w[i_b, l]
+    w = w - (axial * w.dot(axis)) * axis
+    r = p - s.link_pos[i_b, l]
+    t2 = h * h * w.dot(w)
+    small = t2 < 1e-4
+    t = ti.sqrt(ti.max(t2, 1e-4))
+    st = ti.sin(0.5 * t) / (0.5 * t)
+    a = ti.select(small, t2 * (-1.0 / 6.0 + t2 / 120.0), ti.sin(t) / t - 1.0)
+    b = ti.select(small, 0.5 + t2 * (-1.0 / 24.0 + t2 / 720.0), 0.5 * st * st)
+    wr = w.cross(r)
+    return (a * h) * wr + (b * h * h) * w.cross(wr)
+
+
+@ti.func
+def func_rot_corr(s: ti.template(), i_b, i_s, h, pos, n, depth):
+    """How much further than h u.n the two sides of slot i_s approach along n over the step because
+    they turn (func_rot_excess of each side's reference point): the point side's sample point (a
+    box corner, a sphere's centre, a capsule's or cylinder cap's axis point: pos + n (radius) from its
+    surface point) and the SDF side's surface point, or its core point for a sphere or capsule (the
+    rounding radius in from the surface). Those are the points whose motion moves the surfaces: a ball
+    rolling on the ground turns its contact point up and away, not its centre."""
+    c = s.contact
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    la = c.geom_link[ga]
+    lb = c.geom_link[gb]
+    # pos is midway between the two surfaces against a moving geom and for box edge pairs, else on the
+    # point side's surface (func_slot_geometry)
+    mid = (c.link_dyn[lb] == 1) | (c.slot_kind[i_s] == SLOT_BOXEDGE)
+    sa = ti.select(mid, pos - (0.5 * depth) * n, pos)
+    tb = c.geom_type[gb]
+    rb = ti.select((tb == GEOM_SPHERE) | (tb == GEOM_CAPSULE), c.geom_size[gb][0], 0.0)
+    Ra = c.geom_xR[i_b, ga]
+    Rb = c.geom_xR[i_b, gb]
+    za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
+    zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+    ca = ti.select(c.geom_type[ga] == GEOM_CYLINDER, 1.0, 0.0)
+    cb = ti.select(tb == GEOM_CYLINDER, 1.0, 0.0)
+    ea = func_rot_excess(s, i_b, la, sa + c.slot_r[i_s] * n, h, za, ca)
+    eb = func_rot_excess(s, i_b, lb, sa + (depth - rb) * n, h, zb, cb)
+    return (ea - eb).dot(n)

@@ -1,0 +1,148 @@
+"""Factorisations and solves of the contact system and their hand-written adjoints (not differentiated
+by Taichi: forward and adjoint, as the tree factorisation in inertia.py). The solves of
+func_contact_solve keep their factors (factor_candidates, factor_normal); these variants of inertia.func_solve and
+func_dense_solve take the factor's field as an argument.
+
+(inertia.py has the core's tree factor and solve; func_tree_solve here is inertia.func_solve on a
+factor field given as an argument, and func_factor_to is inertia's: the two could share one
+implementation once a bitwise comparison shows the inlined code is the same.)"""
+import taichi as ti
+
+from ..inertia import func_factor_to
+
+
+# ------------------------------------------------------------------------------------------------
+# Solves (not differentiated by Taichi: forward and hand-written adjoint, as the tree factorisation in
+# inertia.py). The solves of func_contact_solve reuse the first factor, kept in factor_candidates; these variants
+# of inertia.func_solve and func_dense_solve take the factor's field as an argument.
+# ------------------------------------------------------------------------------------------------
+@ti.func
+def func_tree_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with the tree L^T D L factor of A in Fc (inertia.func_solve).
+    Read-modify-writes spelled out: `-=` on a field in the env loop compiles to an atomic (a
+    compare-and-swap loop), and these solves are never differentiated by Taichi."""
+    n = s.n_dofs
+    for kk in range(n):
+        i = n - 1 - kk
+        j = s.dof_parent[i]
+        while j >= 0:
+            x[e, i_b, j] = x[e, i_b, j] - Fc[i_b, i, j] * x[e, i_b, i]
+            j = s.dof_parent[j]
+    for i in range(n):
+        x[e, i_b, i] = x[e, i_b, i] / Fc[i_b, i, i]
+    for i in range(n):
+        j = s.dof_parent[i]
+        while j >= 0:
+            x[e, i_b, i] = x[e, i_b, i] - Fc[i_b, i, j] * x[e, i_b, j]
+            j = s.dof_parent[j]
+
+
+@ti.func
+def func_dense_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with A = L D L^T in Fc (unit lower L, D on the diagonal)."""
+    n = s.n_dofs
+    for i in range(n):
+        acc = x[e, i_b, i]
+        for k in range(i):
+            acc -= Fc[i_b, i, k] * x[e, i_b, k]
+        x[e, i_b, i] = acc
+    for i in range(n):
+        x[e, i_b, i] = x[e, i_b, i] / Fc[i_b, i, i]
+    for ii in range(n):
+        i = n - 1 - ii
+        acc = x[e, i_b, i]
+        for k in range(i + 1, n):
+            acc -= Fc[i_b, k, i] * x[e, i_b, k]
+        x[e, i_b, i] = acc
+
+
+@ti.func
+def func_factor_dense(s: ti.template(), i_b):
+    """mass_fac <- L D L^T of A = M (tree entries) + mass_cross, dense."""
+    func_factor_dense_to(s, i_b, s.mass_fac)
+
+
+@ti.func
+def func_factor_dense_to(s: ti.template(), i_b, F: ti.template()):
+    """func_factor_dense into F (lower triangle only)."""
+    c = s.contact
+    n = s.n_dofs
+    for i in range(n):
+        for j in range(i + 1):
+            F[i_b, i, j] = s.mass_mat[i_b, i, j] * s.dof_anc[i, j] + c.mass_cross[i_b, i, j]
+    for j in range(n):
+        dj = F[i_b, j, j]
+        for k in range(j):
+            dj -= F[i_b, j, k] * F[i_b, j, k] * F[i_b, k, k]
+        F[i_b, j, j] = dj
+        for i in range(j + 1, n):
+            v = F[i_b, i, j]
+            for k in range(j):
+                v -= F[i_b, i, k] * F[i_b, j, k] * F[i_b, k, k]
+            F[i_b, i, j] = v / dj
+
+
+@ti.func
+def func_factor_solve_dense(s: ti.template(), i_b, e):
+    """qacc[e] = A^-1 force with A = M (tree entries) + mass_cross, by a dense L D L^T."""
+    func_factor_dense(s, i_b)
+    for i in range(s.n_dofs):
+        s.qacc[e, i_b, i] = s.force[i_b, i]
+    func_dense_solve(s, s.mass_fac, i_b, s.qacc, e)
+
+
+@ti.func
+def func_solve_adjoint(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), xg: ti.template(), e,
+                       rhs_g: ti.template()):
+    """Adjoint of x[e] = A^-1 rhs (A's factor in Fc): rhs_bar += A^-1 x_bar, A_bar = -rhs_bar x^T (lower
+    triangle, symmetrised), onto the tree entries of mass_mat and, in dense scenes, mass_cross."""
+    c = s.contact
+    for i in range(s.n_dofs):
+        c.solve_tmp[0, i_b, i] = xg[e, i_b, i]
+    if ti.static(c.dense):
+        func_dense_solve(s, Fc, i_b, c.solve_tmp, 0)
+    else:
+        func_tree_solve(s, Fc, i_b, c.solve_tmp, 0)
+    for i in range(s.n_dofs):
+        rhs_g[i_b, i] += c.solve_tmp[0, i_b, i]
+    for ij in range(s.n_dofs * s.n_dofs):
+        i = ij // s.n_dofs
+        j = ij % s.n_dofs
+        if j <= i:
+            g = c.solve_tmp[0, i_b, i] * x[e, i_b, j]
+            if i != j:
+                g += c.solve_tmp[0, i_b, j] * x[e, i_b, i]
+            if ti.static(c.dense):
+                c.mass_cross.grad[i_b, i, j] -= g
+            if s.dof_anc[i, j] == 1:
+                s.mass_mat.grad[i_b, i, j] -= g
+
+
+@ti.func
+def func_solve_grad_dense(s: ti.template(), i_b, e):
+    """Adjoint of qacc[e] = A^-1 force (func_factor_solve_dense), its factor still in mass_fac."""
+    func_solve_adjoint(s, s.mass_fac, i_b, s.qacc, s.qacc.grad, e, s.force.grad)
+
+
+@ti.func
+def func_factor_into(s: ti.template(), i_b, Fc: ti.template(), x: ti.template()):
+    """Factor the current system (mass_mat, and mass_cross in dense scenes) into Fc (kept for the later
+    solves and the adjoints; the solves read its lower triangle only), and solve x[0] = A^-1 force
+    with it."""
+    c = s.contact
+    if ti.static(c.dense):
+        func_factor_dense_to(s, i_b, Fc)
+    else:
+        func_factor_to(s, i_b, Fc)
+    n = s.n_dofs
+    for i in range(n):
+        x[0, i_b, i] = s.force[i_b, i]
+    func_any_solve(s, Fc, i_b, x, 0)
+
+
+@ti.func
+def func_any_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), e):
+    if ti.static(s.contact.dense):
+        func_dense_solve(s, Fc, i_b, x, e)
+    else:
+        func_tree_solve(s, Fc, i_b, x, e)

@@ -1,0 +1,370 @@
+"""The passes between the solves of func_contact_solve (solve.py): link motion of a solve's dof
+vector, per-slot forces at that motion, and their sums onto the system (banks.py). Differentiated by
+Taichi, each stage one loop per env as the dynamics stages.
+
+  relinearise  after the first solve (every candidate contact): drops the contacts whose force pulled,
+               linearises the candidates' law again at that solve's velocity (step 2 of the package
+               docstring); its changes to the system go to bank_relinearise
+  coulomb      after the second, normal solve: the normal forces it applied and Coulomb's forces for
+               them along the slip (step 3), summed into force_coulomb
+  friction     after the Coulomb response: friction as a viscosity, and the contacts whose normal-solve
+               force pulled leave (step 4); its changes go to bank_friction
+"""
+import taichi as ti
+
+from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
+from .law import func_normal_law
+
+
+# ------------------------------------------------------------------------------------------------
+# Friction passes (inside the solve, see func_contact_solve): differentiated by Taichi, each stage
+# one loop per env as the dynamics stages
+# ------------------------------------------------------------------------------------------------
+@ti.func
+def func_vec3(x: ti.template(), e, i_b, i):
+    return ti.Vector([x[e, i_b, i], x[e, i_b, i + 1], x[e, i_b, i + 2]])
+
+
+@ti.func
+def func_link_motion(s: ti.template(), x: ti.template(), e, i_b, out_w: ti.template(), out_v: ti.template()):
+    """Spatial velocity (about the world origin) of every link for the dof velocities h * x[e, i_b], h
+    the evaluation's step (kinematics.func_velocity's recursion for another velocity vector). With
+    gradients in single-assignment form, every joint shape's term masked (x is sized by the core's
+    element capacity, so the clamped reads of masked-out shapes stay inside it); without, a branch per
+    joint shape (the same sums, a quarter less time)."""
+    for i_l in range(s.n_links):
+        # read inside the loop: a field value loaded before a loop and used in it made Taichi 1.7.4's
+        # adjoint of the loop fail LLVM verification ("Instruction does not dominate all uses")
+        scale = s.contact.eval_h[i_b]
+        p = s.link_parent[i_l]
+        zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+        nd = s.link_ndof[i_l]
+        if ti.static(s.requires_grad):
+            has_p = p >= 0
+            pp = ti.max(p, 0)
+            d0 = ti.min(s.link_dof_start[i_l], s.cap_elems - 1)
+            df = ti.max(ti.min(s.link_dof_start[i_l], s.cap_elems - 6), 0)
+            one = ti.cast(nd == 1, s.dtype) * scale * x[e, i_b, d0]
+            free = ti.cast(nd == 6, s.dtype) * scale
+            vb = func_vec3(x, e, i_b, df)
+            wb = func_vec3(x, e, i_b, df + 3)
+            out_w[i_b, i_l] = ti.select(has_p, out_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * one + free * wb
+            out_v[i_b, i_l] = (ti.select(has_p, out_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * one
+                               + free * (vb + s.link_pos[i_b, i_l].cross(wb)))
+        else:
+            w = zero
+            v = zero
+            if p >= 0:
+                w = out_w[i_b, p]
+                v = out_v[i_b, p]
+            d0 = s.link_dof_start[i_l]
+            if nd == 1:
+                one = scale * x[e, i_b, d0]
+                w = w + s.cdof_w[i_b, d0] * one
+                v = v + s.cdof_v[i_b, d0] * one
+            elif nd == 6:
+                vb = func_vec3(x, e, i_b, d0)
+                wb = func_vec3(x, e, i_b, d0 + 3)
+                w = w + scale * wb
+                v = v + scale * (vb + s.link_pos[i_b, i_l].cross(wb))
+            out_w[i_b, i_l] = w
+            out_v[i_b, i_l] = v
+
+
+@ti.func
+def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.template()):
+    """Velocity of the point side relative to the other at pos, for the link motions lw, lv."""
+    c = s.contact
+    la = c.geom_link[c.slot_ga[i_s]]
+    lb = c.geom_link[c.slot_gb[i_s]]
+    return (lv[i_b, la] + lw[i_b, la].cross(pos)) - (lv[i_b, lb] + lw[i_b, lb].cross(pos))
+
+
+@ti.func
+def func_normal_after(c: ti.template(), i_b, i_s, u0, u1, n):
+    """The normal force the (first pass's) linear law gives at the end-of-step relative velocity u1 (u0
+    at the start)."""
+    return c.sl_Fn_normal[i_b, i_s] - c.sl_wn_normal[i_b, i_s] / c.eval_h[i_b] * (u1 - u0).dot(n)
+
+
+# the relinearise pass (after the first solve): drop the contacts whose force pulled
+@ti.func
+def func_relinearise_clear(s: ti.template(), i_b):
+    func_bank_clear(s, s.contact.bank_relinearise, i_b)
+
+
+@ti.func
+def func_relinearise_clear_pairs(s: ti.template(), i_b):
+    func_bank_clear_pairs(s, s.contact.bank_relinearise, i_b)
+
+
+@ti.func
+def func_relinearise_motion(s: ti.template(), i_b):
+    c = s.contact
+    func_link_motion(s, c.qacc_candidates, 0, i_b, c.link_w_candidates, c.link_v_candidates)
+
+
+@ti.func
+def func_relinearise_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), add: ti.template()):
+    """Pass 1 for touching slot i_s at the link motion (lw, lv) of the first solve; with `add` its change
+    added onto bank_relinearise. Returns 1 if the slot changes the system (a candidate, or a dropped contact)."""
+    c = s.contact
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    h = c.eval_h[i_b]
+    du = func_rel_motion(s, i_b, i_s, pos, lw, lv).dot(n)
+    depth = c.sl_depth[i_b, i_s]
+    # a contact acting at the start-of-step velocity keeps its linear law (dropped if its force
+    # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
+    # start-of-step velocity, was ~0): it acts if the law pushes there
+    lin = c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / h * du
+    f1, w1, _ = func_normal_law(c, depth, depth - c.sl_corr[i_b, i_s] - h * (u0.dot(n) + du), h)
+    cand = c.sl_cand[i_b, i_s] == 1
+    keep = ti.select(cand, f1 > 0, lin > 0)
+    F1 = ti.select(keep, ti.select(cand, f1 + w1 / h * du, c.sl_Fn[i_b, i_s]), 0.0)
+    W1 = ti.select(keep, ti.select(cand, w1, c.sl_wn[i_b, i_s]), 0.0)
+    c.sl_Fn_normal[i_b, i_s] = F1
+    c.sl_wn_normal[i_b, i_s] = W1
+    c.sl_in_normal[i_b, i_s] = ti.select(keep, 1, 0)
+    if ti.static(add):
+        func_bank_add(s, c.bank_relinearise, i_b, i_s, pos, (F1 - c.sl_Fn[i_b, i_s]) * n,
+                      (W1 - c.sl_wn[i_b, i_s]) * n.outer_product(n))
+    return ti.select(cand | (not keep), 1, 0)
+
+
+@ti.func
+def func_relinearise_slots(s: ti.template(), i_b):
+    """Per touching slot: the normal force the first solve applied; a contact whose force pulled (a
+    speculative contact that another contact stopped first, or one that separates) leaves the system."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if c.sl_on[i_b, i_s] == 1:
+            func_relinearise_slot(s, i_b, i_s, c.link_w_candidates, c.link_v_candidates, True)
+
+
+@ti.func
+def func_relinearise_add_listed(s: ti.template(), i_b):
+    """bank_relinearise <- the changes func_relinearise_slot (without `add`) stored, for the listed slots in slot order:
+    the same sums as func_relinearise_slots' (a kept contact adds exact zeros)."""
+    c = s.contact
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        n = c.sl_n[i_b, i_s]
+        func_bank_add(s, c.bank_relinearise, i_b, i_s, c.sl_pos[i_b, i_s], (c.sl_Fn_normal[i_b, i_s] - c.sl_Fn[i_b, i_s]) * n,
+                      (c.sl_wn_normal[i_b, i_s] - c.sl_wn[i_b, i_s]) * n.outer_product(n))
+
+
+@ti.func
+def func_relinearise_tree(s: ti.template(), i_b):
+    func_bank_tree(s, s.contact.bank_relinearise, i_b)
+
+
+@ti.func
+def func_relinearise_dof(s: ti.template(), i_b):
+    func_bank_dof(s, s.contact.bank_relinearise, i_b)
+
+
+@ti.func
+def func_relinearise_project(s: ti.template(), i_b):
+    func_bank_project(s, s.contact.bank_relinearise, i_b)
+
+
+@ti.func
+def func_relinearise_cross(s: ti.template(), i_b):
+    func_bank_cross(s, s.contact.bank_relinearise, i_b)
+
+
+# the Coulomb pass (after the second, normal solve): normal forces, Coulomb's forces for them
+@ti.func
+def func_coulomb_clear(s: ti.template(), i_b):
+    func_bank_clear(s, s.contact.bank_coulomb, i_b)
+
+
+@ti.func
+def func_coulomb_motion(s: ti.template(), i_b):
+    c = s.contact
+    func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+
+
+@ti.func
+def func_coulomb_slots(s: ti.template(), i_b):
+    """Per kept slot: the velocity after the normal solve, the normal force it applied, and Coulomb's
+    force for that load along that velocity's (smoothed) slip."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_normal[i_b, i_s] == 1):
+            func_coulomb_slot(s, i_b, i_s)
+
+
+@ti.func
+def func_coulomb_slot(s: ti.template(), i_b, i_s):
+    c = s.contact
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    u2 = u0 + func_rel_motion(s, i_b, i_s, pos, c.link_w_normal, c.link_v_normal)
+    f2 = func_normal_after(c, i_b, i_s, u0, u2, n)
+    u2t = u2 - u2.dot(n) * n
+    g2 = u2t / ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+    c.sl_u_normal[i_b, i_s] = u2
+    c.sl_load[i_b, i_s] = f2
+    load = ti.max(f2, 0.0)
+    func_bank_add(s, c.bank_coulomb, i_b, i_s, pos, -c.sl_mu[i_b, i_s] * load * g2, ti.Matrix.zero(s.dtype, 3, 3))
+
+
+@ti.func
+def func_coulomb_slots_listed(s: ti.template(), i_b):
+    c = s.contact
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        if c.sl_in_normal[i_b, i_s] == 1:
+            func_coulomb_slot(s, i_b, i_s)
+
+
+@ti.func
+def func_coulomb_tree(s: ti.template(), i_b):
+    func_bank_tree(s, s.contact.bank_coulomb, i_b)
+
+
+@ti.func
+def func_coulomb_dof(s: ti.template(), i_b):
+    """force_coulomb = J^T (Coulomb forces of func_coulomb_slots)."""
+    c = s.contact
+    b = c.bank_coulomb
+    for i in range(s.n_dofs):
+        i_l = s.dof_link[i]
+        g = s.cdof_w[i_b, i].dot(b.link_fn[i_b, i_l]) + s.cdof_v[i_b, i].dot(b.link_ff[i_b, i_l])
+        c.force_coulomb[i_b, i] = ti.select(b.link_touch[i_b, i_l] == 1, g, 0.0)
+
+
+# the friction pass (after the Coulomb response): friction, and the contacts that pulled in the normal solve leave
+@ti.func
+def func_friction_clear(s: ti.template(), i_b):
+    func_bank_clear(s, s.contact.bank_friction, i_b)
+
+
+@ti.func
+def func_friction_clear_pairs(s: ti.template(), i_b):
+    func_bank_clear_pairs(s, s.contact.bank_friction, i_b)
+
+
+@ti.func
+def func_friction_motion(s: ti.template(), i_b):
+    c = s.contact
+    func_link_motion(s, c.dqacc_coulomb, 0, i_b, c.link_w_coulomb, c.link_v_coulomb)
+
+
+@ti.func
+def func_friction_slots(s: ti.template(), i_b):
+    """Per kept slot, the change to the normal system: friction (implicit, its viscosity the secant of
+    Coulomb's law at the slip speed predicted with Coulomb's forces applied, never below zero), and the
+    removal of contacts whose normal-solve force pulled."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_normal[i_b, i_s] == 1):
+            func_friction_slot(s, i_b, i_s)
+        else:
+            c.sl_in_final[i_b, i_s] = 0
+
+
+@ti.func
+def func_friction_slot(s: ti.template(), i_b, i_s):
+    c = s.contact
+    h = c.eval_h[i_b]
+    pos = c.sl_pos[i_b, i_s]
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    u2 = c.sl_u_normal[i_b, i_s]
+    f2 = c.sl_load[i_b, i_s]
+    u2t = u2 - u2.dot(n) * n
+    s2 = ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+    uc = u2 + func_rel_motion(s, i_b, i_s, pos, c.link_w_coulomb, c.link_v_coulomb)
+    w = (uc - uc.dot(n) * n).dot(u2t) / s2
+    # slip speed ahead, smoothly clipped at 0 (a reversal means the contact sticks)
+    wc = ti.min(ti.max(w / c.eps, -60.0), 60.0)
+    # (func_softplus's two branches, so that the adjoint at w == 0 is 1/2 as the derivative)
+    vp = ti.select(w > 0, w + c.eps * ti.log(1.0 + ti.exp(-wc)), c.eps * ti.log(1.0 + ti.exp(wc)))
+    keep = f2 > 0
+    eta = c.sl_mu[i_b, i_s] * ti.max(f2, 0.0) / ti.sqrt(vp * vp + c.eps * c.eps)
+    drop = ti.select(keep, 0.0, 1.0)
+    nn = n.outer_product(n)
+    u0t = u0 - u0.dot(n) * n
+    dF = -eta * u0t - drop * c.sl_Fn_normal[i_b, i_s] * n
+    dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn_normal[i_b, i_s] * nn
+    func_bank_add(s, c.bank_friction, i_b, i_s, pos, dF, dW)
+    c.sl_eta[i_b, i_s] = eta
+    c.sl_in_final[i_b, i_s] = ti.select(keep, 1, 0)
+
+
+@ti.func
+def func_friction_slots_listed(s: ti.template(), i_b):
+    """func_friction_slots over the listed slots (sl_in_final is then written for those only: every reader
+    visits listed slots only)."""
+    c = s.contact
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        if c.sl_in_normal[i_b, i_s] == 1:
+            func_friction_slot(s, i_b, i_s)
+        else:
+            c.sl_in_final[i_b, i_s] = 0
+
+
+@ti.func
+def func_friction_tree(s: ti.template(), i_b):
+    func_bank_tree(s, s.contact.bank_friction, i_b)
+
+
+@ti.func
+def func_friction_dof(s: ti.template(), i_b):
+    func_bank_dof(s, s.contact.bank_friction, i_b)
+
+
+@ti.func
+def func_friction_project(s: ti.template(), i_b):
+    func_bank_project(s, s.contact.bank_friction, i_b)
+
+
+@ti.func
+def func_friction_cross(s: ti.template(), i_b):
+    func_bank_cross(s, s.contact.bank_friction, i_b)
+
+
+@ti.func
+def func_relinearise_listed(s: ti.template(), i_b):
+    """Pass 1 over the listed slots with the first solve's link motion (link_w_normal, link_v_normal), without gradients; where it
+    changed something, its sums are accumulated into the system. Returns whether it did."""
+    c = s.contact
+    changed = 0
+    for k in range(c.n_on[i_b]):
+        changed |= func_relinearise_slot(s, i_b, c.sl_list[i_b, k], c.link_w_normal, c.link_v_normal, False)
+    if changed:
+        for stage in ti.static(c.relinearise_sums):
+            stage(s, i_b)
+    return changed
+
+
+@ti.func
+def func_coulomb_listed(s: ti.template(), i_b):
+    """Pass 2 over the listed slots, without gradients."""
+    func_coulomb_clear(s, i_b)
+    func_coulomb_slots_listed(s, i_b)
+    func_coulomb_tree(s, i_b)
+    func_coulomb_dof(s, i_b)
+
+
+RELINEARISE_PASS = (func_relinearise_clear, func_relinearise_motion, func_relinearise_slots, func_relinearise_tree,
+                    func_relinearise_dof, func_relinearise_project)
+RELINEARISE_PASS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_PASS + (func_relinearise_cross,)
+COULOMB_PASS = (func_coulomb_clear, func_coulomb_motion, func_coulomb_slots, func_coulomb_tree, func_coulomb_dof)
+FRICTION_PASS = (func_friction_clear, func_friction_motion, func_friction_slots, func_friction_tree, func_friction_dof,
+                 func_friction_project)
+FRICTION_PASS_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS + (func_friction_cross,)
+# the fused step without gradients (func_contact_solve): the relinearise pass's sums once its slots are
+# known to change the system, and the friction pass over the listed slots
+RELINEARISE_SUMS = (func_relinearise_clear, func_relinearise_add_listed, func_relinearise_tree, func_relinearise_dof,
+                    func_relinearise_project)
+RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (func_relinearise_cross,)
+FRICTION_PASS_LISTED = (func_friction_clear, func_friction_motion, func_friction_slots_listed, func_friction_tree,
+                        func_friction_dof, func_friction_project)
+FRICTION_PASS_LISTED_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS_LISTED + (func_friction_cross,)

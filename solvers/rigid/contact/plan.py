@@ -1,0 +1,109 @@
+"""ContactPlan: the contact model of one scene in numpy (host side): geoms, pairs, slots, the static
+flags its kernels are specialised on and the capacities its fields need."""
+import numpy as np
+
+from ..collision import SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, build_geoms, build_slots, candidate_pairs, link_is_dynamic
+from .law import MARGIN_WIDTHS
+
+# run-time sizes of the contact model (indices into ContactSolver.cfg_i): the contact kernels read them
+# from a field, so one compile serves every scene of a contact class. The model's constants (k, d,
+# delta, eps) stay compile-time constants, part of the class: as run-time values they change the
+# rounding of the force law (LLVM folds and reassociates them), and a chaotic rollout (a legged robot
+# landing) then leaves main's trajectory; scenes share them anyway unless their options differ.
+C_GEOMS, C_PAIRS, C_SLOTS, C_LP, C_CROSS, N_CCFG_I = range(6)
+
+
+def _cap(n: int, least: int) -> int:
+    return max(least, 1 << (max(n, 1) - 1).bit_length())
+
+
+class ContactPlan:
+    """The contact model of one scene in numpy: geoms, pairs, slots, the static flags its kernels are
+    specialised on, and the capacities its fields need (see ContactSolver)."""
+
+    @staticmethod
+    def create(solver, models, options, specialized=False):
+        """The contact plan of a scene, or None when no two geoms can touch (nothing is compiled or
+        launched for contacts then). Raises ContactBuildError for geometry it cannot simulate."""
+        geoms = build_geoms(models, int(options.max_mesh_contact_points))
+        if geoms.n == 0:
+            return None
+        pairs = candidate_pairs(geoms, solver, bool(options.enable_self_collision),
+                                bool(getattr(options, "ignore_unsupported_pairs", False)))
+        if not pairs:
+            return None
+        return ContactPlan(solver, geoms, pairs, options, specialized)
+
+    def __init__(self, solver, geoms, pairs, options, specialized=False):
+        self.geoms = geoms
+        self.pairs = pairs
+        slots = build_slots(geoms, pairs)
+        self.slots = slots
+        self.n_links = solver.n_links
+        self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
+        self.k = float(options.contact_stiffness)
+        self.d = float(options.contact_damping)
+        self.delta = float(options.contact_smoothing)
+        self.eps = float(options.friction_smoothing)
+        self.margin = MARGIN_WIDTHS * self.delta
+        # static: code is generated only for the slot kinds and SDF types this scene uses
+        self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
+        self.has_segseg = any(x[1] == SLOT_SEGSEG for x in slots)
+        self.has_boxedge = any(x[1] == SLOT_BOXEDGE for x in slots)
+        self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
+        self.entity_geom_start = list(geoms.entity_start)
+        self.entity_geom_count = list(geoms.entity_count)
+        # static slot tables, kept in numpy for the readers
+        self.np_slot_ga = np.array([x[2] for x in slots], dtype=np.int32)
+        self.np_slot_gb = np.array([x[3] for x in slots], dtype=np.int32)
+        self.np_slot_pair = np.array([x[0] for x in slots], dtype=np.int32)
+        self.np_slot_link_a = geoms.link[self.np_slot_ga]
+        self.np_slot_link_b = geoms.link[self.np_slot_gb]
+        # contacts between two moving links couple their dofs outside the tree sparsity of M: such
+        # link pairs get a 6x6 accumulator, and the dof pairs they couple a static list (see above)
+        self.link_dyn = link_is_dynamic(solver)
+        lp_index, slot_lp = {}, []
+        for la, lb in zip(self.np_slot_link_a, self.np_slot_link_b):
+            if self.link_dyn[la] and self.link_dyn[lb]:
+                key = (min(la, lb), max(la, lb))
+                slot_lp.append(lp_index.setdefault(key, len(lp_index)))
+            else:
+                slot_lp.append(-1)
+        self.slot_lp = slot_lp
+        self.dense = len(lp_index) > 0
+        self.n_lp = len(lp_index)
+        cross = []
+        for (la, lb), lp in lp_index.items():
+            for i in _link_dofs(solver, la):
+                for j in _link_dofs(solver, lb):
+                    # (i, j) and (j, i) land on the same lower-triangle entry; on the diagonal (a common
+                    # ancestor of a self-collision pair) both terms of J_a^T W J_b + J_b^T W J_a do
+                    cross.append((i, j, lp, 2.0 if i == j else 1.0))
+        self.cross = cross
+        self.n_cross = len(cross)
+        self.cfg_i = [0] * N_CCFG_I
+        self.cfg_i[C_GEOMS], self.cfg_i[C_PAIRS], self.cfg_i[C_SLOTS] = self.n_geoms, self.n_pairs, self.n_slots
+        self.cfg_i[C_LP], self.cfg_i[C_CROSS] = self.n_lp, self.n_cross
+        # the contact class: capacities rounded up to powers of two, and the static flags. A specialised
+        # plan (RigidOptions.specialize_kernels) has its sizes compiled in as constants and fields of its
+        # exact sizes: measured on ANYmal with 1,024 envs (float32, full optimisation), 1.41x MuJoCo's
+        # rollout against 1.28x with run-time sizes at exact capacities (1.21x at powers of two)
+        self.static = bool(specialized)
+        if self.static:
+            self.caps = (self.n_geoms, self.n_pairs, self.n_slots, self.n_lp if self.dense else 0,
+                         self.n_cross if self.dense else 0)
+        else:
+            self.caps = (_cap(self.n_geoms, 16), _cap(self.n_pairs, 16), _cap(self.n_slots, 64),
+                         _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
+        self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.sdf_types,
+                      (self.k, self.d, self.delta, self.eps), self.static)
+
+
+def _link_dofs(solver, l):
+    """The dofs that move link l: its own and its ancestors'."""
+    out = []
+    while l >= 0:
+        d0 = solver.np_link_dof_start[l]
+        out.extend(range(d0, d0 + solver.np_link_ndof[l]))
+        l = solver.np_link_parent[l]
+    return out

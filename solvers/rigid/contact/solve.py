@@ -1,0 +1,115 @@
+"""The solve of one evaluation with contacts (func_contact_solve): the factorisations and solves of
+linalg.py and the passes of passes.py in order; see the package docstring's steps 1 to 4."""
+import taichi as ti
+
+from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
+from .linalg import func_any_solve, func_factor_into, func_factor_solve_dense
+from .passes import COULOMB_PASS, func_link_motion, func_relinearise_listed, func_coulomb_listed
+from .report import func_contact_report
+
+
+@ti.func
+def func_solve_candidates(s: ti.template(), i_b):
+    """qacc_candidates: the system with every candidate normal contact."""
+    func_factor_into(s, i_b, s.contact.factor_candidates, s.contact.qacc_candidates)
+
+
+@ti.func
+def func_solve_normal(s: ti.template(), i_b):
+    """qacc_normal: the normal system without the contacts that pulled in the first."""
+    func_factor_into(s, i_b, s.contact.factor_normal, s.contact.qacc_normal)
+
+
+@ti.func
+def func_solve_coulomb(s: ti.template(), i_b):
+    """dqacc_coulomb = A2^-1 force_coulomb: the response of the normal system to the Coulomb pass's
+    forces."""
+    c = s.contact
+    for i in range(s.n_dofs):
+        c.dqacc_coulomb[0, i_b, i] = c.force_coulomb[i_b, i]
+    func_any_solve(s, c.factor_normal, i_b, c.dqacc_coulomb, 0)
+
+
+@ti.func
+def func_contact_solve(s: ti.template(), i_b, e):
+    """The solve of a scene with contacts, all stages for one env (the fused step; see
+    ContactSolver.factor_solve). Without gradients (nothing reads the intermediate factors and
+    solutions back) the same results are computed with less work:
+    - the passes visit the slots listed by func_contact_slots, not all the scene's slots;
+    - an env with no slot on skips to the final solve (every pass adds nothing: A3 = A1 = M);
+    - the first solve goes to factor_normal / qacc_normal and its link motion to link_w_normal /
+      link_v_normal; when the relinearise pass changes nothing (no candidate, no dropped contact: its
+      sums are exact zeros, A2 == A1 and force unchanged) those are the second solve's and its motion,
+      and the relinearise pass's sums, the second factorisation and solve and the Coulomb pass's link
+      motion are skipped."""
+    c = s.contact
+    if ti.static(s.requires_grad):
+        func_solve_candidates(s, i_b)
+        for stage in ti.static(c.relinearise_pass):
+            stage(s, i_b)
+        func_solve_normal(s, i_b)
+        for stage in ti.static(COULOMB_PASS):
+            stage(s, i_b)
+        func_solve_coulomb(s, i_b)
+        for stage in ti.static(c.friction_pass):
+            stage(s, i_b)
+    elif ti.static(s.unrolled and not c.dense):
+        func_contact_solve_rounds(s, i_b, e)
+    else:
+        if c.n_on[i_b] > 0:
+            func_factor_into(s, i_b, c.factor_normal, c.qacc_normal)
+            func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+            if func_relinearise_listed(s, i_b):
+                func_factor_into(s, i_b, c.factor_normal, c.qacc_normal)
+                func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+            func_coulomb_listed(s, i_b)
+            func_solve_coulomb(s, i_b)
+            for stage in ti.static(c.friction_pass_listed):
+                stage(s, i_b)
+    if ti.static(c.dense):
+        func_factor_solve_dense(s, i_b, e)
+    elif ti.static(not s.unrolled):  # an unrolled core has no gradients; its rounds did the final solve
+        func_factor_solve(s, i_b, e)
+    func_contact_report(s, i_b, e)
+
+
+@ti.func
+def func_contact_solve_rounds(s: ti.template(), i_b, e):
+    """func_contact_solve's no-gradient path, final solve included, for a core that unrolls the tree
+    factorisation (inertia.TreeSchedule): its factorisations and solves are rounds of one loop, so the
+    unrolled factor and solve are compiled once, not three and four times (the kernel's compile time
+    grows by a third of what inlining each would cost). The factor stays a local between rounds:
+    round 0 factors A1 and solves into qacc_normal; round 1 (only when the relinearise pass changed
+    something) A2, into qacc_normal; round 2 solves the Coulomb response dqacc_coulomb with the last
+    factor; round 3 factors A3 and solves into qacc[e]."""
+    c = s.contact
+    L = ti.Vector.zero(s.dtype, s.static_tree.n_lower)
+    rnd = 0
+    if c.n_on[i_b] == 0:
+        rnd = 3
+    while rnd < 4:
+        b = ti.Vector.zero(s.dtype, s.static_tree.n)
+        if rnd == 2:
+            b = func_static_vec(s, c.force_coulomb, i_b)
+        else:
+            L = func_static_factor(s, i_b)
+            b = func_static_vec(s, s.force, i_b)
+        y = func_static_solve(s, L, b)
+        if rnd == 3:
+            func_static_store(s, y, s.qacc, e, i_b)
+            rnd = 4
+        elif rnd == 2:
+            func_static_store(s, y, c.dqacc_coulomb, 0, i_b)
+            for stage in ti.static(c.friction_pass_listed):
+                stage(s, i_b)
+            rnd = 3
+        else:
+            func_static_store(s, y, c.qacc_normal, 0, i_b)
+            func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+            nxt = 2
+            if rnd == 0:
+                if func_relinearise_listed(s, i_b):
+                    nxt = 1
+            if nxt == 2:
+                func_coulomb_listed(s, i_b)
+            rnd = nxt

@@ -1,0 +1,441 @@
+"""ContactSolver: the fields of the contact model on a RigidCore, its loading, and the launches of the
+solve op (factor_solve) and of its adjoint (solve_grad)."""
+import warnings
+
+import numpy as np
+import taichi as ti
+
+from ... import taichi_compat
+from ..collision import N_KDOP, geom_rotations
+from ..layout import FieldTree
+from .banks import AccBank
+from .law import MARGIN_WIDTHS
+from .linalg import func_solve_adjoint
+from .passes import (COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, FRICTION_PASS_LISTED, FRICTION_PASS_LISTED_CROSS,
+                     RELINEARISE_PASS, RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS)
+from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
+from .report import ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report, geom_half_thickness
+from .slots import CONTACT_STAGES, CROSS_STAGES
+from .solve import func_solve_coulomb, func_solve_candidates, func_solve_normal
+
+
+def _runtime(index):
+    """A size of the scene a ContactSolver holds: that scene's number in Python scope, a read of the
+    solver's cfg field inside a kernel being compiled (as solver._runtime)."""
+
+    def get(self):
+        if taichi_compat.inside_kernel() and not self.static_sizes:
+            return taichi_compat.subscript(self.cfg_i, index)
+        return self.plan.cfg_i[index]
+
+    return property(get)
+
+
+@ti.data_oriented
+class ContactSolver:
+    """Fields and stages of the contact model of a RigidSolver (see the module docstring).
+
+    The fields are sized by a contact class (the capacities and static flags of a ContactPlan, on one
+    RigidCore) and the scene's sizes and constants are read at run time from cfg_i / cfg_f, so a later
+    scene whose plan fits (same flags, capacities no larger) takes this solver, with the kernels already
+    compiled on it, from the pool (solver.POOL) and compiles nothing: `load` puts its plan in."""
+
+    n_geoms = _runtime(C_GEOMS)
+    n_pairs = _runtime(C_PAIRS)
+    n_slots = _runtime(C_SLOTS)
+    n_lp = _runtime(C_LP)
+    n_cross = _runtime(C_CROSS)
+
+    def __init__(self, core, plan: ContactPlan):
+        self.plan = plan
+        self.caps, self.flags = plan.caps, plan.flags
+        self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.sdf_types, consts, self.static_sizes = plan.flags
+        self.baked_sizes = tuple(plan.cfg_i)
+        self.k, self.d, self.delta, self.eps = consts
+        self.margin = MARGIN_WIDTHS * self.delta
+        self.dtype = core.dtype
+        G, Pn, S, n_lp, n_cross = plan.caps
+        B, L = core.cap_envs, core.cap_elems
+        # dof vectors at the core's element capacity: the link-motion pass reads a free joint's six
+        # entries at a clamped index even in scenes with fewer dofs (masked out, as in kinematics.py)
+        D = core.cap_elems
+        f, g = core.dtype, core.requires_grad
+        tree = FieldTree(f, g, B)
+        I, V3, M3, F = tree.I, tree.V3, tree.M3, tree.F  # noqa: E741
+        self.cfg_i = I(N_CCFG_I)
+        # geoms
+        self.geom_type, self.geom_link = I(G), I(G)
+        self.geom_pos, self.geom_center, self.geom_size = V3(G, False), V3(G, False), V3(G, False)
+        self.geom_R = M3(G, False)
+        self.geom_rbound = F(G, False)
+        self.geom_beta = F(G, False)
+        # half thickness (box: smallest half size, sphere / capsule: radius, ...; plane: huge), for the
+        # deep-penetration watch
+        self.geom_thick = F(G, False)
+        self.geom_kdop = F((G, N_KDOP), False)
+        # the friction parameter [env, geom]; the scene sees its block through geom_friction
+        self.geom_mu = F((B, G))
+        self.link_dyn = I(L)
+        # pairs and slots
+        self.pair_ga, self.pair_gb = I(Pn), I(Pn)
+        # the pair's slots: pair_s0[p] .. pair_s0[p + 1] - 1 (build_slots stores them by pair)
+        self.pair_s0 = I(Pn + 1)
+        self.pair_active = I((B, Pn))
+        self.slot_pair, self.slot_kind, self.slot_ga, self.slot_gb = I(S), I(S), I(S), I(S)
+        self.slot_p = V3(S, False)
+        self.slot_r, self.slot_aux = F(S, False), F(S, False)
+        # per evaluation: geom poses, the touching slots' data (normal model, for the passes), the
+        # accumulators (banks.py) of the normal forces, of the relinearise pass's changes, of the Coulomb
+        # forces and of the friction pass's changes, and the solves' vectors (solve.py: "candidates" is
+        # the first solve's system, with every candidate contact; "normal" the second, frictionless one)
+        self.geom_xpos, self.geom_xR = V3((B, G)), M3((B, G))
+        self.eval_h = F(B, False)
+        self.sl_on = I((B, S))
+        self.sl_pos, self.sl_n, self.sl_u = V3((B, S)), V3((B, S)), V3((B, S))
+        self.sl_u_normal = V3((B, S))
+        self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_load = F((B, S)), F((B, S)), F((B, S)), F((B, S))
+        self.sl_depth, self.sl_Fn_normal, self.sl_wn_normal = F((B, S)), F((B, S)), F((B, S))
+        self.sl_corr = F((B, S))
+        # sl_*_normal: the slot in the normal (second) system: its linear law there, and whether it is in
+        # it (the relinearise pass kept it); sl_u_normal, sl_load: the velocity and the normal force of
+        # the normal solve (Coulomb's load); sl_in_final: still in after the friction pass
+        self.sl_in_normal, self.sl_cand = I((B, S)), I((B, S))
+        # without gradients: the slots that are on, in slot order (func_contact_slots), and their count
+        self.sl_list, self.n_on = I((B, S)), I(B)
+        self.bank_normal = AccBank(B, L, D, n_lp, f, g, True)
+        self.bank_relinearise = AccBank(B, L, D, n_lp, f, g, True)
+        self.bank_coulomb = AccBank(B, L, D, 0, f, g, False)
+        self.bank_friction = AccBank(B, L, D, n_lp, f, g, True)
+        # qacc_*: a solve's dof vector (h-scaled acceleration); dqacc_coulomb: the normal system's response
+        # to force_coulomb (J^T of the Coulomb pass's forces); link_w_* / link_v_*: the link motion of a
+        # dof vector (passes.func_link_motion)
+        self.qacc_candidates = F((1, B, D))
+        self.qacc_normal = F((1, B, D))
+        self.dqacc_coulomb = F((1, B, D))
+        self.force_coulomb = F((B, D))
+        self.link_w_candidates, self.link_v_candidates = V3((B, L)), V3((B, L))
+        self.link_w_normal, self.link_v_normal = V3((B, L)), V3((B, L))
+        self.link_w_coulomb, self.link_v_coulomb = V3((B, L)), V3((B, L))
+        self.factor_candidates, self.factor_normal = F((B, D, D), False), F((B, D, D), False)
+        self.sl_eta, self.sl_in_final = F((B, S), False), I((B, S))
+        self.link_w_report, self.link_v_report = V3((B, L), False), V3((B, L), False)
+        self.solve_tmp = F((1, B, D), False)
+        # placeholders where the scene has no pairs of moving links (kernel_load's arguments)
+        self.slot_lp = I(S)
+        self.cross_i, self.cross_j, self.cross_lp = I(max(n_cross, 1)), I(max(n_cross, 1)), I(max(n_cross, 1))
+        self.cross_fac = F(max(n_cross, 1), False)
+        if self.dense:
+            self.mass_cross = F((B, D, D))
+        # outputs of the last evaluation (read by the entity API; no gradient)
+        self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
+        self.c_depth, self.c_fn = F((B, S), False), F((B, S), False)
+        # the deep-penetration watch: evaluations per env, each env's first deep contact ([hit, slot,
+        # evaluation], [depth at the end of the step, approach speed, limit, depth gained in the step /
+        # limit]), any env's
+        self.eval_count = I(B)
+        self.deep_i, self.deep_f, self.deep_any = I((B, 3)), F((B, 4), False), I(1)
+        self._deep_warned, self._watch_n = False, 0
+        self.tree = tree.finalize()
+
+        self.stages = CONTACT_STAGES
+        self.relinearise_pass, self.friction_pass = RELINEARISE_PASS, FRICTION_PASS
+        self.relinearise_sums, self.friction_pass_listed = RELINEARISE_SUMS, FRICTION_PASS_LISTED
+        # adjoints cleared before each solve's backward (read from the passes' backward onwards)
+        self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u_normal, self.sl_Fn, self.sl_depth,
+                                     self.sl_corr, self.sl_Fn_normal, self.sl_wn_normal,
+                                     self.sl_wn, self.sl_mu, self.sl_load, self.qacc_candidates, self.qacc_normal,
+                                     self.dqacc_coulomb, self.force_coulomb, self.link_w_candidates,
+                                     self.link_v_candidates, self.link_w_normal, self.link_v_normal,
+                                     self.link_w_coulomb, self.link_v_coulomb]
+                                    + self.bank_relinearise.grad_fields + self.bank_coulomb.grad_fields
+                                    + self.bank_friction.grad_fields) if g else []
+        # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
+        # are zeroed before every solve's adjoint instead
+        self.grad_fields = ([self.geom_mu, self.geom_xpos, self.geom_xR] + self.bank_normal.grad_fields) if g else []
+        if self.dense:
+            self.stages = CROSS_STAGES
+            self.relinearise_pass, self.friction_pass = RELINEARISE_PASS_CROSS, FRICTION_PASS_CROSS
+            self.relinearise_sums, self.friction_pass_listed = RELINEARISE_SUMS_CROSS, FRICTION_PASS_LISTED_CROSS
+            if g:
+                self.grad_fields += [self.mass_cross]
+
+    def fits(self, plan: ContactPlan) -> bool:
+        """Whether a scene's plan can run on this solver's fields and kernels."""
+        if self.static_sizes:  # sizes compiled in: only a plan of the same sizes
+            return plan.flags == self.flags and tuple(plan.cfg_i) == self.baked_sizes
+        return plan.flags == self.flags and all(a <= b for a, b in zip(plan.caps, self.caps))
+
+    def load(self, plan: ContactPlan, n_envs: int, np_dtype):
+        """Make `plan` (a scene of n_envs envs) the model this solver's kernels run."""
+        self.plan = plan
+        self.n_envs = n_envs
+        for name in ("geoms", "pairs", "entity_geom_start", "entity_geom_count", "np_slot_ga", "np_slot_gb",
+                     "np_slot_pair", "np_slot_link_a", "np_slot_link_b"):
+            setattr(self, name, getattr(plan, name))
+        geoms, slots, npf = plan.geoms, plan.slots, np_dtype
+        G, S = plan.n_geoms, plan.n_slots
+        R = geom_rotations(geoms.quat / np.linalg.norm(geoms.quat, axis=1, keepdims=True)).reshape(G, 9)
+        geom_f = np.concatenate([geoms.pos, geoms.center, geoms.size, R,
+                                 np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None],
+                                 np.minimum(geom_half_thickness(geoms), 1e30)[:, None]], -1)
+        self._deep_warned, self._watch_n = False, 0
+        dyn = np.zeros(max(plan.n_links, 1), dtype=np.int32)
+        dyn[: plan.n_links] = plan.link_dyn
+        slot_i = np.array([[x[0], x[1], x[2], x[3], lp] for x, lp in zip(slots, plan.slot_lp)], dtype=np.int32)
+        slot_f = np.array([list(x[4]) + [x[5], x[6]] for x in slots], dtype=float).reshape(S, 5)
+        cross = plan.cross if plan.cross else [(0, 0, 0, 0.0)]
+        pair_s0 = np.searchsorted(plan.np_slot_pair, np.arange(plan.n_pairs + 1))
+        assert np.all(np.diff(plan.np_slot_pair) >= 0), "slots must be stored by pair"
+        c = lambda a, t: np.ascontiguousarray(np.asarray(a, dtype=t))  # noqa: E731
+        self.kernel_load(c(plan.cfg_i, np.int32),
+                         c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf),
+                         c(np.broadcast_to(geoms.friction, (n_envs, G)), npf), dyn,
+                         c([[p[0], p[1], s0] for p, s0 in zip(plan.pairs, pair_s0)], np.int32),
+                         c(pair_s0[-1:], np.int32), slot_i, c(slot_f, npf),
+                         c([x[:3] for x in cross], np.int32), c([x[3] for x in cross], npf))
+
+    @ti.kernel
+    def kernel_load(self, cfg_i: ti.types.ndarray(), geom_i: ti.types.ndarray(),
+                    geom_f: ti.types.ndarray(), kdop: ti.types.ndarray(), mu: ti.types.ndarray(),
+                    dyn: ti.types.ndarray(), pair: ti.types.ndarray(), pair_end: ti.types.ndarray(), slot_i: ti.types.ndarray(),
+                    slot_f: ti.types.ndarray(), cross_i: ti.types.ndarray(), cross_f: ti.types.ndarray()):
+        """A scene's contact model into the fields (one kernel rather than a copy kernel per field). The
+        dof vectors of the passes are zeroed over their whole capacity: the link-motion pass reads
+        entries past the scene's dofs (multiplied by 0), and an earlier scene may have left NaN there."""
+        for k in range(N_CCFG_I):
+            self.cfg_i[k] = cfg_i[k]
+        for g in range(geom_i.shape[0]):
+            self.geom_type[g] = geom_i[g, 0]
+            self.geom_link[g] = geom_i[g, 1]
+            for k in ti.static(range(3)):
+                self.geom_pos[g][k] = geom_f[g, k]
+                self.geom_center[g][k] = geom_f[g, 3 + k]
+                self.geom_size[g][k] = geom_f[g, 6 + k]
+            for k, l in ti.static(ti.ndrange(3, 3)):
+                self.geom_R[g][k, l] = geom_f[g, 9 + 3 * k + l]
+            self.geom_rbound[g] = geom_f[g, 18]
+            self.geom_beta[g] = geom_f[g, 19]
+            self.geom_thick[g] = geom_f[g, 20]
+            for k in range(kdop.shape[1]):
+                self.geom_kdop[g, k] = kdop[g, k]
+        for i_b, g in ti.ndrange(mu.shape[0], mu.shape[1]):
+            self.geom_mu[i_b, g] = mu[i_b, g]
+        for i in range(dyn.shape[0]):
+            self.link_dyn[i] = dyn[i]
+        for p in range(pair.shape[0]):
+            self.pair_ga[p] = pair[p, 0]
+            self.pair_gb[p] = pair[p, 1]
+            self.pair_s0[p] = pair[p, 2]
+        self.pair_s0[pair.shape[0]] = pair_end[0]
+        for i_s in range(slot_i.shape[0]):
+            self.slot_pair[i_s] = slot_i[i_s, 0]
+            self.slot_kind[i_s] = slot_i[i_s, 1]
+            self.slot_ga[i_s] = slot_i[i_s, 2]
+            self.slot_gb[i_s] = slot_i[i_s, 3]
+            self.slot_lp[i_s] = slot_i[i_s, 4]
+            for k in ti.static(range(3)):
+                self.slot_p[i_s][k] = slot_f[i_s, k]
+            self.slot_r[i_s] = slot_f[i_s, 3]
+            self.slot_aux[i_s] = slot_f[i_s, 4]
+        for t in range(cross_i.shape[0]):
+            self.cross_i[t] = cross_i[t, 0]
+            self.cross_j[t] = cross_i[t, 1]
+            self.cross_lp[t] = cross_i[t, 2]
+            self.cross_fac[t] = cross_f[t]
+        for I in ti.grouped(self.qacc_candidates):
+            self.qacc_candidates[I] = 0.0
+            self.qacc_normal[I] = 0.0
+            self.dqacc_coulomb[I] = 0.0
+        for i_b in range(self.eval_count.shape[0]):
+            self.eval_count[i_b] = 0
+        for i_b in range(self.deep_i.shape[0]):
+            self.deep_i[i_b, 0] = 0
+        self.deep_any[0] = 0
+
+    @property
+    def geom_friction(self):
+        """The friction parameter as the scene's (n_envs, n_geoms) block (to_torch / from_torch)."""
+        return _FrictionBlock(self)
+
+    @ti.kernel
+    def kernel_set_friction(self, v: ti.types.ndarray()):
+        for i, j in ti.ndrange(v.shape[0], v.shape[1]):
+            self.geom_mu[i, j] = v[i, j]
+
+    # ------------------------------------------------------------------ the solve op
+    # With contacts, the solve of an evaluation is a sequence of launches (see func_contact_solve, which
+    # the fused step runs inside its own kernel). The passes modify force, mass_mat and mass_cross in
+    # place (A2 = A1 + the relinearise pass's changes, A3 = A2 + the friction pass's), so backward
+    # reads each pass's adjoint off
+    # the matrix adjoint accumulated by the solves after it. Backward: the hand-written adjoints of the
+    # solves and Taichi's of the passes, in reverse order.
+    def factor_solve(self, s, e: int):
+        """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule)."""
+        self.kernel_solve_candidates(s)
+        self.kernel_relinearise_pass(s)
+        self.kernel_solve_normal(s)
+        self.kernel_coulomb_pass(s)
+        self.kernel_solve_coulomb(s)
+        self.kernel_friction_pass(s)
+        s._kernel_factor_solve(e)
+        self.kernel_report(s, e)
+
+    def solve_grad(self, s, e: int):
+        """Adjoint of factor_solve, with its forward values in the fields."""
+        if self.scratch_grad_fields:
+            self.kernel_clear_scratch_grads(s)
+        s._kernel_solve_grad(e)
+        self.kernel_friction_pass.grad(s)
+        self.kernel_adjoint_solve(s, 2)
+        self.kernel_coulomb_pass.grad(s)
+        self.kernel_adjoint_solve(s, 1)
+        self.kernel_relinearise_pass.grad(s)
+        self.kernel_adjoint_solve(s, 0)
+
+    # Env loops over the core's env capacity with a guard, as solver._Kernels explains (a loop bound
+    # read from a field in a kernel of several loops broke Taichi's adjoint).
+    @ti.kernel
+    def kernel_report(self, s: ti.template(), e: ti.i32):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_contact_report(s, i_b, e)
+
+    @ti.kernel
+    def kernel_solve_candidates(self, s: ti.template()):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_solve_candidates(s, i_b)
+
+    @ti.kernel
+    def kernel_solve_normal(self, s: ti.template()):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_solve_normal(s, i_b)
+
+    @ti.kernel
+    def kernel_solve_coulomb(self, s: ti.template()):
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                func_solve_coulomb(s, i_b)
+
+    @ti.kernel
+    def kernel_relinearise_pass(self, s: ti.template()):
+        for stage in ti.static(self.relinearise_pass):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(s.cap_envs):
+                if i_b < s.n_envs:
+                    stage(s, i_b)
+
+    @ti.kernel
+    def kernel_coulomb_pass(self, s: ti.template()):
+        for stage in ti.static(COULOMB_PASS):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(s.cap_envs):
+                if i_b < s.n_envs:
+                    stage(s, i_b)
+
+    @ti.kernel
+    def kernel_friction_pass(self, s: ti.template()):
+        for stage in ti.static(self.friction_pass):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(s.cap_envs):
+                if i_b < s.n_envs:
+                    stage(s, i_b)
+
+    @ti.kernel
+    def kernel_adjoint_solve(self, s: ti.template(), which: ti.template()):
+        """Adjoint of one of the solves before the final one: 0 the first (qacc_candidates = A1^-1 force), 1 the
+        second (qacc_normal = A2^-1 force), 2 the Coulomb response (dqacc_coulomb = A2^-1 force_coulomb)."""
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                if ti.static(which == 0):
+                    func_solve_adjoint(s, self.factor_candidates, i_b, self.qacc_candidates, self.qacc_candidates.grad, 0, s.force.grad)
+                elif ti.static(which == 1):
+                    func_solve_adjoint(s, self.factor_normal, i_b, self.qacc_normal, self.qacc_normal.grad, 0, s.force.grad)
+                else:
+                    func_solve_adjoint(s, self.factor_normal, i_b, self.dqacc_coulomb, self.dqacc_coulomb.grad, 0, self.force_coulomb.grad)
+
+    @ti.kernel
+    def kernel_clear_scratch_grads(self, s: ti.template()):
+        for x in ti.static(self.scratch_grad_fields):
+            if ti.static(s.serial):
+                ti.loop_config(serialize=True)
+            for I in ti.grouped(ti.ndrange(*x.shape)):
+                if ti.static(not hasattr(x, "n")):
+                    x.grad[I] = 0.0
+                elif ti.static(x.m == 1):
+                    x.grad[I] = ti.Vector.zero(s.dtype, x.n)
+                else:
+                    x.grad[I] = ti.Matrix.zero(s.dtype, x.n, x.m)
+
+    def watch(self, step: int, evals_per_step: int, h: float):
+        """After a step without gradients (scene step number `step`): warn once per scene when a
+        contact has ended a step deep inside the other body (func_report_slot records the first one).
+        Reads one int every step for the first 16 steps, then every 16th (a read costs a few µs)."""
+        self._watch_n += 1
+        if self._deep_warned or (self._watch_n > 16 and self._watch_n % 16):
+            return
+        if self.deep_any[0] == 0:
+            return
+        self._deep_warned = True
+        di, df = self.deep_i.to_numpy()[: max(self.n_envs, 1)], self.deep_f.to_numpy()[: max(self.n_envs, 1)]
+        hit = np.nonzero(di[:, 0])[0]
+        # the earliest record, the deepest (relative to its limit) among those
+        i_b = int(hit[np.lexsort((-df[hit, 3], di[hit, 2]))[0]])  # (gain / limit in column 3)
+        i_s, e_hit = int(di[i_b, 1]), int(di[i_b, 2])
+        depth, speed, lim, gain = (float(x) for x in df[i_b, :4])
+        late = (int(self.eval_count[i_b]) - e_hit) // max(int(evals_per_step), 1)
+        warnings.warn(ContactPenetrationWarning(deep_contact_message(
+            self.plan, i_s, i_b, self.n_envs, step - late, h, depth, speed, lim, gain)), stacklevel=_user_stacklevel())
+
+    # ------------------------------------------------------------------ readers
+    def read(self):
+        """numpy views of the last evaluation: dict of position, normal, force (on the point side),
+        depth, fn (normal force magnitude, 0 when not touching), each (B, n_slots[, 3])."""
+        B, S = self.n_envs, self.plan.n_slots
+        # without gradients the report writes c_fn of the slots that are on only (func_contact_report)
+        active = ((self.pair_active.to_numpy()[:B][:, self.np_slot_pair] == 1)
+                  & (self.sl_on.to_numpy()[:B, :S] == 1))
+        return {"position": self.c_pos.to_numpy()[:B, :S], "normal": self.c_normal.to_numpy()[:B, :S],
+                "force": self.c_force.to_numpy()[:B, :S], "depth": self.c_depth.to_numpy()[:B, :S],
+                "fn": np.where(active, self.c_fn.to_numpy()[:B, :S], 0.0)}
+
+
+class _FrictionBlock:
+    """The friction parameter of a ContactSolver as its scene's (n_envs, n_geoms) block of the
+    capacity-sized field (what the scene's parameter code reads and writes)."""
+
+    def __init__(self, contact):
+        self.contact = contact
+        self.field = contact.geom_mu
+        self.shape = (contact.n_envs, contact.plan.n_geoms)
+
+    @property
+    def grad(self):
+        return self.field.grad
+
+    def to_torch(self, device=None):
+        B, G = self.shape
+        return self.field.to_torch(device=device)[:B, :G].contiguous()
+
+    def to_numpy(self):
+        B, G = self.shape
+        return self.field.to_numpy()[:B, :G]
+
+    def from_torch(self, x):
+        if x.shape != self.shape:
+            raise ValueError(f"contact friction: expected shape {self.shape}, got {tuple(x.shape)}")
+        self.contact.kernel_set_friction(x.contiguous())
