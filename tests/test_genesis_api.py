@@ -149,3 +149,41 @@ def test_aabb_slices_masks_and_small_names(arm_path):
     assert scene.sim.mpm_solver is None and scene.sim.dt == scene.dt
     mask = scene.rigid_solver.get_error_envs_mask()  # Genesis's spelling of it
     assert tuple(mask.shape) == (4,) and not bool(mask.any())
+
+
+def test_hard_coupling_boundary_and_state_names():
+    assert gs.materials.Rigid(coup_softness=0.0).coup_softness == 0.0  # Genesis's hard boundary
+    with pytest.raises(ValueError, match="coup_softness"):
+        gs.materials.Rigid(coup_softness=-0.01)
+    scene = gs.Scene(show_viewer=False)
+    scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(0, 0, 1)))
+    scene.build()
+    state = scene.get_state()
+    assert len(state.solvers_state) == 1 and state.solvers_state[0] is state.solvers[0]
+
+
+def test_out_of_scope_solvers_are_accepted_in_set_up_and_refused_on_use():
+    """water_wheel's default path sets up SPH: its options are accepted, an SPH entity says what to use."""
+    scene = gs.Scene(sph_options=gs.options.SPHOptions(lower_bound=(-1, -1, 0), particle_size=0.01),
+                     pbd_options=gs.options.PBDOptions(), show_viewer=False)
+    with pytest.raises(gs.GenesisException, match="SPH solver, which is out of genesis_lite's scope.*MPM.Liquid"):
+        scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), material=gs.materials.SPH.Liquid(rho=1000))
+    with pytest.raises(gs.GenesisException, match="FEM"):
+        scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), material=gs.materials.FEM.Elastic())
+    with pytest.raises(TypeError, match="unexpected arguments"):
+        gs.Scene(sph_optoins=1)
+
+
+def test_particles_in_bbox_and_attachment_refused():
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=10),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(1, 1, 1), grid_density=32),
+                     show_viewer=False)
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.5, 0.5, 0.3), size=(0.2, 0.2, 0.2)), material=gs.materials.MPM.Elastic())
+    scene.build()
+    x = cube.get_particles_pos().numpy()
+    mask = cube.get_particles_in_bbox((0.4, 0.4, 0.35), (0.6, 0.6, 0.45)).numpy()
+    # the top half of the cube (z from 0.2 to 0.4): the particles above 0.35
+    np.testing.assert_array_equal(mask, x[:, 2] >= 0.35)
+    assert 0 < mask.sum() < len(mask)
+    with pytest.raises(gs.GenesisException, match="set_particle_constraints .* not implemented"):
+        cube.set_particle_constraints(mask, 0, 1e4)

@@ -149,6 +149,19 @@ def test_utils_geom_rotations_against_scipy():
         np.testing.assert_allclose(gs.utils.geom.quat_to_R(q), ref, rtol=0, atol=1e-14)
         qt = gs.utils.geom.xyz_to_quat(torch.tensor(np.rad2deg(xyz)), rpy=rpy, degrees=True)
         np.testing.assert_allclose(gs.utils.geom.quat_to_R(qt).numpy(), ref, rtol=0, atol=1e-13)
+        # and back (go2's scripts read the base's roll, pitch, yaw so)
+        np.testing.assert_allclose(gs.utils.geom.quat_to_xyz(q, rpy=rpy), Rotation.from_matrix(ref).as_euler(seq),
+                                   atol=1e-12)
+        np.testing.assert_allclose(gs.utils.geom.quat_to_xyz(qt, rpy=rpy, degrees=True).numpy(),
+                                   np.rad2deg(xyz), atol=1e-10)
+    geom, rng = gs.utils.geom, np.random.default_rng(1)
+    u, w = (Rotation.random(4, random_state=k) for k in (2, 3))
+    qu, qw = (np.roll(r.as_quat(), 1, axis=-1) for r in (u, w))  # scipy's (x, y, z, w) -> (w, x, y, z)
+    v = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(geom.transform_by_quat(v, qu), u.apply(v), atol=1e-12)
+    np.testing.assert_allclose(geom.transform_by_quat(torch.tensor(v), torch.tensor(geom.inv_quat(qu))).numpy(),
+                               u.inv().apply(v), atol=1e-12)
+    np.testing.assert_allclose(geom.quat_to_R(geom.transform_quat_by_quat(qw, qu)), (u * w).as_matrix(), atol=1e-12)
 
 
 def test_link_mass_and_set_qpos_skip_forward():

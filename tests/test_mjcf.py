@@ -189,9 +189,8 @@ def test_mass_matrix_and_poses(file, pair):
             R_ref = d.xmat[b].reshape(3, 3)
             worst["pos"] = max(worst["pos"], np.abs(pos[i] - (d.xpos[b] + R_ref @ anchor)).max())
             worst["rot"] = max(worst["rot"], np.abs(_R(quat[i]) - R_ref).max())
-            # collision geoms, in MuJoCo's order within the link's bodies
-            geoms = [g for bb in range(m.nbody) if bb == b or _merged_into(m, bb) == b
-                     for g in range(m.body_geomadr[bb], m.body_geomadr[bb] + m.body_geomnum[bb])
+            # collision geoms, in MuJoCo's order: every body is a link of its own (jointless ones welded)
+            geoms = [g for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b])
                      if m.geom_contype[g] or m.geom_conaffinity[g]]
             desc = robot.model.links[i].geoms
             assert len(desc) == len(geoms), f"{file}, link {link.name}: {len(desc)} geoms, MuJoCo {len(geoms)}"
@@ -202,14 +201,6 @@ def test_mass_matrix_and_poses(file, pair):
                                     np.abs(Rg - d.geom_xmat[g].reshape(3, 3)).max())
     assert worst["M"] < RTOL_MASS, f"{file}: {worst}"
     assert worst["pos"] < ATOL_POS and worst["rot"] < ATOL_ROT and worst["geom"] < ATOL_POS, f"{file}: {worst}"
-
-
-def _merged_into(m, b):
-    """The body whose link body b's mass and geoms go to (itself, or the nearest ancestor with a joint or
-    on the worldbody)."""
-    while b > 0 and m.body_jntnum[b] == 0 and m.body_parentid[b] != 0:
-        b = m.body_parentid[b]
-    return b
 
 
 @pytest.mark.parametrize("file", ["skew_arm.xml", "quadruped.xml"])
@@ -238,9 +229,11 @@ def test_joint_parameters_from_compiled_model():
     gs = _gs()
     model = load_mjcf(morphs.MJCF(file=str(ASSETS / "skew_arm.xml")), gs.materials.Rigid(), "arm")
     L = {l.name: l for l in model.links}
-    assert [l.name for l in model.links] == ["base", "link1", "link2", "slider", "link4", "link5", "pendulum_drop",
-                                             "pendulum"]
-    assert L["base"].joint_type == "fixed" and L["pendulum_drop"].parent == -1 and L["pendulum"].parent == 6
+    assert [l.name for l in model.links] == ["base", "link1", "link2", "slider", "mount", "link4", "link5",
+                                             "pendulum_drop", "pendulum"]
+    # a jointless body is a link of its own, welded to its parent (as Genesis keeps it)
+    assert L["mount"].joint_type == "fixed" and L["mount"].parent == 3 and L["link4"].parent == 4
+    assert L["base"].joint_type == "fixed" and L["pendulum_drop"].parent == -1 and L["pendulum"].parent == 7
     assert L["pendulum_drop"].joint_type == "prismatic" and L["pendulum_drop"].mass == 0.0
     assert L["link1"].limit == (-2.5, 2.5) and L["link2"].limit == (-1.5, 1.8)
     assert L["pendulum"].limit == (-np.inf, np.inf)
@@ -249,9 +242,9 @@ def test_joint_parameters_from_compiled_model():
     assert (L["slider"].damping, L["slider"].armature, L["slider"].frictionloss) == pytest.approx((2.0, 0.15, 0.0))
     assert L["link1"].effort == pytest.approx(10.0) and L["slider"].effort == pytest.approx(30.0)
     assert np.isinf(L["link2"].effort)
-    assert L["slider"].mass == pytest.approx(0.2 + 800 * 4 / 3 * np.pi * 0.03**3)  # 'mount' merged in
+    assert L["slider"].mass == pytest.approx(800 * 4 / 3 * np.pi * 0.03**3) and L["mount"].mass == pytest.approx(0.2)
     assert all(g.friction == pytest.approx(0.45) for l in model.links for g in l.geoms)
-    assert [v.type for v in L["link1"].visuals] == ["sphere"] and [v.type for v in L["slider"].visuals] == ["box"]
+    assert [v.type for v in L["link1"].visuals] == ["sphere"] and [v.type for v in L["mount"].visuals] == ["box"]
 
     quad = load_mjcf(morphs.MJCF(file=str(ASSETS / "quadruped.xml")), gs.materials.Rigid(), "q")
     assert quad.links[-1].name == "world" and quad.links[-1].geoms[0].type == "plane"
@@ -365,7 +358,7 @@ def test_joint_equality_becomes_mimic(tmp_path):
 def _mjcf_twin(urdf: Path, out: Path):
     """An MJCF of the URDF written by MuJoCo's own URDF importer (mj_saveLastXML), geometry stripped from
     both (MuJoCo cannot find package:// meshes; masses come from <inertial>). fusestatic="false" keeps the
-    root and fixed-joint bodies as bodies, so that our MJCF loader does the merging."""
+    root and fixed-joint bodies as bodies, as the URDF's links."""
     import xml.etree.ElementTree as ET
 
     tree = ET.parse(urdf)
@@ -391,10 +384,13 @@ def test_urdf_and_mjcf_twins_agree(name, urdf_path, tmp_path):
     u, x = _mjcf_twin(urdf_path(name), tmp_path)
     floating = name == "go2"
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3))
-    a = scene.add_entity(gs.morphs.URDF(file=str(u), fixed=not floating))
+    # both keep the fixed-joint links (MJCF's jointless bodies are links, as in Genesis)
+    a = scene.add_entity(gs.morphs.URDF(file=str(u), fixed=not floating, merge_fixed_links=False))
     b = scene.add_entity(gs.morphs.MJCF(file=str(x), fixed=not floating))
     scene.build()
-    assert [l.name for l in a.links] == [l.name for l in b.links]
+    # the same links (the loaders order siblings differently: ours by joint name, MuJoCo's importer by file order)
+    assert sorted(l.name for l in a.links) == sorted(l.name for l in b.links)
+    by_name = [b.get_link(l.name).idx_local for l in a.links]  # b's index of each of a's links
     assert abs(float(_np(a.get_mass())) - float(_np(b.get_mass()))) < 1e-4
     ja = {j.name: j.dof_start_local for j in a.joints if j.n_dofs == 1}
     jb = {j.name: j.dof_start_local for j in b.joints if j.n_dofs == 1}
@@ -403,7 +399,8 @@ def test_urdf_and_mjcf_twins_agree(name, urdf_path, tmp_path):
     for n in ja:
         perm[jb[n]] = ja[n]
     if name == "panda":
-        ma, mb = a.model.links[-1].mimic, b.model.links[-1].mimic
+        follower = next(l.name for l in a.model.links if l.mimic is not None)
+        ma, mb = a.model.links[a.get_link(follower).idx_local].mimic, b.model.links[b.get_link(follower).idx_local].mimic
         assert (ma.joint, ma.multiplier, ma.offset) == (mb.joint, mb.multiplier, mb.offset)
     rng = np.random.default_rng(3)
     worst = {"M": 0.0, "pos": 0.0, "rot": 0.0}
@@ -419,9 +416,9 @@ def test_urdf_and_mjcf_twins_agree(name, urdf_path, tmp_path):
             b.set_dofs_position(_t(qa[perm]))
         Ma, Mb = _np(a.get_mass_mat()), _np(b.get_mass_mat())
         worst["M"] = max(worst["M"], _rel(Mb, Ma[np.ix_(perm, perm)]))
-        worst["pos"] = max(worst["pos"], np.abs(_np(a.get_links_pos()) - _np(b.get_links_pos())).max())
+        worst["pos"] = max(worst["pos"], np.abs(_np(a.get_links_pos()) - _np(b.get_links_pos())[by_name]).max())
         Ra = [_R(q) for q in _np(a.get_links_quat())]
-        Rb = [_R(q) for q in _np(b.get_links_quat())]
+        Rb = [_R(q) for q in _np(b.get_links_quat())[by_name]]
         worst["rot"] = max(worst["rot"], max(np.abs(r1 - r2).max() for r1, r2 in zip(Ra, Rb)))
     assert worst["M"] < 1e-5 and worst["pos"] < 1e-5 and worst["rot"] < 1e-5, worst
 

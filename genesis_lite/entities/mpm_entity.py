@@ -38,9 +38,11 @@ class MPMEntity:
     _device = RigidEntity._device
 
     @property
-    def uid(self) -> int:
-        """Genesis's entity id: its index in the scene, in the order of add_entity."""
-        return self.idx
+    def uid(self):
+        """Genesis's entity id: its index in the scene, in the order of add_entity (with `.short()`)."""
+        from .rigid_entity import EntityUID
+
+        return EntityUID(self.idx)
 
     def __init__(self, scene, idx, morph, material, name, particles, vol):
         self._scene = scene
@@ -87,6 +89,23 @@ class MPMEntity:
     def get_particles_pos(self, envs_idx=None):
         """Particle positions (m), (n_particles, 3)."""
         return self._state_part(0, envs_idx)
+
+    def get_particles_in_bbox(self, bbox_min, bbox_max, envs_idx=None):
+        """Which particles lie in the axis-aligned box [bbox_min, bbox_max] (m) now: a boolean tensor
+        (n_particles,), batched (n_envs, n_particles) (Genesis's name)."""
+        lo, hi = (torch.as_tensor(np.asarray(b, dtype=np.float64)).reshape(3) for b in (bbox_min, bbox_max))
+        if not bool((lo <= hi).all()):
+            raise GenesisException(f"entity '{self.name}': get_particles_in_bbox needs bbox_min <= bbox_max, got "
+                                   f"{lo.tolist()} and {hi.tolist()}")
+        x = self.get_particles_pos(envs_idx).detach()
+        lo, hi = lo.to(x), hi.to(x)
+        return ((x >= lo) & (x <= hi)).all(-1)
+
+    def set_particle_constraints(self, *args, **kwargs):
+        raise GenesisException(
+            f"entity '{self.name}': set_particle_constraints (attaching particles to a rigid link) is not implemented "
+            "in genesis_lite; rigid bodies act on MPM material through contact (gs.materials.Rigid(needs_coup=True), "
+            "coup_friction), or drive the particles with set_particles_force / set_particles_vel")
 
     def get_particles_vel(self, envs_idx=None):
         """Particle velocities (m/s), (n_particles, 3)."""

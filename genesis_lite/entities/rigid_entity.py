@@ -7,7 +7,7 @@ lists; with requires_grad=True scenes, tensors that require grad carry gradients
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import List, Optional
 
 import numpy as np
@@ -44,6 +44,13 @@ class RigidLink:
         self.entity.set_links_mass(m.reshape(*m.shape, 1), [self.idx_local], envs_idx)
 
 
+class EntityUID(int):
+    """An entity's id: an int (its index in the scene) with Genesis's `short()` (a short string for logs)."""
+
+    def short(self) -> str:
+        return f"{int(self):07d}"
+
+
 @dataclass
 class RigidJoint:
     name: str
@@ -54,6 +61,21 @@ class RigidJoint:
     n_dofs: int
     q_start_local: int
     n_qs: int
+    entity: Optional["RigidEntity"] = field(default=None, repr=False, compare=False)
+
+    @property
+    def dof_start(self) -> int:
+        """The joint's first dof in the scene's dof numbering (Genesis's)."""
+        return self.entity._dof_start + self.dof_start_local
+
+    @property
+    def dofs_idx(self):
+        """The joint's dofs in the scene's dof numbering (Genesis's)."""
+        return [self.dof_start + i for i in range(self.n_dofs)]
+
+    @property
+    def q_start(self) -> int:
+        return self.entity._q_start + self.q_start_local
 
     @property
     def dof_idx_local(self):
@@ -121,9 +143,10 @@ class RigidEntity(ContactMixin, KinematicsMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
     @property
-    def uid(self) -> int:
-        """Genesis's entity id: its index in the scene, in the order of add_entity."""
-        return self.idx
+    def uid(self) -> "EntityUID":
+        """Genesis's entity id: its index in the scene, in the order of add_entity (an int; `.short()` gives
+        Genesis's short string form)."""
+        return EntityUID(self.idx)
 
     def __init__(self, scene, idx: int, model: EntityModel, morph, material):
         self._scene = scene
@@ -138,7 +161,7 @@ class RigidEntity(ContactMixin, KinematicsMixin):
         for i, l in enumerate(model.links):
             self.links.append(RigidLink(l.name, i, -1, l.parent, self))
             nq, nv = JOINT_NQ[l.joint_type], JOINT_NV[l.joint_type]
-            self.joints.append(RigidJoint(l.joint_name, l.joint_type, i, i, d, nv, q, nq))
+            self.joints.append(RigidJoint(l.joint_name, l.joint_type, i, i, d, nv, q, nq, self))
             q += nq
             d += nv
         self.n_links, self.n_qs, self.n_dofs = len(self.links), q, d

@@ -7,8 +7,8 @@
 Mapping (solvers/rigid/model.py has the conventions the result follows):
 - MuJoCo numbers bodies in pre-order of the XML tree, parent before child, so links keep MuJoCo's body
   order and dofs keep MuJoCo's dof order.
-- A body without joints is welded to its parent: it is merged into the parent's link (mass, COM and
-  inertia combined, geoms moved into the parent link frame); a worldbody child without joints becomes a
+- A body without joints is welded to its parent: a link of its own with a 'fixed' joint, as Genesis
+  keeps it (scripts read get_link("hand") of the Franka); a worldbody child without joints becomes a
   root with a 'fixed' joint (or a free one with gs.morphs.MJCF(fixed=False)).
 - freejoint -> 'free' root, hinge -> 'revolute', slide -> 'prismatic'. MuJoCo's joint anchor (jnt_pos)
   may sit off the body origin while our link frame is the joint frame, so the link frame is put at the
@@ -131,8 +131,11 @@ def load_mjcf(morph, material, name) -> EntityModel:
         T_rel = pose(m.body_pos[b], m.body_quat[b])  # body frame in its parent body's frame
         jadr, jnum = int(m.body_jntadr[b]), int(m.body_jntnum[b])
         if jnum == 0 and p != 0:
-            link_of[b] = link_of[p]
-            T_in_link[b] = T_in_link[p] @ T_rel
+            # welded to its parent, and a link of its own as in Genesis (scripts read get_link("hand"))
+            T = T_in_link[p] @ T_rel
+            link_of[b] = new_link(LinkDesc(name=bn, parent=int(link_of[p]), joint_name=f"{bn}_fixed",
+                                           joint_type="fixed", joint_pos=T[:3, 3].copy(),
+                                           joint_quat=mat_to_quat(T[:3, :3])))
         elif jnum == 0:
             jtype = "fixed" if fixed in (None, True) else "free"
             T = T_morph @ T_rel

@@ -45,3 +45,50 @@ def quat_to_R(quat):
     if lib is torch:
         return torch.stack([torch.stack(r, -1) for r in rows], -2)
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _stack(lib, parts):
+    return lib.stack(parts, -1) if lib is torch else np.stack(parts, axis=-1)
+
+
+def quat_to_xyz(quat, rpy=False, degrees=False):
+    """Euler angles (x, y, z) of unit quaternions, the inverse of xyz_to_quat with the same conventions
+    (rpy=True: R = Rz Ry Rx; rpy=False: R = Rx Ry Rz); radians unless degrees=True."""
+    lib = _lib(quat)
+    R = quat_to_R(quat)
+    clip = (lambda a: torch.clamp(a, -1.0, 1.0)) if lib is torch else (lambda a: np.clip(a, -1.0, 1.0))
+    if rpy:
+        parts = [lib.arctan2(R[..., 2, 1], R[..., 2, 2]), lib.arcsin(clip(-R[..., 2, 0])),
+                 lib.arctan2(R[..., 1, 0], R[..., 0, 0])]
+    else:
+        parts = [lib.arctan2(-R[..., 1, 2], R[..., 2, 2]), lib.arcsin(clip(R[..., 0, 2])),
+                 lib.arctan2(-R[..., 0, 1], R[..., 0, 0])]
+    out = _stack(lib, parts)
+    return out * (180.0 / math.pi) if degrees else out
+
+
+def inv_quat(quat):
+    """The inverse rotation of unit quaternions (w, x, y, z): the conjugate."""
+    lib = _lib(quat)
+    return _stack(lib, [quat[..., 0], -quat[..., 1], -quat[..., 2], -quat[..., 3]])
+
+
+def _qmul(a, b):
+    lib = _lib(a)
+    aw, ax, ay, az = (a[..., i] for i in range(4))
+    bw, bx, by, bz = (b[..., i] for i in range(4))
+    return _stack(lib, [aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+
+
+def transform_by_quat(v, quat):
+    """Vectors v (..., 3) rotated by unit quaternions (..., 4)."""
+    R = quat_to_R(quat)
+    if torch.is_tensor(v):
+        return (R @ v.unsqueeze(-1)).squeeze(-1)
+    return (R @ v[..., None])[..., 0]
+
+
+def transform_quat_by_quat(v, u):
+    """The rotation v followed by the rotation u: the quaternion u v (Genesis's argument order)."""
+    return _qmul(u, v)
