@@ -91,12 +91,13 @@ class Scene:
         return [e.name for e in self.entities]
 
     def get_entity(self, name=None, uid=None):
-        """The entity called `name` (or with index `uid` in the order of add_entity), as Genesis's
-        `scene.get_entity`."""
+        """The entity called `name` (or with index `uid` in the order of add_entity, or its
+        `uid.short()` string), as Genesis's `scene.get_entity`."""
         if (name is None) == (uid is None):
             raise ValueError("scene.get_entity: give name= or uid=, one of them")
         for i, e in enumerate(self.entities):
-            if (name is not None and e.name == name) or (uid is not None and i == uid):
+            # uid: the int, or Genesis's short string of it (entity.uid.short())
+            if (name is not None and e.name == name) or (uid is not None and (i == uid or e.uid.short() == uid)):
                 return e
         what = f"name {name!r}" if name is not None else f"uid {uid!r}"
         raise GenesisException(f"scene.get_entity: no entity with {what}; the scene has {self.entity_names}")

@@ -129,6 +129,7 @@ def test_entities_by_name_and_uid_and_the_control_force():
     arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True), name="arm")
     assert scene.entity_names == ["plane_0", "arm"]
     assert scene.get_entity("arm") is arm and scene.get_entity(uid=1) is arm and arm.uid == 1
+    assert scene.get_entity(uid=arm.uid.short()) is arm and isinstance(arm.uid.short(), str)
     with pytest.raises(GenesisException, match="no entity with name 'hand'"):
         scene.get_entity("hand")
     scene.build()
