@@ -18,19 +18,8 @@ import torch
 
 from ..errors import GenesisException
 from ..grad.tensor import wrap
-
-
-def _qmul(a, b):
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
-def _R(q):
-    from .rigid_entity import _quat_to_R
-
-    return _quat_to_R(q)
+from ..utils.geom import quat_mul as _qmul
+from ..utils.geom import quat_to_R as _R
 
 
 def _skew(v):
@@ -91,10 +80,11 @@ class KinematicsMixin:
             pos, quat = pos[:, idx], quat[:, idx]
         return (pos[0], quat[0]) if single else (pos, quat)
 
-    def _jacobian_at(self, q, link_local, point_local=None):
+    def _jacobian_at(self, q, link_local, point_local=None, fk=None):
         """(B, 6, n_dofs) world Jacobian [linear; angular] of a point of link `link_local` (its origin, or
-        point_local in its frame) at configurations q (B, n_qs)."""
-        pos, quat = self.forward_kinematics(q)
+        point_local in its frame) at configurations q (B, n_qs); `fk`: forward_kinematics(q) when the
+        caller has it already."""
+        pos, quat = self.forward_kinematics(q) if fk is None else fk
         B = q.shape[0]
         p = pos[:, link_local]
         if point_local is not None:
@@ -192,8 +182,8 @@ class KinematicsMixin:
                                         if j.n_dofs == 1 and j.dof_start_local in allowed]), dtype=dt, device=dev)
         lo, hi = lim[:, 0], lim[:, 1]
 
-        def error(q):
-            ps, qs = self.forward_kinematics(q)
+        def error(q, fk=None):
+            ps, qs = self.forward_kinematics(q) if fk is None else fk
             e = []
             e.append(p_t - ps[:, li] if p_t is not None else q.new_zeros(q.shape[0], 3))
             if q_t is not None:
@@ -204,8 +194,9 @@ class KinematicsMixin:
             return torch.cat(e, -1) * wmask
 
         def dls(q):
-            J = self._jacobian_at(q, li)[:, :, dofs] * wmask[:, None]
-            e = error(q)
+            fk = self.forward_kinematics(q)  # one evaluation serves the Jacobian and the error
+            J = self._jacobian_at(q, li, fk=fk)[:, :, dofs] * wmask[:, None]
+            e = error(q, fk)
             A = J @ J.transpose(-1, -2) + (damping ** 2) * torch.eye(6, dtype=dt, device=dev)
             return (J.transpose(-1, -2) @ torch.linalg.solve(A, e.unsqueeze(-1))).squeeze(-1), e
 

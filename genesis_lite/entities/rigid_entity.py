@@ -18,6 +18,7 @@ from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 from ..errors import GenesisException, ZeroGainWarning
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
+from ..utils.geom import quat_to_R as _quat_to_R
 from .contact_api import ContactMixin
 from .kinematics_api import KinematicsMixin
 
@@ -93,14 +94,6 @@ class RigidJoint:
     @property
     def q_idx_local(self):
         return self.q_start_local if self.n_qs == 1 else list(range(self.q_start_local, self.q_start_local + self.n_qs))
-
-
-def _quat_to_R(q):
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def _quat_to_rotvec(q):

@@ -312,12 +312,11 @@ def load_mesh(morph, material, name) -> EntityModel:
     return model
 
 
-def _convex_parts(morph, V, F, hull, what, notes):
-    """[None] (collide as the hull: the mesh is convex, or decomposition is off) or the vertex arrays of
-    CoACD's convex parts of the mesh (V, F), per gs.morphs.Mesh's decomposition options."""
+def _convex_parts(morph, mesh, hull, what, notes):
+    """None (collide as the hull: the mesh is convex, or decomposition is off) or the convex hulls of
+    CoACD's parts of `mesh` (a processed trimesh), per gs.morphs.Mesh's decomposition options."""
     import trimesh
 
-    mesh = trimesh.Trimesh(vertices=V, faces=F, process=True)
     if mesh.is_watertight and hull.volume > 0:
         # closed (overlapping closed parts count their overlap twice: the error is then underestimated)
         error = max(0.0, 1.0 - abs(float(mesh.volume)) / float(hull.volume))
@@ -336,7 +335,7 @@ def _convex_parts(morph, V, F, hull, what, notes):
             notes.append(f"{what}: the mesh is not convex (its convex hull is {100 * error:.0f} % off it) and "
                          "collides as its convex hull because decompose_nonconvex=False; leave it None or True to "
                          "split it into convex parts")
-        return [None]
+        return None
     try:
         import coacd
     except ImportError as e:
@@ -348,7 +347,7 @@ def _convex_parts(morph, V, F, hull, what, notes):
     opts.update(morph.coacd_options or {})
     parts = coacd.run_coacd(coacd.Mesh(np.asarray(mesh.vertices, dtype=np.float64),
                                        np.asarray(mesh.faces, dtype=np.int64)), **opts)
-    out = [np.asarray(pv, dtype=np.float64) for pv, _ in parts if len(pv) >= 4]
+    out = [convex_hull(np.asarray(pv, dtype=np.float64), what) for pv, _ in parts if len(pv) >= 4]
     if not out:
         raise ValueError(f"{what}: CoACD returned no convex parts; pass decompose_nonconvex=False to collide as the "
                          "convex hull")
@@ -364,25 +363,21 @@ def _load_mesh(morph, material, name) -> EntityModel:
     V, F = scale_mesh(V, F, morph.scale)
     hull = convex_hull(V, what)
     hull.density = float(material.rho)
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=V, faces=F, process=True)
     notes = []
-    parts = _convex_parts(morph, V, F, hull, what, notes)
+    parts = _convex_parts(morph, mesh, hull, what, notes)
     geoms = []
-    for pv in parts:
-        ph = hull if pv is None else convex_hull(pv, what)
+    for ph in [hull] if parts is None else parts:
         g = GeomDesc(type="mesh", vertices=np.array(ph.vertices, dtype=np.float64),
                      faces=np.array(ph.faces, dtype=np.int64))
         g.hull = mesh_hull(g.vertices)
         geoms.append(g)
     body = hull
-    if parts != [None]:
+    if parts is not None:
         # the solid is the mesh itself when it is closed (a tank's walls, not its hull's volume), else the parts
-        import trimesh
-
-        closed = trimesh.Trimesh(vertices=V, faces=F, process=True)
-        if closed.is_volume:
-            body = closed
-        else:
-            body = trimesh.util.concatenate([convex_hull(pv, what) for pv in parts])
+        body = mesh if mesh.is_volume else trimesh.util.concatenate(parts)
         body.density = float(material.rho)
     model = _root_link(morph, name, body.mass, body.center_mass, body.moment_inertia, geoms)
     model.load_warnings = notes

@@ -73,7 +73,8 @@ def inv_quat(quat):
     return _stack(lib, [quat[..., 0], -quat[..., 1], -quat[..., 2], -quat[..., 3]])
 
 
-def _qmul(a, b):
+def quat_mul(a, b):
+    """The Hamilton product a b of quaternions (w, x, y, z): the rotation b followed by a."""
     lib = _lib(a)
     aw, ax, ay, az = (a[..., i] for i in range(4))
     bw, bx, by, bz = (b[..., i] for i in range(4))
@@ -91,4 +92,4 @@ def transform_by_quat(v, quat):
 
 def transform_quat_by_quat(v, u):
     """The rotation v followed by the rotation u: the quaternion u v (Genesis's argument order)."""
-    return _qmul(u, v)
+    return quat_mul(u, v)
