@@ -32,7 +32,7 @@ class MPMSim:
     n_state = 4
     n_outputs = 4
 
-    def __init__(self, scene, entities, n_envs, sim_options, mpm_options, coupler=None):
+    def __init__(self, scene, entities, n_envs, sim_options, mpm_options):
         import genesis_lite as gs
 
         self.scene = scene
@@ -54,8 +54,6 @@ class MPMSim:
             sim_options.dt, sim_options.substeps, sim_options.gravity, gs.ti_float, self.requires_grad,
             mpm_options.wall_friction)
         weakref.finalize(self, SOLVER_POOL.release, self.solver)
-        if coupler is not None:
-            self.solver.attach_coupler(coupler)
         self.mass = torch.as_tensor(mass, dtype=self.dtype, device=self.device)
         self.inside = domain_inside(mpm_options)
         self._dx, self._h = mpm_options.dx, sim_options.dt / sim_options.substeps
@@ -193,8 +191,19 @@ class MPMSim:
         self._load_params(params, force, gravity)
         self._state_on_device = False
 
-    def substep(self, i, grad, step):
-        self.solver.substep(i, grad)
+    # the stages of a substep, called in the simulator's order (simulator.py, solvers/mpm/solver.py)
+    def substep_pre_coupling(self, i, grad, replay=False):
+        self.solver.substep_pre_coupling(i, grad, replay)
+
+    def grid_update(self, i):
+        self.solver.grid_update(i)
+
+    def substep_post_coupling(self, i, grad):
+        self.solver.substep_post_coupling(i, grad)
+
+    def record_substep(self, i, stages):
+        """Substep i as one call on the scene's Tape; stages(i, grad, replay) runs its stages."""
+        self.solver.record_substep(i, stages)
 
     def untracked_step_done(self):
         self._state = None

@@ -217,7 +217,6 @@ class Scene:
             raise ValueError(f"scene.build(n_envs={n_envs!r}): n_envs must be an integer >= 0")
         self.n_envs = int(n_envs)
         coupled = bool(self.rigid_entities and self.mpm_entities and self.coupler_options.rigid_mpm)
-        bridges = []
         if self.rigid_entities or not self.mpm_entities:
             from .rigid_sim import RigidSim
 
@@ -228,18 +227,19 @@ class Scene:
             self._rigid = RigidSim(self, [e.model for e in self.rigid_entities], self.n_envs, self.sim_options,
                                    self.rigid_options, external_wrench=coupled)
         if self.mpm_entities:
-            bridges.append(self._build_mpm())
+            self._build_mpm()
             if coupled:
-                self._build_coupler()
+                from .bridges.coupler import CouplerBridge
+
+                self._coupler = CouplerBridge.create(self.rigid_entities, self._rigid, self._mpm, self.rigid_options,
+                                                     self.mpm_options, self.coupler_options)
             elif self.rigid_entities:
                 logger.info("scene: rigid and MPM entities are simulated side by side but do not interact "
                             "(CouplerOptions(rigid_mpm=False))")
         elif self._mpm_options_given:
             raise GenesisException("scene: mpm_options were given but the scene has no MPM entity; add an entity made "
                                    "of a gs.materials.MPM.* material, or drop mpm_options")
-        if self._rigid is not None:
-            bridges.append(self._rigid)  # after MPM: each substep moves the MPM material, then the bodies
-        self._simulator = Simulator(bridges, self.sim_options)
+        self._simulator = Simulator(self._rigid, self._mpm, self._coupler, self.sim_options)
         self._nan = NaNWatch(self, self.sim_options.nan_policy)
         self._simulator.nan_watch = self._nan
         if self._rigid is not None:
@@ -247,31 +247,6 @@ class Scene:
             self._rigid.solver.get_error_envs_mask = _WeakCall(self, "get_error_envs_mask")
         self._built = True
         self._init_state = self.get_state()
-
-    def _build_coupler(self):
-        """Rigid collision geoms of entities with needs_coup become boundaries on the MPM grid."""
-        from solvers.coupling import RigidMPMCoupler
-        from solvers.rigid.collision import build_geoms
-
-        geoms = build_geoms([e.model for e in self.rigid_entities], int(self.rigid_options.max_mesh_contact_points))
-        keep = np.array([self.rigid_entities[int(i)].material.needs_coup for i in geoms.entity], dtype=bool)
-        for e in self.rigid_entities:
-            if e.material.needs_coup and e.n_geoms == 0:
-                logger.warning(f"scene: rigid entity '{e.name}' has no collision geometry, so MPM material passes "
-                               "through it (give its links <collision> shapes to couple it)")
-        idx = np.nonzero(keep)[0]
-        if len(idx) == 0:
-            logger.info("scene: no rigid entity has collision geometry to couple with the MPM material")
-            return
-        dx = self.mpm_options.dx
-        mats = [self.rigid_entities[int(geoms.entity[i])].material for i in idx]
-        softness = min(m.coup_softness if m.coup_softness is not None else 0.5 * dx for m in mats)
-        softness = max(softness, 1e-6 * dx)  # 0 (Genesis's hard boundary): a band far below the grid's resolution
-        solver = self._mpm.solver
-        coupler = RigidMPMCoupler(self._rigid.solver, geoms, idx, [m.coup_friction for m in mats], softness,
-                                  self.coupler_options.mpm_reaction, solver.grid_res, solver.np_lower, dx, solver.dtype)
-        solver.attach_coupler(coupler)
-        self._coupler = coupler
 
     def _build_mpm(self):
         from .mpm_sim import MPMSim, check_time_step, domain_inside

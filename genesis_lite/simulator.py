@@ -2,8 +2,19 @@
 
 A scene has one bridge per solver it needs (rigid_sim.RigidSim, mpm_sim.MPMSim): each holds torch
 mirrors of its solver's state, controls and parameters and moves them in and out of the solver's
-Taichi fields. A step runs, substep by substep, the MPM solver's substep (with the rigid-MPM coupling
-inside its grid update when the scene has both kinds) and then the rigid solver's.
+Taichi fields. A scene with both kinds, coupled, also has a coupler bridge (bridges/coupler.py), a
+stage of the step with no state of its own. One substep, in this order (Genesis's and MJX's; here
+and nowhere else, `_substep`):
+
+    mpm.substep_pre_coupling     clear the grid, constitutive update (F, stress), particle-to-grid
+    coupler.couple               grid velocities with gravity, walls and the rigid bodies as moving
+                                 boundaries; the momentum the grid loses becomes a wrench on the links
+                                 (mpm.grid_update instead: gravity and walls, when nothing couples)
+    mpm.substep_post_coupling    grid-to-particle
+    rigid.substep                rigid dynamics with that wrench, contacts, integration
+
+A solver or a coupler the scene does not have is skipped (None). A scene of rigid bodies alone steps
+without gradients through its solver's fused step (one launch per step; the same numbers).
 
 Without gradients the step is plain kernel launches and the state stays in the fields. With
 gradients the step is a `StepFunction` node (grad/functions.py) whose inputs are every bridge's
@@ -14,11 +25,14 @@ their adjoints in reverse; the pieces whose scratch later pieces overwrite (a ri
 MPM substep) are `ti.ad.grad_replaced` calls that recompute it in their adjoint. Then each bridge
 reads the gradients of its inputs out of the fields.
 
-Bridge protocol (duck-typed): `n_state` (its leading state inputs), `inputs()`, `context()`,
-`upload()`, `load(values, context)`, `clear_grads()`, `substep(i, grad, step)`, `step_fused(step)`
-(optional: a whole step in one launch when it is the only solver), `untracked_step_done()`,
-`read_outputs()`, `state_from_outputs(outs)`, `set_state(*state)`, `state()`, `vjp(grads, loss)`,
-`input_grads(needs, step)`, `new_rollout(state)`.
+With gradients, the MPM part of a substep (its two stages and the coupling between them) is one call
+on the Tape (MPMSim.record_substep): the grid is scratch that the next substep overwrites, so its
+adjoint replays these same stages (`_mpm_substep` with replay=True) under a nested Tape.
+
+Bridge protocol of a solver's bridge (duck-typed): `n_state` (its leading state inputs), `n_outputs`,
+`inputs()`, `context()`, `upload()`, `load(values, context)`, `clear_grads()`, its stages (above),
+`untracked_step_done()`, `read_outputs()`, `state_from_outputs(outs)`, `set_state(*state)`, `state()`,
+`vjp(grads, loss)`, `input_grads(needs, step)`, `new_rollout(state)`.
 """
 from __future__ import annotations
 
@@ -36,10 +50,14 @@ from .grad.indexing import incoming_grads
 
 
 class Simulator:
-    def __init__(self, bridges: List, sim_options):
+    """rigid, mpm: the scene's solver bridges (RigidSim, MPMSim) or None; coupler: its CouplerBridge or None."""
+
+    def __init__(self, rigid, mpm, coupler, sim_options):
         import genesis_lite as gs
 
-        self.bridges = bridges
+        self.rigid, self.mpm, self.coupler = rigid, mpm, coupler
+        # the bridges with state, in the order of the step node's inputs and outputs
+        self.bridges: List = [b for b in (mpm, rigid) if b is not None]
         self.substeps = sim_options.substeps
         self.requires_grad = sim_options.requires_grad
         self.rollout_token = 0
@@ -51,7 +69,7 @@ class Simulator:
         self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
         # the Tape's loss: <gradient torch hands a node's outputs, those outputs>
         self.loss = ti.field(gs.ti_float, shape=(), needs_grad=True) if self.requires_grad else None
-        for b in bridges:
+        for b in self.bridges:
             b.sim = self
 
     # ---------------------------------------------------------------- stepping
@@ -80,14 +98,33 @@ class Simulator:
         self.step_count += 1
 
     def _run(self, grad: bool):
-        """One step of every solver: substep by substep, or the only solver's fused step."""
+        """One step of every solver: substep by substep, or the rigid solver's fused step when it is the
+        only solver and nothing is recorded."""
         step = self.step_count + 1
-        if not grad and len(self.bridges) == 1 and hasattr(self.bridges[0], "step_fused"):
-            self.bridges[0].step_fused(step)
+        if not grad and self.mpm is None:
+            self.rigid.step_fused(step)
             return
         for i in range(self.substeps):
-            for b in self.bridges:
-                b.substep(i, grad, step)
+            self._substep(i, grad, step)
+
+    def _substep(self, i: int, grad: bool, step: int):
+        """Substep i of the step: the MPM material and its coupling to the rigid bodies, then the bodies."""
+        if self.mpm is not None:
+            if grad:
+                self.mpm.record_substep(i, self._mpm_substep)
+            else:
+                self._mpm_substep(i, False)
+        if self.rigid is not None:
+            self.rigid.substep(i, grad, step)
+
+    def _mpm_substep(self, i: int, grad: bool, replay: bool = False):
+        """The MPM part of substep i (replay: recorded again by its adjoint, see the module docstring)."""
+        self.mpm.substep_pre_coupling(i, grad, replay)
+        if self.coupler is not None:
+            self.coupler.couple(i, grad, replay)
+        else:
+            self.mpm.grid_update(i)
+        self.mpm.substep_post_coupling(i, grad)
 
     @staticmethod
     def _split(xs, counts):

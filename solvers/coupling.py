@@ -1,10 +1,13 @@
 """Two-way rigid-MPM coupling on the MPM grid.
 
-Every collision geom of a coupled rigid entity is a moving boundary for the MPM grid. In each substep,
-after particle-to-grid, the rigid links' poses and velocities at the substep's start are computed
-(the rigid solver's kinematics), every grid node near the particles picks the geom it is deepest in
-(or nearest to, within `softness` outside), and the grid update projects the node's velocity relative
-to that geom's surface velocity:
+Every collision geom of a coupled rigid entity is a moving boundary for the MPM grid. The coupling is
+a stage of the substep (`couple`, called by genesis_lite/simulator.py between the MPM solver's
+particle-to-grid and grid-to-particle, and before the rigid solver's substep): the rigid links' poses
+and velocities at the substep's start are computed (through the rigid solver's port,
+solvers/rigid/port.py: poses and velocities in, a wrench out), every grid node near the particles
+picks the geom it is deepest in (or nearest to, within `softness` outside), and the grid update
+(gravity, walls, then the boundary) projects the node's velocity relative to that geom's surface
+velocity:
 
     v_rel = v - v_body(x),  v_n = v_rel . n  (n: the geom's outward normal at the node)
     approaching (v_n < 0): the normal part is removed, the tangential part slides with Coulomb
@@ -17,7 +20,7 @@ to that geom's surface velocity:
 The momentum the node loses, m (v - v_new), is the impulse the MPM material gives the body: divided by
 the substep it becomes a force at the node on the geom's link (and its torque about the world origin),
 summed into the rigid solver's external wrench of that substep (solvers/rigid/external.py), which the
-rigid solver applies in the same substep. Both directions are differentiable: the projection is part
+rigid solver applies in the same substep (after this stage). Both directions are differentiable: the projection is part
 of the MPM grid update (Taichi's autodiff), the body's pose and velocity come from the rigid
 kinematics launched inside the MPM substep (so its adjoint reaches the rigid state), and the wrench
 enters the rigid dynamics like any generalised force.
@@ -49,13 +52,15 @@ EXPEL_DEPTH = 0.5
 
 @ti.data_oriented
 class RigidMPMCoupler:
-    """rigid: the RigidSolver (built with external_wrench=True); geoms: the GeomTable of its collision
+    """mpm: the scene's MPMSolver; rigid: the RigidPort of its RigidSolver (built with
+    external_wrench=True, solvers/rigid/port.py); geoms: the GeomTable of its collision
     geoms (solvers/rigid/collision.py build_geoms), of which those at `idx` are coupled; friction:
     Coulomb coefficient per coupled geom;
     softness (m): width of the band outside a surface over which its boundary fades in; reaction:
     whether the rigid bodies feel the MPM material (two-way) or only move it (one-way)."""
 
-    def __init__(self, rigid, geoms, idx, friction, softness, reaction, grid_res, lower, dx, dtype):
+    def __init__(self, mpm, rigid, geoms, idx, friction, softness, reaction):
+        self.mpm = mpm
         self.rigid = rigid
         idx = np.asarray(idx, dtype=np.int64)
         self.n_geoms = len(idx)
@@ -63,8 +68,9 @@ class RigidMPMCoupler:
             require_ad_stack(self.n_geoms)  # each grid node loops over the coupled geoms
         self.softness = float(softness)
         self.reaction = bool(reaction)
-        self.lower = ti.Vector([float(v) for v in lower])
-        self.dx = float(dx)
+        self.lower = ti.Vector([float(v) for v in mpm.np_lower])
+        self.dx = float(mpm.dx)
+        grid_res, dtype = mpm.grid_res, mpm.dtype
         self.sdf_types = tuple(sorted({int(t) for t in geoms.type[idx]}))
         G, B = max(len(idx), 1), rigid.n_envs
         npf = np.float64 if dtype == ti.f64 else np.float32
@@ -92,18 +98,20 @@ class RigidMPMCoupler:
 
         self.select = select
 
-    def before_grid(self, i, region, taped):
-        """Substep i, after particle-to-grid: the rigid links' poses and velocities at the substep's
-        start, the geom each node of `region` answers to, and a zeroed external wrench. `taped`: the
-        launches are being recorded on a Tape (the MPM substep's adjoint): the selection goes through
-        its no_grad wrapper there and is a plain launch otherwise (see MPMSolver._substep_launches)."""
-        r = self.rigid
-        r.scratch_overwritten()
-        r.core.kernel_kinematics(r.substep_slot[i])
-        if taped:
-            self.select(i, region)
+    def couple(self, i, grad, replay=False):
+        """The coupling stage of substep i (after the MPM solver's particle-to-grid): the links' poses and
+        velocities at the substep's start, the geom each node of the grid's active region answers to,
+        a zeroed external wrench, then the grid update with the rigid boundaries (and their reaction).
+        `replay`: the launches are being recorded on the nested Tape of the MPM substep's adjoint, so the
+        geom selection goes through its no_grad wrapper; a plain launch otherwise (see
+        MPMSolver.substep_pre_coupling). `grad` does not change the launches (the grid is per substep)."""
+        mpm = self.mpm
+        self.rigid.update_poses(i)
+        if replay:
+            self.select(i, mpm.region)
         else:
-            self.kernel_select(i, *region)
+            self.kernel_select(i, *mpm.region)
+        self.kernel_grid_update(mpm, mpm.h, i, *mpm.region)
 
     @ti.func
     def func_geom_frame(self, i_b, g):
@@ -134,8 +142,8 @@ class RigidMPMCoupler:
                     best_phi = phi
             self.node_geom[i_b, I] = best
         for i_b, l in ti.ndrange(self.rigid.n_envs, max(self.rigid.n_links, 1)):
-            self.rigid.external.ext_f[i_b, sub, l] = ti.Vector.zero(float, 3)
-            self.rigid.external.ext_t[i_b, sub, l] = ti.Vector.zero(float, 3)
+            self.rigid.ext_f[i_b, sub, l] = ti.Vector.zero(float, 3)
+            self.rigid.ext_t[i_b, sub, l] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def kernel_grid_update(self, mpm: ti.template(), h: float, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32,
@@ -174,6 +182,6 @@ class RigidMPMCoupler:
         v_new = v + alpha * approach * (vt_new + push * n - v_rel)
         if ti.static(self.reaction):
             f = mpm.grid_m[i_b, I] / h * (v - v_new)
-            self.rigid.external.ext_f[i_b, sub, l] += f
-            self.rigid.external.ext_t[i_b, sub, l] += x.cross(f)
+            self.rigid.ext_f[i_b, sub, l] += f
+            self.rigid.ext_t[i_b, sub, l] += x.cross(f)
         return v_new

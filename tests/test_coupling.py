@@ -185,13 +185,13 @@ def test_coupling_exists_only_where_both_kinds_do(caplog):
     mpm_only = _scene()
     mpm_only.add_entity(gs.morphs.Box(pos=(0.2, 0.2, 0.2), size=(0.05,) * 3), material=gs.materials.MPM.Elastic())
     mpm_only.build()
-    assert mpm_only.rigid_solver is None and not mpm_only.mpm_solver.coupled
+    assert mpm_only.rigid_solver is None and mpm_only._coupler is None
     off = _scene(coupler=gs.options.CouplerOptions(rigid_mpm=False))
     off.add_entity(gs.morphs.Box(pos=(0.2, 0.2, 0.2), size=(0.05,) * 3), material=gs.materials.MPM.Elastic())
     off.add_entity(gs.morphs.Sphere(pos=(0.2, 0.2, 0.3), radius=0.02))
     with caplog.at_level(logging.INFO, logger="genesis_lite"):
         off.build()
-    assert not off.mpm_solver.coupled and "do not interact" in caplog.text
+    assert off._coupler is None and "do not interact" in caplog.text
 
 
 def test_rigid_entity_without_collision_geometry_is_logged_not_coupled(tmp_path, caplog):

@@ -8,13 +8,16 @@ rewritten every substep; the Kirchhoff stress tau [t, i_b, i_p] has one slot per
 current step with gradients (one without), so a substep's adjoint finds its stress without redoing
 the SVD.
 
-A substep is the launches of `_substep_launches`: clear the grid, constitutive update (F, tau),
-particle-to-grid, grid update (gravity, walls, rigid boundaries), grid-to-particle. With gradients it
-is one `ti.ad.grad_replaced` call on the scene's Tape, whose adjoint recomputes the substep's grid
-(another substep has overwritten it) by replaying the transfer launches under a nested Tape, which
-then runs their adjoints in reverse, followed by the adjoint of the constitutive update (the
-SVD-based one hand-written, constitutive.py; the others Taichi's). The constitutive update itself is
-not replayed: its outputs (F of the next slot, tau of this one) are kept.
+A substep is three stages, called in order by the scene's simulator (genesis_lite/simulator.py), which
+owns the order: `substep_pre_coupling` (clear the grid, constitutive update of F and tau,
+particle-to-grid), the grid update (`grid_update`: gravity and walls; in a coupled scene the coupler's
+own, solvers/coupling.py, which adds the rigid boundaries), and `substep_post_coupling`
+(grid-to-particle). With gradients the simulator records the three as one `ti.ad.grad_replaced` call
+on the scene's Tape (`record_substep`), whose adjoint recomputes the substep's grid (another substep
+has overwritten it) by replaying the stages (`replay=True`) under a nested Tape, which then runs their
+adjoints in reverse, followed by the adjoint of the constitutive update (the SVD-based one
+hand-written, constitutive.py; the others Taichi's). The constitutive update itself is not replayed:
+its outputs (F of the next slot, tau of this one) are kept.
 
 One compile serves every scene of a class, as in the rigid solver (solvers/rigid/solver.py): Taichi
 bakes the fields a kernel touches, and every Python value it reads while compiling, into the compiled
@@ -23,16 +26,15 @@ gradients, envs, the particle count, state slots, the grid (lower corner, cell s
 walls' friction and the set of materials), and a scene takes a solver of its class from `POOL` and
 gives it back when its bridge dies (weakref.finalize in genesis_lite/mpm_sim.py). (With
 RUNTIME_PARTICLE_COUNT the class has a particle capacity instead, the fields are sized by it and the
-scene's count is read at run time from the small `cfg_i` field; see there why it is off.) A coupled scene's grid update, which
-reads that scene's rigid fields, is compiled on its coupler (solvers/coupling.py), never on the
-pooled solver.
+scene's count is read at run time from the small `cfg_i` field; see there why it is off.) A coupled
+scene's grid update, which reads that scene's rigid fields, is compiled on its coupler
+(solvers/coupling.py), never on the pooled solver, which holds no reference to any scene.
 """
 
 import gc
 
 import numpy as np
 import taichi as ti
-import torch
 
 from .. import taichi_compat
 
@@ -73,7 +75,7 @@ class MPMSolver:
     pooled by its class (see the module docstring): made by `acquire`, which loads a scene into it
     (`_load`). Per scene: particle positions x0 (P, 3) m, volumes vol (P,) m^3, masses mass (P,) kg,
     material codes mat (P,); dt is one scene step (s), split into `substeps`; wall_friction is the
-    walls' Coulomb coefficient; coupler (solvers/coupling.py) adds rigid boundaries to the grid update."""
+    walls' Coulomb coefficient. Its substep is three stages (see the module docstring)."""
 
     def __init__(self, key):
         dtype, requires_grad, n_envs, cap, n_slots, lower, dx, grid_res, wall_friction, mats = key
@@ -100,8 +102,6 @@ class MPMSolver:
         self.mats = mats
         self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
         self.has_ad = any(m in AD_MATERIALS for m in self.mats)
-        self.coupler = None
-        self.coupled = False
         self.n_slots = n_slots
         self._allocate()
         self._make_units()
@@ -120,8 +120,6 @@ class MPMSolver:
         self.dt = dt
         self.substeps = substeps
         self.h = dt / substeps
-        self.coupler = None
-        self.coupled = False
         self.cfg_i.from_numpy(np.array([len(x0)], np.int32))
         if hasattr(self, "nan_env"):
             self.nan_env.fill(0)  # no record of an earlier scene's divergence
@@ -154,6 +152,9 @@ class MPMSolver:
         self.n_chunks = min(64, max(1, (B * P) // 256))
         self.chunk_lo = ti.Vector.field(3, ti.i32, shape=self.n_chunks)
         self.chunk_hi = ti.Vector.field(3, ti.i32, shape=self.n_chunks)
+        # the loss of the nested Tape that replays a substep in its adjoint: nothing reads it (the
+        # adjoints start from the grid's and particles' own), but a Tape needs a scalar to seed
+        self.replay_loss = ti.field(f, shape=(), needs_grad=True) if g else None
         self.grad_fields = [self.x, self.v, self.C, self.F, self.tau, self.mu, self.lam, self.yield_stress,
                             self.alpha, self.viscosity, self.f_ext, self.gravity, self.grid_m, self.grid_mv,
                             self.grid_v] if g else []
@@ -167,87 +168,72 @@ class MPMSolver:
         self.gravity.from_numpy(np.tile(np.asarray(gravity, nd), (self.n_envs, 1)))
         self.x0 = np.asarray(x0, nd)
 
-    def attach_coupler(self, coupler):
-        """Add the rigid boundaries of `coupler` (solvers/coupling.py) to the grid update; before the
-        first launch (kernels compile with or without it)."""
-        self.coupler = coupler
-        self.coupled = True
-
     def _make_units(self):
         """The Tape-recorded calls with their own adjoints (see the module docstring)."""
-
-        @ti.ad.grad_replaced
-        def constitutive_svd(src, dst):
-            self.kernel_constitutive_svd(src, dst, self.h)
-
-        @ti.ad.grad_for(constitutive_svd)
-        def constitutive_svd_grad(src, dst):
-            self.kernel_constitutive_svd_grad(src, dst, self.h)
 
         @ti.ad.no_grad
         def clear_grid(src):
             self._clear_grid(src)
 
         @ti.ad.grad_replaced
-        def substep_unit(i):
-            self._substep_launches(i, i, i + 1)
+        def record_substep(i, stages):
+            stages(i, True, False)
 
-        @ti.ad.grad_for(substep_unit)
-        def substep_unit_grad(i):
+        @ti.ad.grad_for(record_substep)
+        def record_substep_grad(i, stages):
             # another substep has overwritten the grid: recompute this one's, and let a nested Tape run
             # the adjoints of its transfers in reverse, from zeroed grid adjoints; then the adjoint of
             # the constitutive update, whose outputs (F[i + 1], tau[i]) are still there
-            self._region = tuple(int(r) for r in self.kernel_active_region(i))
+            self.region = tuple(int(r) for r in self.kernel_active_region(i))
             self.kernel_clear_grid_grads(i)
-            with ti.ad.Tape(loss=torch.zeros((), dtype=torch.float64, requires_grad=True), clear_gradients=False):
-                self._substep_launches(i, i, i + 1, taped=True, constitutive=False)
+            with ti.ad.Tape(loss=self.replay_loss, clear_gradients=False):
+                stages(i, True, True)
             if self.has_ad:
                 self.kernel_constitutive_ad.grad(i, i + 1, self.h)
             if self.has_svd:
                 self.kernel_constitutive_svd_grad(i, i + 1, self.h)
 
-        self.constitutive_svd = constitutive_svd
         self.clear_grid = clear_grid
-        self.substep_unit = substep_unit
+        # record_substep(i, stages): substep i as one call on the scene's Tape, where stages(i, grad, replay)
+        # runs the substep's stages in the simulator's order (replay=True: the adjoint's recompute)
+        self.record_substep = record_substep
 
-    # ------------------------------------------------------------------ stepping
+    # ------------------------------------------------------------------ stepping: the substep's stages
     def _clear_grid(self, src):
-        self._region = tuple(int(r) for r in self.kernel_active_region(src))
+        self.region = tuple(int(r) for r in self.kernel_active_region(src))
         self.kernel_clear_grid()
 
-    def _substep_launches(self, i, src, dst, taped=False, constitutive=True):
-        """Substep i's launches, from particle slot src to dst. `taped`: they are being recorded on the nested Tape of the substep's
-        adjoint, so the pieces with adjoints of their own go through their grad_replaced / no_grad
-        wrappers. Otherwise they are plain launches: Taichi clears its 'inside a grad_replaced call'
-        flag when such a wrapper returns, so one called inside the substep's own grad_replaced forward
-        would let the launches after it onto the scene's Tape. `constitutive=False` leaves out the
-        constitutive update (the adjoint's recompute: its outputs are kept per substep)."""
-        if taped:
+    @staticmethod
+    def slots(i, grad):
+        """(source, destination) particle slots of substep i: i -> i + 1 with gradients, 0 in place without."""
+        return (i, i + 1) if grad else (0, 0)
+
+    def substep_pre_coupling(self, i, grad, replay=False):
+        """Substep i up to the grid's momenta: clear the grid, constitutive update, particle-to-grid.
+        `replay`: the launches are being recorded on the nested Tape of the substep's adjoint, so the
+        pieces with adjoints of their own go through their grad_replaced / no_grad wrappers and the
+        constitutive update, whose outputs are kept, is left out. Otherwise they are plain launches:
+        Taichi clears its 'inside a grad_replaced call' flag when such a wrapper returns, so one called
+        inside the substep's own grad_replaced forward would let the launches after it onto the scene's
+        Tape."""
+        src, dst = self.slots(i, grad)
+        if replay:
             self.clear_grid(src)
         else:
             self._clear_grid(src)
-        if self.has_svd and constitutive:
-            if taped:
-                self.constitutive_svd(src, dst)
-            else:
+            if self.has_svd:
                 self.kernel_constitutive_svd(src, dst, self.h)
-        if self.has_ad and constitutive:
-            self.kernel_constitutive_ad(src, dst, self.h)
+            if self.has_ad:
+                self.kernel_constitutive_ad(src, dst, self.h)
         self.kernel_p2g(src, self.h)
-        if self.coupler is not None:
-            self.coupler.before_grid(i, self._region, taped)
-            self.coupler.kernel_grid_update(self, self.h, i, *self._region)
-        else:
-            self.kernel_grid_update(self.h, i, *self._region)
-        self.kernel_g2p(src, dst, self.h)
 
-    def substep(self, i: int, grad: bool):
-        """Substep i of the step: with gradients from slot i to slot i + 1 as one call on the Tape;
-        without, in place in slot 0."""
-        if grad:
-            self.substep_unit(i)
-        else:
-            self._substep_launches(i, 0, 0)
+    def grid_update(self, i):
+        """Grid velocities of substep i with gravity and the domain walls (a scene without a coupler)."""
+        self.kernel_grid_update(self.h, i, *self.region)
+
+    def substep_post_coupling(self, i, grad):
+        """Substep i from the grid's velocities on: grid-to-particle."""
+        self.kernel_g2p(*self.slots(i, grad), self.h)
 
     @property
     def last_slot(self):
@@ -528,8 +514,6 @@ class _Pool:
         return (free.pop(), True) if free else (MPMSolver(key), False)
 
     def release(self, solver):
-        solver.coupler = None  # the scene's rigid side goes with it
-        solver.coupled = False
         self.taken[solver.key] -= 1
         self.free.setdefault(solver.key, []).append(solver)
 

@@ -1,0 +1,49 @@
+"""The scene's side of the rigid-MPM coupler (solvers/coupling.py): which rigid geoms are boundaries
+for the MPM material, with what friction and softness, and the coupling stage of the step
+(simulator.py). The coupler has no state, controls or parameters of its own: its gradients flow
+through the MPM and rigid bridges' inputs.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+logger = logging.getLogger("genesis_lite")
+
+
+class CouplerBridge:
+    """Rigid collision geoms of the entities whose material couples (`needs_coup`) as moving boundaries
+    of the MPM grid, and (with CouplerOptions(mpm_reaction=True)) the material's reaction on their links.
+    Made by `create`, which returns None when no geom couples."""
+
+    def __init__(self, coupler):
+        self.coupler = coupler
+
+    @classmethod
+    def create(cls, rigid_entities, rigid, mpm, rigid_options, mpm_options, coupler_options):
+        """rigid, mpm: the scene's RigidSim and MPMSim bridges (the rigid one built with external wrenches)."""
+        from solvers.coupling import RigidMPMCoupler
+        from solvers.rigid.collision import build_geoms
+        from solvers.rigid.port import RigidPort
+
+        geoms = build_geoms([e.model for e in rigid_entities], int(rigid_options.max_mesh_contact_points))
+        keep = np.array([rigid_entities[int(i)].material.needs_coup for i in geoms.entity], dtype=bool)
+        for e in rigid_entities:
+            if e.material.needs_coup and e.n_geoms == 0:
+                logger.warning(f"scene: rigid entity '{e.name}' has no collision geometry, so MPM material passes "
+                               "through it (give its links <collision> shapes to couple it)")
+        idx = np.nonzero(keep)[0]
+        if len(idx) == 0:
+            logger.info("scene: no rigid entity has collision geometry to couple with the MPM material")
+            return None
+        dx = mpm_options.dx
+        mats = [rigid_entities[int(geoms.entity[i])].material for i in idx]
+        softness = min(m.coup_softness if m.coup_softness is not None else 0.5 * dx for m in mats)
+        softness = max(softness, 1e-6 * dx)  # 0 (Genesis's hard boundary): a band far below the grid's resolution
+        return cls(RigidMPMCoupler(mpm.solver, RigidPort(rigid.solver), geoms, idx, [m.coup_friction for m in mats],
+                                   softness, coupler_options.mpm_reaction))
+
+    def couple(self, i, grad, replay=False):
+        """The coupling stage of substep i (see solvers/coupling.py)."""
+        self.coupler.couple(i, grad, replay)
