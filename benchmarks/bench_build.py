@@ -61,27 +61,10 @@ gs.init(backend=gs.cpu, precision={precision!r})
 t2 = time.perf_counter()
 out = {{"import": t1 - t0, "init": t2 - t1}}
 
-# time spent in Taichi's front end (Kernel.materialize: Python AST -> IR) and in kernel launches (a first
-# launch loads the kernel from the offline cache or compiles it, JITs it, then runs it)
-from taichi.lang import kernel_impl as _K
-acc = {{"frontend": 0.0, "launch": 0.0}}
-_materialize, _launch = _K.Kernel.materialize, _K.Kernel.launch_kernel
-
-def _timed_materialize(self, key=None, args=None, arg_features=None):
-    t = time.perf_counter()
-    try:
-        return _materialize(self, key, args, arg_features)
-    finally:
-        acc["frontend"] += time.perf_counter() - t
-
-def _timed_launch(self, t_kernel, *args):
-    t = time.perf_counter()
-    try:
-        return _launch(self, t_kernel, *args)
-    finally:
-        acc["launch"] += time.perf_counter() - t
-
-_K.Kernel.materialize, _K.Kernel.launch_kernel = _timed_materialize, _timed_launch
+# time spent in Taichi's front end (Python AST -> IR) and in kernel launches (a first launch loads the
+# kernel from the offline cache or compiles it, JITs it, then runs it)
+from solvers import taichi_compat
+acc = taichi_compat.time_kernel_work()
 
 def scene_of(urdf, plane, parts=None):
     ta = time.perf_counter()

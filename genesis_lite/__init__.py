@@ -205,7 +205,7 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
         kw.setdefault("offline_cache_file_path", checked_runtime.install())
         env_cache = os.environ.pop("TI_OFFLINE_CACHE_FILE_PATH", None)  # (Taichi warns of the override)
     _remove_stale_cache_lock(os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or kw.get("offline_cache_file_path")
-                             or ti.lang.impl.default_cfg().offline_cache_file_path)
+                             or taichi_compat.default_offline_cache_path())
     try:
         ti.init(**kw)
     finally:

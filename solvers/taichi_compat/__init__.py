@@ -8,7 +8,8 @@
   bounds, for the test suite and for GS_CHECK_AD_STACK=1 (Taichi 1.7.4 checks them in no mode).
 - `compile_options`: Taichi's advanced IR optimisation switched around forward and adjoint launches.
 - `config()`, `inside_kernel()`, `subscript()`: the compile configuration in force and the two
-  `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need.
+  `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need;
+  `default_offline_cache_path()`: Taichi's default kernel-cache folder (gs.init clears a stale lock there).
 
 The speed-ups (`frontend`) are one switch: GS_TAICHI_SPEEDUPS=0 in the environment, or
 `gs.init(taichi_speedups=False)`, keeps Taichi's own functions everywhere (the two finer switches
@@ -86,3 +87,37 @@ inside_kernel = _impl.inside_kernel
 def subscript(field, *index):
     """A field load emitted while compiling a kernel (`impl.subscript` without an AST node)."""
     return _impl.subscript(None, field, *index)
+
+
+def default_offline_cache_path() -> str:
+    """Taichi's kernel-cache folder when neither ti.init nor TI_OFFLINE_CACHE_FILE_PATH names one."""
+    return _impl.default_cfg().offline_cache_file_path
+
+
+def time_kernel_work() -> dict:
+    """From now on, accumulate into the returned dict the seconds spent in Taichi's kernel front end
+    ("frontend": Python AST to IR) and in kernel launches ("launch": a first launch loads the kernel from
+    the offline cache or compiles it, then runs it). For benchmarks (benchmarks/bench_build.py)."""
+    from taichi.lang import kernel_impl
+
+    import time
+
+    acc = {"frontend": 0.0, "launch": 0.0}
+    materialize, launch = kernel_impl.Kernel.materialize, kernel_impl.Kernel.launch_kernel
+
+    def timed_materialize(self, key=None, args=None, arg_features=None):
+        t = time.perf_counter()
+        try:
+            return materialize(self, key, args, arg_features)
+        finally:
+            acc["frontend"] += time.perf_counter() - t
+
+    def timed_launch(self, t_kernel, *args):
+        t = time.perf_counter()
+        try:
+            return launch(self, t_kernel, *args)
+        finally:
+            acc["launch"] += time.perf_counter() - t
+
+    kernel_impl.Kernel.materialize, kernel_impl.Kernel.launch_kernel = timed_materialize, timed_launch
+    return acc
