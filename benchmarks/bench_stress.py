@@ -272,7 +272,7 @@ MPM_SUBSTEPS = 10
 
 
 def _mpm_cfl_dt(gs, substeps=MPM_SUBSTEPS):
-    """The largest dt genesis_lite's build accepts for this block (mpm_sim.check_time_step: a substep of at most
+    """The largest dt genesis_lite's build accepts for this block (bridges.mpm.check_time_step: a substep of at most
     0.9 dx / c, c the material's pressure wave speed)."""
     c = gs.materials.MPM.Elastic(E=3e5, nu=0.2, rho=1000.0).wave_speed()
     return 0.9 * MPM_DX / c * substeps, c
@@ -281,7 +281,7 @@ def _mpm_cfl_dt(gs, substeps=MPM_SUBSTEPS):
 def _gl_mpm(gs, dt, t_end=MPM_T, bypass_cfl=False):
     import torch
 
-    import genesis_lite.mpm_sim as ms
+    import genesis_lite.bridges.mpm as ms
 
     check = ms.check_time_step
     if bypass_cfl:  # to find the true stability limit beyond the build-time check (this child process only)

@@ -218,7 +218,7 @@ class Scene:
         self.n_envs = int(n_envs)
         coupled = bool(self.rigid_entities and self.mpm_entities and self.coupler_options.rigid_mpm)
         if self.rigid_entities or not self.mpm_entities:
-            from .rigid_sim import RigidSim
+            from .bridges.rigid import RigidSim
 
             ls = qs = ds = 0
             for e in self.rigid_entities:
@@ -249,7 +249,7 @@ class Scene:
         self._init_state = self.get_state()
 
     def _build_mpm(self):
-        from .mpm_sim import MPMSim, check_time_step, domain_inside
+        from .bridges.mpm import MPMSim, check_time_step, domain_inside
 
         opts = self.mpm_options
         lo, hi = domain_inside(opts)

@@ -1,6 +1,6 @@
 """The simulator: steps every solver of a scene together, as one node of torch's graph per step.
 
-A scene has one bridge per solver it needs (rigid_sim.RigidSim, mpm_sim.MPMSim): each holds torch
+A scene has one bridge per solver it needs (bridges/rigid.py RigidSim, bridges/mpm.py MPMSim): each holds torch
 mirrors of its solver's state, controls and parameters and moves them in and out of the solver's
 Taichi fields. A scene with both kinds, coupled, also has a coupler bridge (bridges/coupler.py), a
 stage of the step with no state of its own. One substep, in this order (Genesis's and MJX's; here
@@ -29,10 +29,7 @@ With gradients, the MPM part of a substep (its two stages and the coupling betwe
 on the Tape (MPMSim.record_substep): the grid is scratch that the next substep overwrites, so its
 adjoint replays these same stages (`_mpm_substep` with replay=True) under a nested Tape.
 
-Bridge protocol of a solver's bridge (duck-typed): `n_state` (its leading state inputs), `n_outputs`,
-`inputs()`, `context()`, `upload()`, `load(values, context)`, `clear_grads()`, its stages (above),
-`untracked_step_done()`, `read_outputs()`, `state_from_outputs(outs)`, `set_state(*state)`, `state()`,
-`vjp(grads, loss)`, `input_grads(needs, step)`, `new_rollout(state)`.
+The bridges' protocol is in bridges/__init__.py.
 """
 from __future__ import annotations
 

@@ -1030,7 +1030,7 @@ def test_no_solver_or_field_beyond_the_rigid_one():
     # nothing of the MPM side hangs off the scene (an empty entity list and the default options are
     # not a solver)
     assert scene.mpm_entities == []
-    assert not any(type(v).__module__.startswith(("solvers.mpm", "genesis_lite.mpm_sim")) for v in vars(scene).values())
+    assert not any(type(v).__module__.startswith(("solvers.mpm", "genesis_lite.bridges.mpm")) for v in vars(scene).values())
 
 
 def test_state_fields_and_memory_do_not_grow_with_steps(arm):

@@ -253,7 +253,7 @@ class MPMEntity:
     def get_material(self, key, envs_idx=None):
         """Per-particle value of a material parameter ("E", "nu", "yield_stress", "friction_angle",
         "viscosity"), (n_particles,)."""
-        from ..mpm_sim import MATERIAL_KEYS
+        from ..bridges.mpm import MATERIAL_KEYS
 
         if key not in MATERIAL_KEYS:
             raise GenesisException(f"MPM entity '{self.name}': unknown material parameter {key!r}; one of "

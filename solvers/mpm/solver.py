@@ -24,7 +24,7 @@ bakes the fields a kernel touches, and every Python value it reads while compili
 kernel, keyed by the object that owns the kernel. So a solver is pooled by its class (`_key`: dtype,
 gradients, envs, the particle count, state slots, the grid (lower corner, cell size, resolution), the
 walls' friction and the set of materials), and a scene takes a solver of its class from `POOL` and
-gives it back when its bridge dies (weakref.finalize in genesis_lite/mpm_sim.py). (With
+gives it back when its bridge dies (weakref.finalize in genesis_lite/bridges/mpm.py). (With
 RUNTIME_PARTICLE_COUNT the class has a particle capacity instead, the fields are sized by it and the
 scene's count is read at run time from the small `cfg_i` field; see there why it is off.) A coupled
 scene's grid update, which reads that scene's rigid fields, is compiled on its coupler

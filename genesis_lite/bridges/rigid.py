@@ -14,9 +14,9 @@ import torch
 from solvers.rigid.model import JOINT_NV
 from solvers.rigid.solver import RigidSolver
 
-from .errors import GenesisException
-from .grad.functions import OutputFunction
-from .grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
+from ..errors import GenesisException
+from ..grad.functions import OutputFunction
+from ..grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
 
 # name -> (solver field, trailing shape, axis it is indexed by). The core's parameters travel packed in one
 # tensor (RigidSolver.param_layout); contact friction lives in the contact solver's own field.
@@ -37,7 +37,7 @@ CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dof
 
 
 class RigidSim:
-    """Bridge of the rigid solver (the protocol is in simulator.py). Step inputs: qpos, qvel (its
+    """Bridge of the rigid solver (the protocol is in bridges/__init__.py). Step inputs: qpos, qvel (its
     state), the packed controls and the parameters; step output: the packed state [qpos | qvel]."""
 
     n_state = 2

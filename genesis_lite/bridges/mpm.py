@@ -16,9 +16,9 @@ import torch
 
 from solvers.mpm.solver import POOL as SOLVER_POOL, acquire as acquire_solver
 
-from .errors import GenesisException
-from .grad.indexing import index_put, raise_if_nan_grad
-from .materials import MPM as _MPM_MATERIALS, sand_alpha
+from ..errors import GenesisException
+from ..grad.indexing import index_put, raise_if_nan_grad
+from ..materials import MPM as _MPM_MATERIALS, sand_alpha
 
 Liquid = _MPM_MATERIALS.Liquid
 
@@ -26,7 +26,7 @@ MATERIAL_KEYS = ("E", "nu", "yield_stress", "friction_angle", "viscosity")
 
 
 class MPMSim:
-    """Bridge of the MPM solver (the protocol is in simulator.py). Step inputs: x, v, C, F (its state),
+    """Bridge of the MPM solver (the protocol is in bridges/__init__.py). Step inputs: x, v, C, F (its state),
     external forces (B, P, 3), packed parameters (B, 5, P) and gravity (B, 3); outputs: x, v, C, F."""
 
     n_state = 4
