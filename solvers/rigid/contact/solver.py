@@ -21,7 +21,7 @@ from .solve import func_solve_coulomb, func_solve_candidates, func_solve_normal
 
 def _runtime(index):
     """A size of the scene a ContactSolver holds: that scene's number in Python scope, a read of the
-    solver's cfg field inside a kernel being compiled (as solver._runtime)."""
+    solver's cfg field inside a kernel being compiled (as core._runtime)."""
 
     def get(self):
         if taichi_compat.inside_kernel() and not self.static_sizes:
@@ -38,7 +38,7 @@ class ContactSolver:
     The fields are sized by a contact class (the capacities and static flags of a ContactPlan, on one
     RigidCore) and the scene's sizes and constants are read at run time from cfg_i / cfg_f, so a later
     scene whose plan fits (same flags, capacities no larger) takes this solver, with the kernels already
-    compiled on it, from the pool (solver.POOL) and compiles nothing: `load` puts its plan in."""
+    compiled on it, from the pool (pool.POOL) and compiles nothing: `load` puts its plan in."""
 
     n_geoms = _runtime(C_GEOMS)
     n_pairs = _runtime(C_PAIRS)
@@ -254,7 +254,7 @@ class ContactSolver:
 
     @property
     def geom_friction(self):
-        """The friction parameter as the scene's (n_envs, n_geoms) block (to_torch / from_torch)."""
+        """The friction parameter as the scene's (n_envs, n_geoms) block (to_numpy / load)."""
         return _FrictionBlock(self)
 
     @ti.kernel
@@ -292,7 +292,7 @@ class ContactSolver:
         self.kernel_relinearise_pass.grad(s)
         self.kernel_adjoint_solve(s, 0)
 
-    # Env loops over the core's env capacity with a guard, as solver._Kernels explains (a loop bound
+    # Env loops over the core's env capacity with a guard, as core.RigidCore explains (a loop bound
     # read from a field in a kernel of several loops broke Taichi's adjoint).
     @ti.kernel
     def kernel_report(self, s: ti.template(), e: ti.i32):
@@ -427,15 +427,12 @@ class _FrictionBlock:
     def grad(self):
         return self.field.grad
 
-    def to_torch(self, device=None):
-        B, G = self.shape
-        return self.field.to_torch(device=device)[:B, :G].contiguous()
-
     def to_numpy(self):
         B, G = self.shape
         return self.field.to_numpy()[:B, :G]
 
-    def from_torch(self, x):
+    def load(self, x):
+        """The scene's block from x (n_envs, n_geoms), a numpy array or a contiguous CPU tensor."""
         if x.shape != self.shape:
             raise ValueError(f"contact friction: expected shape {self.shape}, got {tuple(x.shape)}")
         self.contact.kernel_set_friction(x.contiguous())
