@@ -314,35 +314,30 @@ class RigidCore:
         if self.has_contact:
             self.contact.factor_solve(self, e)
         else:
-            self._kernel_factor_solve(e)
+            self.kernel_mass_solve(e, False)
 
     def kernel_solve_grad(self, e: int):
         if self.has_contact:
             self.contact.solve_grad(self, e)
         else:
-            self._kernel_solve_grad(e)
+            self.kernel_mass_solve(e, True)
 
     @ti.kernel
-    def _kernel_factor_solve(self, e: ti.i32):
+    def kernel_mass_solve(self, e: ti.i32, adjoint: ti.template()):
+        """qacc[e] = M^-1 force (M factored first; dense where contacts couple moving bodies), or with
+        `adjoint` its hand-written adjoint (inertia.func_solve_grad)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
             if i_b < self.n_envs:
-                if ti.static(self.dense_solve):
+                if ti.static(adjoint and self.dense_solve):
+                    func_solve_grad_dense(self, i_b, e)
+                elif ti.static(adjoint):
+                    func_solve_grad(self, i_b, e)
+                elif ti.static(self.dense_solve):
                     func_factor_solve_dense(self, i_b, e)
                 else:
                     func_factor_solve(self, i_b, e)
-
-    @ti.kernel
-    def _kernel_solve_grad(self, e: ti.i32):
-        if ti.static(self.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(self.cap_envs):
-            if i_b < self.n_envs:
-                if ti.static(self.dense_solve):
-                    func_solve_grad_dense(self, i_b, e)
-                else:
-                    func_solve_grad(self, i_b, e)
 
     @ti.kernel
     def kernel_integrate(self, kind: ti.i32, e: ti.i32, base: ti.i32, src: ti.i32, dst: ti.i32, h: float):

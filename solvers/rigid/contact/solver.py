@@ -106,6 +106,9 @@ class ContactSolver:
         self.bank_relinearise = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_coulomb = AccBank(B, L, D, 0, f, g, False)
         self.bank_friction = AccBank(B, L, D, n_lp, f, g, True)
+        # by pass, for the passes' bank stages (passes.bank_stage)
+        self.banks = {"normal": self.bank_normal, "relinearise": self.bank_relinearise, "coulomb": self.bank_coulomb,
+                      "friction": self.bank_friction}
         # qacc_*: a solve's dof vector (h-scaled acceleration); dqacc_coulomb: the normal system's response
         # to force_coulomb (J^T of the Coulomb pass's forces); link_w_* / link_v_*: the link motion of a
         # dof vector (passes.func_link_motion)
@@ -158,6 +161,10 @@ class ContactSolver:
             self.relinearise_sums, self.friction_pass_listed = RELINEARISE_SUMS_CROSS, FRICTION_PASS_LISTED_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
+        # the launches of the solve op on the gradient path (factor_solve), by name: kernel_run(s, name)
+        self.steps = {"solve_candidates": (func_solve_candidates,), "relinearise_pass": self.relinearise_pass,
+                      "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
+                      "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
 
     def fits(self, plan: ContactPlan) -> bool:
         """Whether a scene's plan can run on this solver's fields and kernels."""
@@ -271,25 +278,22 @@ class ContactSolver:
     # solves and Taichi's of the passes, in reverse order.
     def factor_solve(self, s, e: int):
         """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule)."""
-        self.kernel_solve_candidates(s)
-        self.kernel_relinearise_pass(s)
-        self.kernel_solve_normal(s)
-        self.kernel_coulomb_pass(s)
-        self.kernel_solve_coulomb(s)
-        self.kernel_friction_pass(s)
-        s._kernel_factor_solve(e)
+        for which in ("solve_candidates", "relinearise_pass", "solve_normal", "coulomb_pass", "solve_coulomb",
+                      "friction_pass"):
+            self.kernel_run(s, which)
+        s.kernel_mass_solve(e, False)
         self.kernel_report(s, e)
 
     def solve_grad(self, s, e: int):
         """Adjoint of factor_solve, with its forward values in the fields."""
         if self.scratch_grad_fields:
             self.kernel_clear_scratch_grads(s)
-        s._kernel_solve_grad(e)
-        self.kernel_friction_pass.grad(s)
+        s.kernel_mass_solve(e, True)
+        self.kernel_run.grad(s, "friction_pass")
         self.kernel_adjoint_solve(s, 2)
-        self.kernel_coulomb_pass.grad(s)
+        self.kernel_run.grad(s, "coulomb_pass")
         self.kernel_adjoint_solve(s, 1)
-        self.kernel_relinearise_pass.grad(s)
+        self.kernel_run.grad(s, "relinearise_pass")
         self.kernel_adjoint_solve(s, 0)
 
     # Env loops over the core's env capacity with a guard, as core.RigidCore explains (a loop bound
@@ -303,50 +307,10 @@ class ContactSolver:
                 func_contact_report(s, i_b, e)
 
     @ti.kernel
-    def kernel_solve_candidates(self, s: ti.template()):
-        if ti.static(s.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(s.cap_envs):
-            if i_b < s.n_envs:
-                func_solve_candidates(s, i_b)
-
-    @ti.kernel
-    def kernel_solve_normal(self, s: ti.template()):
-        if ti.static(s.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(s.cap_envs):
-            if i_b < s.n_envs:
-                func_solve_normal(s, i_b)
-
-    @ti.kernel
-    def kernel_solve_coulomb(self, s: ti.template()):
-        if ti.static(s.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(s.cap_envs):
-            if i_b < s.n_envs:
-                func_solve_coulomb(s, i_b)
-
-    @ti.kernel
-    def kernel_relinearise_pass(self, s: ti.template()):
-        for stage in ti.static(self.relinearise_pass):
-            if ti.static(s.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(s.cap_envs):
-                if i_b < s.n_envs:
-                    stage(s, i_b)
-
-    @ti.kernel
-    def kernel_coulomb_pass(self, s: ti.template()):
-        for stage in ti.static(COULOMB_PASS):
-            if ti.static(s.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(s.cap_envs):
-                if i_b < s.n_envs:
-                    stage(s, i_b)
-
-    @ti.kernel
-    def kernel_friction_pass(self, s: ti.template()):
-        for stage in ti.static(self.friction_pass):
+    def kernel_run(self, s: ti.template(), which: ti.template()):
+        """One step of the solve op by name (self.steps: a solve, or a pass between solves), each of its
+        stages one top-level loop over envs."""
+        for stage in ti.static(self.steps[which]):
             if ti.static(s.serial):
                 ti.loop_config(serialize=True)
             for i_b in range(s.cap_envs):
