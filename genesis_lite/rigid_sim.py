@@ -186,25 +186,24 @@ class RigidSim:
         self.solver.set_params(self._c(torch.cat([p.detach().reshape(self.B, -1).to(self.dtype) for p in parts], -1)))
 
     # ---------------------------------------------------------------- solver-wide results (scene.py)
-    def _result(self, read, shape):
-        """A torch copy of one of the solver's per-env dof results (what RigidSolver.read_* fill)."""
+    def _result(self, name, shape):
+        """A torch copy of one of the solver's per-env dof results (RigidSolver.read_result)."""
         dt = torch.float64 if self.solver.np_dtype == np.float64 else torch.float32
         out = torch.empty(*shape, dtype=dt)
-        read(out)
+        self.solver.read_result(name, out)
         return out.to(self.device).to(self.dtype)
 
     def read_mass_matrix(self):
         """(B, n_dofs, n_dofs): the mass matrix the last RigidSolver.mass_matrix computed (lower triangle)."""
-        return self._result(self.solver.read_mass_matrix, (self.B, self.n_dofs, self.n_dofs))
+        return self._result("mass_mat", (self.B, self.n_dofs, self.n_dofs))
 
     def read_qacc(self):
         """(n_evals, B, n_dofs): the accelerations of the last step's evaluations."""
-        a = self._result(self.solver.read_qacc, (self.B, self.solver.n_evals, self.n_dofs))
-        return a.transpose(0, 1).contiguous()
+        return self._result("qacc", (self.B, self.solver.n_evals, self.n_dofs)).transpose(0, 1).contiguous()
 
     def read_dof_tau(self):
         """(B, n_dofs): the actuator forces of the last evaluation."""
-        return self._result(self.solver.read_dof_tau, (self.B, 1, self.n_dofs))[:, 0]
+        return self._result("dof_tau", (self.B, 1, self.n_dofs))[:, 0]
 
     # ---------------------------------------------------------------- controls and parameters
     def reset_controls(self):

@@ -378,23 +378,17 @@ class RigidSolver:
     def read_link_outputs(self, pos, quat, vel, ang):
         """Link origin poses and velocities (world frame) of the last kinematics, each (n_envs, n_links, 3
         or 4)."""
-        state_io.kernel_link_outputs(self.core, pos, quat, vel, ang)
+        state_io.kernel_link_outputs(self.core, pos, quat, vel, ang, False)
 
     def accumulate_link_vjp(self, pos, quat, vel, ang):
         """The solver's vjp scalar += <output gradients, read_link_outputs's outputs>."""
-        state_io.kernel_link_vjp(self.core, pos, quat, vel, ang)
+        state_io.kernel_link_outputs(self.core, pos, quat, vel, ang, True)
 
-    def read_mass_matrix(self, out):
-        """out (n_envs, n_dofs, n_dofs) <- the mass matrix of the last mass_matrix / evaluation."""
-        if self.n_envs * self.n_dofs:
-            state_io.kernel_get_matrix(self.core, 0, out)
+    RESULTS = ("mass_mat", "qacc", "dof_tau")
 
-    def read_qacc(self, out):
-        """out (n_envs, n_evals, n_dofs) <- the accelerations of the last step's evaluations."""
+    def read_result(self, name: str, out):
+        """A per-env dof result of the last evaluation into out: "mass_mat" (n_envs, n_dofs, n_dofs) the
+        mass matrix (of the last mass_matrix call, lower triangle), "qacc" (n_envs, n_evals, n_dofs) the
+        accelerations of the last step's evaluations, "dof_tau" (n_envs, 1, n_dofs) the actuator forces."""
         if self.n_envs * self.n_dofs:
-            state_io.kernel_get_matrix(self.core, 1, out)
-
-    def read_dof_tau(self, out):
-        """out (n_envs, 1, n_dofs) <- the actuator forces of the last evaluation."""
-        if self.n_envs * self.n_dofs:
-            state_io.kernel_get_matrix(self.core, 2, out)
+            state_io.kernel_get_result(self.core, self.RESULTS.index(name), out)

@@ -12,6 +12,8 @@ import taichi as ti
 # state x = [qpos | qvel] (B, n_qs + n_dofs), controls c = [force; pos; vel] (B, 3, n_dofs),
 # parameters p = [mass | com | inertia | damping | armature | frictionloss | kp | kv | gravity |
 # force_lo | force_hi] (B, 13 n_links + 7 n_dofs + 3), see param_layout.
+
+
 @ti.kernel
 def kernel_set_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
     if ti.static(s.serial):
@@ -22,6 +24,7 @@ def kernel_set_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
                 s.qpos[slot, i_b, i_q] = x[i_b, i_q]
             for i_d in range(s.n_dofs):
                 s.qvel[slot, i_b, i_d] = x[i_b, s.n_qs + i_d]
+
 
 @ti.kernel
 def kernel_get_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
@@ -36,6 +39,7 @@ def kernel_get_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
             for i_d in range(s.n_dofs):
                 x[i_b, s.n_qs + i_d] = s.qvel[slot, i_b, i_d]
                 s.qvel[0, i_b, i_d] = s.qvel[slot, i_b, i_d]
+
 
 @ti.kernel
 def kernel_vjp(s: ti.template(), slot: ti.i32, g: ti.types.ndarray()):
@@ -52,6 +56,7 @@ def kernel_vjp(s: ti.template(), slot: ti.i32, g: ti.types.ndarray()):
                 s.vjp_loss[None] += g[i_b, i_q] * s.qpos[slot, i_b, i_q]
             for i_d in range(s.n_dofs):
                 s.vjp_loss[None] += g[i_b, s.n_qs + i_d] * s.qvel[slot, i_b, i_d]
+
 
 @ti.kernel
 def kernel_get_grads(s: ti.template(), g: ti.types.ndarray()):
@@ -71,6 +76,7 @@ def kernel_get_grads(s: ti.template(), g: ti.types.ndarray()):
                 g[i_b, nx + nd + i_d] = s.ctrl_pos.grad[i_b, i_d]
                 g[i_b, nx + 2 * nd + i_d] = s.ctrl_vel.grad[i_b, i_d]
 
+
 @ti.kernel
 def kernel_set_ctrl(s: ti.template(), c: ti.types.ndarray()):
     if ti.static(s.serial):
@@ -82,6 +88,7 @@ def kernel_set_ctrl(s: ti.template(), c: ti.types.ndarray()):
                 s.ctrl_pos[i_b, i_d] = c[i_b, 1, i_d]
                 s.ctrl_vel[i_b, i_d] = c[i_b, 2, i_d]
 
+
 @ti.kernel
 def kernel_set_ctrl_mode(s: ti.template(), m: ti.types.ndarray()):
     if ti.static(s.serial):
@@ -90,6 +97,7 @@ def kernel_set_ctrl_mode(s: ti.template(), m: ti.types.ndarray()):
         if i_b < s.n_envs:
             for i_d in range(s.n_dofs):
                 s.ctrl_mode[i_b, i_d] = m[i_b, i_d]
+
 
 @ti.kernel
 def kernel_set_params(s: ti.template(), p: ti.types.ndarray()):
@@ -118,6 +126,7 @@ def kernel_set_params(s: ti.template(), p: ti.types.ndarray()):
             for k in ti.static(range(3)):
                 s.gravity[i_b][k] = p[i_b, o + 5 * D + k]
 
+
 @ti.kernel
 def kernel_get_param_grads(s: ti.template(), g: ti.types.ndarray()):
     """Adjoints of the differentiable parameters into g, packed like kernel_set_params without the
@@ -144,10 +153,12 @@ def kernel_get_param_grads(s: ti.template(), g: ti.types.ndarray()):
             for k in ti.static(range(3)):
                 g[i_b, o + 5 * D + k] = s.gravity.grad[i_b][k]
 
+
 @ti.kernel
-def kernel_get_matrix(s: ti.template(), which: ti.i32, out: ti.types.ndarray()):
-    """The scene's block of a per-env (B, n, n) or (B, n) result: 0 the mass matrix, 1 the last
-    evaluation's qacc (its slot in out[:, 0]), 2 the actuator forces."""
+def kernel_get_result(s: ti.template(), which: ti.i32, out: ti.types.ndarray()):
+    """The scene's block of a per-env result (RigidSolver.RESULTS[which]): 0 the mass matrix into out
+    (B, n, n), 1 the qacc of every evaluation into out (B, n_evals, n), 2 the actuator forces into out
+    (B, 1, n)."""
     for i_b in range(s.cap_envs):
         if i_b < s.n_envs:
             n = s.n_dofs
@@ -161,6 +172,7 @@ def kernel_get_matrix(s: ti.template(), which: ti.i32, out: ti.types.ndarray()):
                 for i in range(n):
                     out[i_b, 0, i] = s.dof_tau[i_b, i]
 
+
 @ti.kernel
 def kernel_param_grad(s: ti.template(), x: ti.template(), g: ti.types.ndarray()):
     """Adjoint of a scalar parameter field that is not the core's (contact friction), the scene's
@@ -169,30 +181,14 @@ def kernel_param_grad(s: ti.template(), x: ti.template(), g: ti.types.ndarray())
         g[i, j] = x.grad[i, j]
 
 # ------------------------------------------------------------------ getters
-@ti.kernel
-def kernel_link_outputs(s: ti.template(), pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
-                        ang: ti.types.ndarray()):
-    """Link origin poses and velocities (world frame) from the last kinematics evaluation."""
-    if ti.static(s.serial):
-        ti.loop_config(serialize=True)
-    for i_b in range(s.cap_envs):
-        if i_b < s.n_envs:
-            for i_l in range(s.n_links):
-                p = s.link_pos[i_b, i_l]
-                w = s.cvel_w[i_b, i_l]
-                v = s.cvel_v[i_b, i_l] + w.cross(p)
-                for k in ti.static(range(3)):
-                    pos[i_b, i_l, k] = p[k]
-                    vel[i_b, i_l, k] = v[k]
-                    ang[i_b, i_l, k] = w[k]
-                for k in ti.static(range(4)):
-                    quat[i_b, i_l, k] = s.link_quat[i_b, i_l][k]
+
 
 @ti.kernel
-def kernel_link_vjp(s: ti.template(), pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
-                    ang: ti.types.ndarray()):
-    """vjp_loss += <output gradients, kernel_link_outputs's outputs>, for a getter's ti.ad.Tape
-    (see kernel_vjp)."""
+def kernel_link_outputs(s: ti.template(), pos: ti.types.ndarray(), quat: ti.types.ndarray(), vel: ti.types.ndarray(),
+                        ang: ti.types.ndarray(), vjp: ti.template()):
+    """Link origin poses and velocities (world frame) from the last kinematics evaluation into the
+    arrays; with `vjp` the arrays hold gradients of those outputs instead and vjp_loss += <gradients,
+    outputs>, for a getter's ti.ad.Tape (see kernel_vjp)."""
     if ti.static(s.serial):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
@@ -202,9 +198,17 @@ def kernel_link_vjp(s: ti.template(), pos: ti.types.ndarray(), quat: ti.types.nd
                 w = s.cvel_w[i_b, i_l]
                 v = s.cvel_v[i_b, i_l] + w.cross(p)
                 q = s.link_quat[i_b, i_l]
-                acc = 0.0
-                for k in ti.static(range(3)):
-                    acc += pos[i_b, i_l, k] * p[k] + vel[i_b, i_l, k] * v[k] + ang[i_b, i_l, k] * w[k]
-                for k in ti.static(range(4)):
-                    acc += quat[i_b, i_l, k] * q[k]
-                s.vjp_loss[None] += acc
+                if ti.static(vjp):
+                    acc = 0.0
+                    for k in ti.static(range(3)):
+                        acc += pos[i_b, i_l, k] * p[k] + vel[i_b, i_l, k] * v[k] + ang[i_b, i_l, k] * w[k]
+                    for k in ti.static(range(4)):
+                        acc += quat[i_b, i_l, k] * q[k]
+                    s.vjp_loss[None] += acc
+                else:
+                    for k in ti.static(range(3)):
+                        pos[i_b, i_l, k] = p[k]
+                        vel[i_b, i_l, k] = v[k]
+                        ang[i_b, i_l, k] = w[k]
+                    for k in ti.static(range(4)):
+                        quat[i_b, i_l, k] = q[k]
