@@ -363,21 +363,20 @@ class Scene:
         sim._upload()
         s = sim.solver
         s.scratch_overwritten()
-        s.kernel_mass_matrix(0)
-        M = s.mass_mat.to_torch(device=sim.device).to(sim.dtype)
+        s.mass_matrix(0)
+        M = sim.read_mass_matrix()
         low = torch.tril(M)
         return low + low.transpose(-1, -2) - torch.diag_embed(torch.diagonal(M, dim1=-2, dim2=-1))
 
     def _dofs_acc(self):
         s = self._rigid.solver
-        a = s.qacc.to_torch(device=self._rigid.device).to(self._rigid.dtype)
+        a = self._rigid.read_qacc()
         if s.integrator == Integrator.RK4:
             return rk4_combine(a[-4], a[-3], a[-2], a[-1])
         return a[-1]
 
     def _dofs_force(self):
-        s = self._rigid.solver
-        return s.dof_tau.to_torch(device=self._rigid.device).to(self._rigid.dtype)
+        return self._rigid.read_dof_tau()
 
 
 class _SimView:

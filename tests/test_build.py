@@ -1,5 +1,5 @@
 """Issue #10: one compile serves every robot. A scene takes its Taichi fields from a pool of field sets
-of its capacity class (RigidCore, solvers/rigid/solver.py) and reads its sizes at run time, so a later
+of its capacity class (RigidCore, solvers/rigid/core.py) and reads its sizes at run time, so a later
 scene of another robot compiles no kernel; cores reused by later scenes, or held by two scenes at
 once, must give exactly the results of a fresh core.
 
@@ -13,7 +13,7 @@ import torch
 from taichi.lang import kernel_impl
 
 import genesis_lite as gs
-from solvers.rigid.solver import POOL
+from solvers.rigid.pool import POOL
 
 from conftest import ASSETS_DIR
 
@@ -310,7 +310,7 @@ def test_specialized_kernels_give_the_shared_kernels_results():
     again, got2 = _boxes_and_ball(3, True)
     assert again.rigid_solver.reused_core
     torch.testing.assert_close(got2, got, rtol=0, atol=0)
-    # other sizes (one box fewer): the specialised owner above does not fit, a new one is made
+    # other sizes (one box fewer): the specialised SceneCore above does not fit, a new one is made
     scene = gs.Scene(rigid_options=gs.options.RigidOptions(specialize_kernels=True))
     scene.add_entity(gs.morphs.Plane())
     scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(0.0, 0.0, 0.3)))
@@ -345,8 +345,8 @@ def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_pa
     shared, r_shared, dofs = _quadruped(urdf, 3, False)
     spec, r_spec, _ = _quadruped(urdf, 3, True)
     nudged, r_nudged, _ = _quadruped(urdf, 3, False)
-    assert not shared.rigid_solver.owner.unrolled
-    assert spec.rigid_solver.owner.unrolled and not spec.rigid_solver.contact.dense
+    assert not shared.rigid_solver.step_core.unrolled
+    assert spec.rigid_solver.step_core.unrolled and not spec.rigid_solver.contact.dense
     rng = np.random.default_rng(5)
     gen = torch.Generator().manual_seed(0)
     err, ref, q_first = [], [], r_shared.get_qpos().clone()

@@ -293,7 +293,7 @@ def test_adjacent_links_never_collide_and_self_collision_is_an_option(assets_dir
     assert scene.rigid_solver.contact is None  # alone, without self-collision: nothing can touch
     scene, chain = build(enable_self_collision=True)
     c = scene.rigid_solver.contact
-    parent = scene.rigid_solver.np_link_parent
+    parent = scene.rigid_solver.flat.np_link_parent
     links = {(int(c.geoms.link[a]), int(c.geoms.link[b])) for a, b in c.pairs}
     assert links and all(parent[la] != lb and parent[lb] != la and la != lb for la, lb in links)
     assert (3, 1) in links or (1, 3) in links
@@ -310,7 +310,7 @@ def test_collision_off_and_no_pairs_compile_nothing():
         scene.build()
         s = scene.rigid_solver
         assert s.contact is None and not s.dense_solve
-        from solvers.rigid.solver import DYNAMICS
+        from solvers.rigid.core import DYNAMICS
 
         assert s.dynamics_stages == DYNAMICS
         for _ in range(10):

@@ -363,7 +363,7 @@ def test_tape_validation_of_one_step_of_each_solver():
         for b in sim.bridges:
             b.upload()
         rigid, mpm = scene.rigid_solver, scene.mpm_solver
-        for launches in (lambda: (rigid.owner.kernel_dynamics(0, 0, 1e-3), rigid.core.kernel_integrate(0, 0, 0, 0, 1, 1e-3)),
+        for launches in (lambda: (rigid.step_core.kernel_dynamics(0, 0, 1e-3), rigid.core.kernel_integrate(0, 0, 0, 0, 1, 1e-3)),
                          lambda: mpm._substep_launches(0, 0, 1, taped=True)):
             with ti.ad.Tape(loss=sim.loss, validation=True, clear_gradients=False):
                 launches()

@@ -8,6 +8,7 @@ parameters are torch tensors whose values are uploaded to the fields before the 
 """
 from __future__ import annotations
 
+import numpy as np
 import taichi as ti
 import torch
 
@@ -84,7 +85,7 @@ class RigidSim:
         self._loaded_params = dict(self.params)  # the tensors whose values are in the fields now
         self._params_dirty = set()
         self.reset_controls()
-        q0 = torch.as_tensor(s.np_qpos0, dtype=self.dtype, device=self.device).reshape(1, -1).repeat(self.B, 1)
+        q0 = torch.as_tensor(s.flat.np_qpos0, dtype=self.dtype, device=self.device).reshape(1, -1).repeat(self.B, 1)
         self.init_state = (q0, torch.zeros(self.B, self.n_dofs, dtype=self.dtype, device=self.device))
         self.set_state(*self.init_state)
         self._outputs = None
@@ -115,7 +116,7 @@ class RigidSim:
         return obj
 
     def _field_to_torch(self, field):
-        return field.to_torch(device=self.device).to(self.dtype)
+        return torch.as_tensor(np.ascontiguousarray(field.to_numpy())).to(self.device).to(self.dtype)
 
     def _c(self, t):
         return t.detach().to(self.dtype).contiguous()
@@ -146,7 +147,7 @@ class RigidSim:
     def _read_state(self, slot):
         x = torch.empty(self.B, self.n_qs + self.n_dofs, dtype=self.dtype, device=self.device)
         if self.n_qs + self.n_dofs:
-            self.solver.kernel_get_state(slot, x)
+            self.solver.read_state(slot, x)
         return x
 
     def _split(self, x):
@@ -154,7 +155,7 @@ class RigidSim:
 
     def _write_state(self, q, v):
         if self.n_qs + self.n_dofs:
-            self.solver.kernel_set_state(0, self._c(torch.cat([q, v], -1)))
+            self.solver.write_state(0, self._c(torch.cat([q, v], -1)))
 
     def _upload(self):
         s = self.solver
@@ -176,13 +177,33 @@ class RigidSim:
         if any(k in self.core_params for k in stale):
             self._upload_core_params()
         if "friction" in stale:
-            self.param_field("friction").from_torch(self._c(self.params["friction"]))
+            self.param_field("friction").load(self._c(self.params["friction"]))
         for k in stale:
             self._loaded_params[k] = self.params[k]
 
     def _upload_core_params(self):
         parts = [self.params[k] if k in self.params else getattr(self, k) for k, _ in self.solver.param_layout()]
         self.solver.set_params(self._c(torch.cat([p.detach().reshape(self.B, -1).to(self.dtype) for p in parts], -1)))
+
+    # ---------------------------------------------------------------- solver-wide results (scene.py)
+    def _result(self, name, shape):
+        """A torch copy of one of the solver's per-env dof results (RigidSolver.read_result)."""
+        dt = torch.float64 if self.solver.np_dtype == np.float64 else torch.float32
+        out = torch.empty(*shape, dtype=dt)
+        self.solver.read_result(name, out)
+        return out.to(self.device).to(self.dtype)
+
+    def read_mass_matrix(self):
+        """(B, n_dofs, n_dofs): the mass matrix the last RigidSolver.mass_matrix computed (lower triangle)."""
+        return self._result("mass_mat", (self.B, self.n_dofs, self.n_dofs))
+
+    def read_qacc(self):
+        """(n_evals, B, n_dofs): the accelerations of the last step's evaluations."""
+        return self._result("qacc", (self.B, self.solver.n_evals, self.n_dofs)).transpose(0, 1).contiguous()
+
+    def read_dof_tau(self):
+        """(B, n_dofs): the actuator forces of the last evaluation."""
+        return self._result("dof_tau", (self.B, 1, self.n_dofs))[:, 0]
 
     # ---------------------------------------------------------------- controls and parameters
     def reset_controls(self):
@@ -194,9 +215,9 @@ class RigidSim:
     def _load_ctrl(self, ctrl, mode):
         if not self.n_dofs:
             return
-        self.solver.kernel_set_ctrl(self._c(ctrl))
+        self.solver.write_ctrl(self._c(ctrl))
         if self._loaded_mode is not mode:
-            self.solver.kernel_set_ctrl_mode(mode)
+            self.solver.write_ctrl_mode(mode)
             self._loaded_mode = mode
 
     def set_ctrl(self, kind, values, envs, idx, mode):
@@ -316,21 +337,21 @@ class RigidSim:
         self._outputs = None
 
     def clear_grads(self):
-        self.solver.kernel_clear_grads()
+        self.solver.clear_grads()
 
     def vjp(self, grads, loss):
         (gx,) = grads
         if gx is None:
             return
         # the solver accumulates into its own scalar, whose adjoint its clear_grads seeds to 1 (kernel_vjp)
-        self.solver.kernel_vjp(self.solver.last_slot, self._c(gx))
+        self.solver.accumulate_vjp(self.solver.last_slot, self._c(gx))
 
     def input_grads(self, needs, step):
         """Gradients of one step's inputs (qpos, qvel, ctrl, *params) from the adjoint fields."""
         s = self.solver
         nx = self.n_qs + self.n_dofs
         g = torch.empty(self.B, nx + 3 * self.n_dofs, dtype=self.dtype, device=self.device)
-        s.kernel_get_grads(g)
+        s.read_grads(g)
         out = [g[:, : self.n_qs] if needs[0] else None, g[:, self.n_qs: nx] if needs[1] else None,
                g[:, nx:].reshape(self.B, 3, self.n_dofs) if needs[2] else None]
         wanted = dict(zip(self.param_names, needs[3:]))
@@ -338,7 +359,7 @@ class RigidSim:
         if any(wanted[k] for k in self.core_params):
             layout = [(k, w) for k, w in s.param_layout() if k in self.core_params]
             pg = torch.empty(self.B, sum(w for _, w in layout), dtype=self.dtype, device=self.device)
-            s.kernel_get_param_grads(pg)
+            s.read_param_grads(pg)
             packed = dict(zip([k for k, _ in layout], torch.split(pg, [w for _, w in layout], -1)))
         for k in self.param_names:
             if not wanted[k]:
@@ -347,7 +368,7 @@ class RigidSim:
                 out.append(packed[k].reshape(self.params[k].shape))
             else:
                 pg = torch.empty_like(self.params[k], dtype=self.dtype)
-                s.get_param_grad(self.param_field(k), pg)
+                s.read_param_grad(self.param_field(k), pg)
                 out.append(pg)
         raise_if_nan_grad(out, step)
         return out
@@ -358,10 +379,10 @@ class RigidSim:
             self._upload()
             s = self.solver
             s.scratch_overwritten()
-            s.kernel_kinematics(0)
+            s.kinematics(0)
             L = self.n_links
             o = [torch.empty(self.B, L, k, dtype=self.dtype, device=self.device) for k in (3, 4, 3, 3)]
-            s.kernel_link_outputs(*o)
+            s.read_link_outputs(*o)
             self._outputs = tuple(o)
         return self._outputs
 
@@ -379,16 +400,16 @@ class RigidSim:
         self._write_state(*state)
         self._state_on_device = False
         self._outputs = None
-        s.kernel_clear_grads()
+        s.clear_grads()
         L = self.n_links
         g = [self._c(x) if x is not None else torch.zeros(self.B, L, k, dtype=self.dtype, device=self.device)
              for x, k in zip(grads, (3, 4, 3, 3))]
         s.scratch_overwritten()
         with ti.ad.Tape(loss=self.sim.loss, clear_gradients=False):
-            s.kernel_kinematics(0)
-            s.kernel_link_vjp(*g)
+            s.kinematics(0)
+            s.accumulate_link_vjp(*g)
         g = torch.empty(self.B, self.n_qs + 4 * self.n_dofs, dtype=self.dtype, device=self.device)
-        s.kernel_get_grads(g)
+        s.read_grads(g)
         gq, gv = g[:, : self.n_qs], g[:, self.n_qs: self.n_qs + self.n_dofs]
         with incoming_grads(grads, self.sim.nan_watch):
             raise_if_nan_grad([gq, gv], step)

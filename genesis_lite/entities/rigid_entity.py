@@ -711,7 +711,7 @@ class RigidEntity(ContactMixin, KinematicsMixin):
         return self._out(sim.force_lo[e][:, d]), self._out(sim.force_hi[e][:, d])
 
     def get_dofs_limit(self, dofs_idx_local=None):
-        lim = torch.as_tensor(self._sim.solver.np_dof_limit, dtype=torch.float64)[self._dofs(dofs_idx_local).cpu()]
+        lim = torch.as_tensor(self._sim.solver.flat.np_dof_limit, dtype=torch.float64)[self._dofs(dofs_idx_local).cpu()]
         return wrap(lim[:, 0]), wrap(lim[:, 1])
 
     def set_links_mass(self, mass, links_idx_local=None, envs_idx=None):

@@ -136,13 +136,13 @@ def _mesh_hull_points(g, what: str, max_points: int):
     return P, hv, hc
 
 
-def link_is_dynamic(solver) -> np.ndarray:
+def link_is_dynamic(flat) -> np.ndarray:  # flat: the scene's flatten.FlatModel
     """(L,) bool: the link moves with some dof (it or an ancestor has a joint with dofs)."""
-    L = solver.n_links
+    L = flat.n_links
     dyn = np.zeros(L, dtype=bool)
     for i in range(L):
-        p = solver.np_link_parent[i]
-        dyn[i] = solver.np_link_ndof[i] > 0 or (p >= 0 and dyn[p])
+        p = flat.np_link_parent[i]
+        dyn[i] = flat.np_link_ndof[i] > 0 or (p >= 0 and dyn[p])
     return dyn
 
 
@@ -202,10 +202,10 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                      arr(kdop, (G, N_KDOP)), pts, names, starts, counts)
 
 
-def candidate_pairs(geoms: GeomTable, solver, self_collision: bool, ignore_unsupported: bool):
+def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool):
     """[(ga, gb)] of geoms that may touch (see the module docstring for the rules)."""
-    dyn = link_is_dynamic(solver)
-    parent = solver.np_link_parent
+    dyn = link_is_dynamic(flat)
+    parent = flat.np_link_parent
     pairs, bad = [], []
     for a in range(geoms.n):
         for b in range(a + 1, geoms.n):

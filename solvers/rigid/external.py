@@ -9,7 +9,7 @@ out wrong (the links' mass gradients) once a tree-accumulation stage and the dof
 it, though each alone was right.
 
 The fields belong to the scene (its envs, substeps and links), not to the pooled core: a scene with
-external wrenches runs its dynamics through a per-scene owner (solver._SceneOwner), as one with
+external wrenches runs its dynamics on a per-scene SceneCore (core.py), as one with
 contacts does.
 """
 import numpy as np

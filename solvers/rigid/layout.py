@@ -1,5 +1,5 @@
-"""Env-major placement of per-env fields, shared by the rigid core (solver.RigidCore) and the contact
-solver (FieldTree).
+"""Env-major placement of per-env fields, shared by the rigid core (core.RigidCore) and the contact
+solver (FieldTree), and the zeroing of a scene's block of them (ZeroPlan).
 
 A step reads one env's links, dofs, slots and banks across dozens of fields. A field per array puts
 them dozens of streams apart, at offsets that are multiples of large powers of two (env capacity x
@@ -73,3 +73,59 @@ class FieldTree:
         if self.grad:
             self.fb.lazy_grad()
         return self.fb.finalize()
+
+
+@ti.func
+def func_set_zero(x: ti.template(), I: ti.template()):
+    """x[I] = 0 as a constant of x's element type (ti.zero would be x * 0, which keeps a NaN)."""
+    if ti.static(not hasattr(x, "n")):
+        x[I] = ti.cast(0, x.dtype)
+    elif ti.static(x.m == 1):
+        x[I] = ti.Vector.zero(x.dtype, x.n)
+    else:
+        x[I] = ti.Matrix.zero(x.dtype, x.n, x.m)
+
+
+class ZeroPlan:
+    """Per-env fields grouped by the shape of their per-env part, so that one loop zeroes a whole group
+    (one loop per field makes a kernel several times larger, and its size is what loading it costs).
+    env0: core fields [B, ...]; env1: core fields [slot, B, ...]; other: fields of the scene's own
+    (contact) solver, [B, ...]. For the core's fields a dimension equal to the element capacity runs to
+    the scene's element count (a run-time bound); every other dimension runs to its full size."""
+
+    def __init__(self, env0, env1, cap, other=()):
+        self.cap = cap
+        groups = {}
+        for axis, fields, core in ((0, env0, True), (1, env1, True), (0, other, False)):
+            for x in fields:
+                rest = tuple(d if not core or d != cap else -1 for k, d in enumerate(x.shape) if k != axis)
+                groups.setdefault((axis, rest), []).append(x)
+        self.groups = [(axis, rest, tuple(fields)) for (axis, rest), fields in groups.items()]
+
+
+@ti.func
+def func_zero_group(fields: ti.template(), i_b, axis: ti.template(), rest: ti.template(), n):
+    """One group of a ZeroPlan (rest: the per-env shape, -1 where the scene's n elements apply)."""
+    if ti.static(len(rest) == 0):
+        for x in ti.static(fields):
+            func_set_zero(x, i_b)
+    elif ti.static(len(rest) == 1):
+        for j in range(n if ti.static(rest[0] < 0) else rest[0]):
+            for x in ti.static(fields):
+                func_set_zero(x, (i_b, j))
+    elif ti.static(axis == 0):
+        for j, k in ti.ndrange(n if ti.static(rest[0] < 0) else rest[0], n if ti.static(rest[1] < 0) else rest[1]):
+            for x in ti.static(fields):
+                func_set_zero(x, (i_b, j, k))
+    else:
+        for j, k in ti.ndrange(rest[0], n if ti.static(rest[1] < 0) else rest[1]):
+            for x in ti.static(fields):
+                func_set_zero(x, (j, i_b, k))
+
+
+@ti.func
+def func_zero_plan(plan: ti.template(), i_b, n):
+    """Zero, for env i_b, every field of the plan (the scene's n elements of capacity dimensions)."""
+    for g in ti.static(plan.groups):
+        func_zero_group(g[2], i_b, g[0], g[1], n)
+

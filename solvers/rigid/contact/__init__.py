@@ -86,7 +86,7 @@ geom (robots on the ground) keep the tree factorisation. (Dropping the coupling 
 stacked bodies then close the gap between them twice per step, or half of it when the blocks are
 doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
 
-Dynamics stages (each one loop over elements, see solver.py): geom poses, broad phase, clear the
+Dynamics stages (each one loop over elements, see ../core.py): geom poses, broad phase, clear the
 per-link (and per-link-pair) accumulators, slots (geometry + normal force, accumulated onto the two
 links, and the slot's data for the passes), sum up the tree, project onto the dofs (force += J^T f,
 M += J^T W J), and with moving pairs the cross terms. The passes of the solve repeat the accumulation

@@ -87,17 +87,30 @@ def func_normal_after(c: ti.template(), i_b, i_s, u0, u1, n):
     return c.sl_Fn_normal[i_b, i_s] - c.sl_wn_normal[i_b, i_s] / c.eval_h[i_b] * (u1 - u0).dot(n)
 
 
+def bank_stage(op, bank: str):
+    """The pass stage (s, i_b) that runs the bank operation `op` (banks.py: clear, sum up the tree,
+    project onto the dofs, ...) on the contact solver's bank `bank` (ContactSolver.banks)."""
+
+    @ti.func
+    def func_bank_stage(s: ti.template(), i_b):
+        op(s, s.contact.banks[bank], i_b)
+
+    return func_bank_stage
+
+
+# the passes' bank operations: each pass accumulates its changes into a bank of its own
+func_relinearise_clear, func_relinearise_clear_pairs, func_relinearise_tree, func_relinearise_dof, \
+    func_relinearise_project, func_relinearise_cross = (
+        bank_stage(op, "relinearise") for op in (func_bank_clear, func_bank_clear_pairs, func_bank_tree,
+                                                 func_bank_dof, func_bank_project, func_bank_cross))
+func_coulomb_clear, func_coulomb_tree = (bank_stage(op, "coulomb") for op in (func_bank_clear, func_bank_tree))
+func_friction_clear, func_friction_clear_pairs, func_friction_tree, func_friction_dof, func_friction_project, \
+    func_friction_cross = (
+        bank_stage(op, "friction") for op in (func_bank_clear, func_bank_clear_pairs, func_bank_tree, func_bank_dof,
+                                              func_bank_project, func_bank_cross))
+
+
 # the relinearise pass (after the first solve): drop the contacts whose force pulled
-@ti.func
-def func_relinearise_clear(s: ti.template(), i_b):
-    func_bank_clear(s, s.contact.bank_relinearise, i_b)
-
-
-@ti.func
-def func_relinearise_clear_pairs(s: ti.template(), i_b):
-    func_bank_clear_pairs(s, s.contact.bank_relinearise, i_b)
-
-
 @ti.func
 def func_relinearise_motion(s: ti.template(), i_b):
     c = s.contact
@@ -155,32 +168,7 @@ def func_relinearise_add_listed(s: ti.template(), i_b):
                       (c.sl_wn_normal[i_b, i_s] - c.sl_wn[i_b, i_s]) * n.outer_product(n))
 
 
-@ti.func
-def func_relinearise_tree(s: ti.template(), i_b):
-    func_bank_tree(s, s.contact.bank_relinearise, i_b)
-
-
-@ti.func
-def func_relinearise_dof(s: ti.template(), i_b):
-    func_bank_dof(s, s.contact.bank_relinearise, i_b)
-
-
-@ti.func
-def func_relinearise_project(s: ti.template(), i_b):
-    func_bank_project(s, s.contact.bank_relinearise, i_b)
-
-
-@ti.func
-def func_relinearise_cross(s: ti.template(), i_b):
-    func_bank_cross(s, s.contact.bank_relinearise, i_b)
-
-
 # the Coulomb pass (after the second, normal solve): normal forces, Coulomb's forces for them
-@ti.func
-def func_coulomb_clear(s: ti.template(), i_b):
-    func_bank_clear(s, s.contact.bank_coulomb, i_b)
-
-
 @ti.func
 def func_coulomb_motion(s: ti.template(), i_b):
     c = s.contact
@@ -223,11 +211,6 @@ def func_coulomb_slots_listed(s: ti.template(), i_b):
 
 
 @ti.func
-def func_coulomb_tree(s: ti.template(), i_b):
-    func_bank_tree(s, s.contact.bank_coulomb, i_b)
-
-
-@ti.func
 def func_coulomb_dof(s: ti.template(), i_b):
     """force_coulomb = J^T (Coulomb forces of func_coulomb_slots)."""
     c = s.contact
@@ -239,16 +222,6 @@ def func_coulomb_dof(s: ti.template(), i_b):
 
 
 # the friction pass (after the Coulomb response): friction, and the contacts that pulled in the normal solve leave
-@ti.func
-def func_friction_clear(s: ti.template(), i_b):
-    func_bank_clear(s, s.contact.bank_friction, i_b)
-
-
-@ti.func
-def func_friction_clear_pairs(s: ti.template(), i_b):
-    func_bank_clear_pairs(s, s.contact.bank_friction, i_b)
-
-
 @ti.func
 def func_friction_motion(s: ti.template(), i_b):
     c = s.contact
@@ -308,26 +281,6 @@ def func_friction_slots_listed(s: ti.template(), i_b):
             func_friction_slot(s, i_b, i_s)
         else:
             c.sl_in_final[i_b, i_s] = 0
-
-
-@ti.func
-def func_friction_tree(s: ti.template(), i_b):
-    func_bank_tree(s, s.contact.bank_friction, i_b)
-
-
-@ti.func
-def func_friction_dof(s: ti.template(), i_b):
-    func_bank_dof(s, s.contact.bank_friction, i_b)
-
-
-@ti.func
-def func_friction_project(s: ti.template(), i_b):
-    func_bank_project(s, s.contact.bank_friction, i_b)
-
-
-@ti.func
-def func_friction_cross(s: ti.template(), i_b):
-    func_bank_cross(s, s.contact.bank_friction, i_b)
 
 
 @ti.func

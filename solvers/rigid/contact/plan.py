@@ -22,24 +22,24 @@ class ContactPlan:
     specialised on, and the capacities its fields need (see ContactSolver)."""
 
     @staticmethod
-    def create(solver, models, options, specialized=False):
+    def create(flat, models, options, specialized=False):  # flat: the scene's flatten.FlatModel
         """The contact plan of a scene, or None when no two geoms can touch (nothing is compiled or
         launched for contacts then). Raises ContactBuildError for geometry it cannot simulate."""
         geoms = build_geoms(models, int(options.max_mesh_contact_points))
         if geoms.n == 0:
             return None
-        pairs = candidate_pairs(geoms, solver, bool(options.enable_self_collision),
+        pairs = candidate_pairs(geoms, flat, bool(options.enable_self_collision),
                                 bool(getattr(options, "ignore_unsupported_pairs", False)))
         if not pairs:
             return None
-        return ContactPlan(solver, geoms, pairs, options, specialized)
+        return ContactPlan(flat, geoms, pairs, options, specialized)
 
-    def __init__(self, solver, geoms, pairs, options, specialized=False):
+    def __init__(self, flat, geoms, pairs, options, specialized=False):
         self.geoms = geoms
         self.pairs = pairs
         slots = build_slots(geoms, pairs)
         self.slots = slots
-        self.n_links = solver.n_links
+        self.n_links = flat.n_links
         self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
         self.k = float(options.contact_stiffness)
         self.d = float(options.contact_damping)
@@ -61,7 +61,7 @@ class ContactPlan:
         self.np_slot_link_b = geoms.link[self.np_slot_gb]
         # contacts between two moving links couple their dofs outside the tree sparsity of M: such
         # link pairs get a 6x6 accumulator, and the dof pairs they couple a static list (see above)
-        self.link_dyn = link_is_dynamic(solver)
+        self.link_dyn = link_is_dynamic(flat)
         lp_index, slot_lp = {}, []
         for la, lb in zip(self.np_slot_link_a, self.np_slot_link_b):
             if self.link_dyn[la] and self.link_dyn[lb]:
@@ -74,8 +74,8 @@ class ContactPlan:
         self.n_lp = len(lp_index)
         cross = []
         for (la, lb), lp in lp_index.items():
-            for i in _link_dofs(solver, la):
-                for j in _link_dofs(solver, lb):
+            for i in _link_dofs(flat, la):
+                for j in _link_dofs(flat, lb):
                     # (i, j) and (j, i) land on the same lower-triangle entry; on the diagonal (a common
                     # ancestor of a self-collision pair) both terms of J_a^T W J_b + J_b^T W J_a do
                     cross.append((i, j, lp, 2.0 if i == j else 1.0))
@@ -99,11 +99,11 @@ class ContactPlan:
                       (self.k, self.d, self.delta, self.eps), self.static)
 
 
-def _link_dofs(solver, l):
+def _link_dofs(flat, l):
     """The dofs that move link l: its own and its ancestors'."""
     out = []
     while l >= 0:
-        d0 = solver.np_link_dof_start[l]
-        out.extend(range(d0, d0 + solver.np_link_ndof[l]))
-        l = solver.np_link_parent[l]
+        d0 = flat.np_link_dof_start[l]
+        out.extend(range(d0, d0 + flat.np_link_ndof[l]))
+        l = flat.np_link_parent[l]
     return out

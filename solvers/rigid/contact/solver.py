@@ -21,7 +21,7 @@ from .solve import func_solve_coulomb, func_solve_candidates, func_solve_normal
 
 def _runtime(index):
     """A size of the scene a ContactSolver holds: that scene's number in Python scope, a read of the
-    solver's cfg field inside a kernel being compiled (as solver._runtime)."""
+    solver's cfg field inside a kernel being compiled (as core._runtime)."""
 
     def get(self):
         if taichi_compat.inside_kernel() and not self.static_sizes:
@@ -38,7 +38,7 @@ class ContactSolver:
     The fields are sized by a contact class (the capacities and static flags of a ContactPlan, on one
     RigidCore) and the scene's sizes and constants are read at run time from cfg_i / cfg_f, so a later
     scene whose plan fits (same flags, capacities no larger) takes this solver, with the kernels already
-    compiled on it, from the pool (solver.POOL) and compiles nothing: `load` puts its plan in."""
+    compiled on it, from the pool (pool.POOL) and compiles nothing: `load` puts its plan in."""
 
     n_geoms = _runtime(C_GEOMS)
     n_pairs = _runtime(C_PAIRS)
@@ -106,6 +106,9 @@ class ContactSolver:
         self.bank_relinearise = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_coulomb = AccBank(B, L, D, 0, f, g, False)
         self.bank_friction = AccBank(B, L, D, n_lp, f, g, True)
+        # by pass, for the passes' bank stages (passes.bank_stage)
+        self.banks = {"normal": self.bank_normal, "relinearise": self.bank_relinearise, "coulomb": self.bank_coulomb,
+                      "friction": self.bank_friction}
         # qacc_*: a solve's dof vector (h-scaled acceleration); dqacc_coulomb: the normal system's response
         # to force_coulomb (J^T of the Coulomb pass's forces); link_w_* / link_v_*: the link motion of a
         # dof vector (passes.func_link_motion)
@@ -158,6 +161,10 @@ class ContactSolver:
             self.relinearise_sums, self.friction_pass_listed = RELINEARISE_SUMS_CROSS, FRICTION_PASS_LISTED_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
+        # the launches of the solve op on the gradient path (factor_solve), by name: kernel_run(s, name)
+        self.steps = {"solve_candidates": (func_solve_candidates,), "relinearise_pass": self.relinearise_pass,
+                      "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
+                      "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
 
     def fits(self, plan: ContactPlan) -> bool:
         """Whether a scene's plan can run on this solver's fields and kernels."""
@@ -254,7 +261,7 @@ class ContactSolver:
 
     @property
     def geom_friction(self):
-        """The friction parameter as the scene's (n_envs, n_geoms) block (to_torch / from_torch)."""
+        """The friction parameter as the scene's (n_envs, n_geoms) block (to_numpy / load)."""
         return _FrictionBlock(self)
 
     @ti.kernel
@@ -271,28 +278,25 @@ class ContactSolver:
     # solves and Taichi's of the passes, in reverse order.
     def factor_solve(self, s, e: int):
         """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule)."""
-        self.kernel_solve_candidates(s)
-        self.kernel_relinearise_pass(s)
-        self.kernel_solve_normal(s)
-        self.kernel_coulomb_pass(s)
-        self.kernel_solve_coulomb(s)
-        self.kernel_friction_pass(s)
-        s._kernel_factor_solve(e)
+        for which in ("solve_candidates", "relinearise_pass", "solve_normal", "coulomb_pass", "solve_coulomb",
+                      "friction_pass"):
+            self.kernel_run(s, which)
+        s.kernel_mass_solve(e, False)
         self.kernel_report(s, e)
 
     def solve_grad(self, s, e: int):
         """Adjoint of factor_solve, with its forward values in the fields."""
         if self.scratch_grad_fields:
             self.kernel_clear_scratch_grads(s)
-        s._kernel_solve_grad(e)
-        self.kernel_friction_pass.grad(s)
+        s.kernel_mass_solve(e, True)
+        self.kernel_run.grad(s, "friction_pass")
         self.kernel_adjoint_solve(s, 2)
-        self.kernel_coulomb_pass.grad(s)
+        self.kernel_run.grad(s, "coulomb_pass")
         self.kernel_adjoint_solve(s, 1)
-        self.kernel_relinearise_pass.grad(s)
+        self.kernel_run.grad(s, "relinearise_pass")
         self.kernel_adjoint_solve(s, 0)
 
-    # Env loops over the core's env capacity with a guard, as solver._Kernels explains (a loop bound
+    # Env loops over the core's env capacity with a guard, as core.RigidCore explains (a loop bound
     # read from a field in a kernel of several loops broke Taichi's adjoint).
     @ti.kernel
     def kernel_report(self, s: ti.template(), e: ti.i32):
@@ -303,50 +307,10 @@ class ContactSolver:
                 func_contact_report(s, i_b, e)
 
     @ti.kernel
-    def kernel_solve_candidates(self, s: ti.template()):
-        if ti.static(s.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(s.cap_envs):
-            if i_b < s.n_envs:
-                func_solve_candidates(s, i_b)
-
-    @ti.kernel
-    def kernel_solve_normal(self, s: ti.template()):
-        if ti.static(s.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(s.cap_envs):
-            if i_b < s.n_envs:
-                func_solve_normal(s, i_b)
-
-    @ti.kernel
-    def kernel_solve_coulomb(self, s: ti.template()):
-        if ti.static(s.serial):
-            ti.loop_config(serialize=True)
-        for i_b in range(s.cap_envs):
-            if i_b < s.n_envs:
-                func_solve_coulomb(s, i_b)
-
-    @ti.kernel
-    def kernel_relinearise_pass(self, s: ti.template()):
-        for stage in ti.static(self.relinearise_pass):
-            if ti.static(s.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(s.cap_envs):
-                if i_b < s.n_envs:
-                    stage(s, i_b)
-
-    @ti.kernel
-    def kernel_coulomb_pass(self, s: ti.template()):
-        for stage in ti.static(COULOMB_PASS):
-            if ti.static(s.serial):
-                ti.loop_config(serialize=True)
-            for i_b in range(s.cap_envs):
-                if i_b < s.n_envs:
-                    stage(s, i_b)
-
-    @ti.kernel
-    def kernel_friction_pass(self, s: ti.template()):
-        for stage in ti.static(self.friction_pass):
+    def kernel_run(self, s: ti.template(), which: ti.template()):
+        """One step of the solve op by name (self.steps: a solve, or a pass between solves), each of its
+        stages one top-level loop over envs."""
+        for stage in ti.static(self.steps[which]):
             if ti.static(s.serial):
                 ti.loop_config(serialize=True)
             for i_b in range(s.cap_envs):
@@ -427,15 +391,12 @@ class _FrictionBlock:
     def grad(self):
         return self.field.grad
 
-    def to_torch(self, device=None):
-        B, G = self.shape
-        return self.field.to_torch(device=device)[:B, :G].contiguous()
-
     def to_numpy(self):
         B, G = self.shape
         return self.field.to_numpy()[:B, :G]
 
-    def from_torch(self, x):
+    def load(self, x):
+        """The scene's block from x (n_envs, n_geoms), a numpy array or a contiguous CPU tensor."""
         if x.shape != self.shape:
             raise ValueError(f"contact friction: expected shape {self.shape}, got {tuple(x.shape)}")
         self.contact.kernel_set_friction(x.contiguous())

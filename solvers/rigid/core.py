@@ -1,0 +1,441 @@
+"""RigidCore: the rigid solver's pooled fields of one capacity class and the kernels compiled on them.
+
+Static model data lives in `*_info`-style fields set once at build (link_*, dof_* without an env
+axis); parameters and controls have an env axis [i_b, ...]; state has a slot axis [t, i_b, ...]
+holding the step's schedule of intermediate states (two slots for plain Euler, so memory does not grow
+with the horizon); per-evaluation scratch (poses, inertias, forces) is written once per evaluation.
+
+One compile serves every robot. Taichi bakes the fields a kernel touches, and every Python value it
+reads while compiling, into the compiled kernel, keyed by the object that owns the kernel. So the
+fields and kernels live in a RigidCore whose fields are sized by a capacity class (envs, elements:
+links/dofs/qs, state slots) rather than by the scene, and the scene's sizes (n_envs, n_links, n_dofs,
+n_qs) and options (joint-limit springs, implicit terms) are read at run time from its small `cfg`
+fields (see `_runtime`). A scene takes a core of its class from the pool (pool.py) and gives it back
+when it dies, so a second scene of that class, any robot, compiles nothing.
+
+A scene with stages of its own (a contact solver, external wrenches) runs its dynamics on a SceneCore:
+a RigidCore over the same fields (the very field objects, not copies) whose dynamics stages include
+those, so the kernels that run them compile on it and not on the pooled core. Either way every stage
+function's first argument `s` is a RigidCore: the fields, the run-time sizes, and `s.contact` /
+`s.external` (None on a plain core). The kernels through which arrays enter and leave the core are in
+state_io.py.
+"""
+import taichi as ti
+
+from .. import taichi_compat
+from .actuation import func_generalized_force
+from .bias import BIAS
+from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
+from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
+from .integrate import INTEGRATE
+from .kinematics import KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_world_inertia
+from .layout import ZeroPlan, func_zero_plan, place_env_major
+from .schedule import OP_DYN, OP_SOLVE
+
+# parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
+SERIAL_MAX_ENVS = 16
+DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_generalized_force,)
+# stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (taichi_compat.compile_options.AdjointCompile)
+PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:2]
+# smallest element capacity: the robots of one size class (Panda, UR5, arms up to 16 links/dofs/qs)
+# share a core
+MIN_ELEMS = 16
+# run-time sizes and options, indices into RigidCore.cfg_i / cfg_f
+I_ENVS, I_LINKS, I_DOFS, I_QS, I_QPOS_LEN, I_QVEL_LEN, I_LIMITS_ON, I_ELEMS, I_ANC, N_CFG_I = range(10)
+F_LIMIT_K, F_LIMIT_D, F_IMPLICIT_ON, N_CFG_F = range(4)
+NO_NAN = 2**31 - 1  # nan_step of an env whose state has stayed finite
+
+
+def _runtime(index, floating=False):
+    """A size or option of the scene a core holds. In Python scope it is that scene's number; inside a
+    kernel being compiled it is a read of the core's cfg field, so the compiled kernel serves every
+    scene the core will hold (stage code writes `range(s.n_links)` either way)."""
+
+    def get(self):
+        if taichi_compat.inside_kernel():
+            return taichi_compat.subscript(self.cfg_f if floating else self.cfg_i, index)
+        return self.scene_cfg[(N_CFG_I + index) if floating else index]
+
+    return property(get)
+
+
+def env_capacity(n_envs: int) -> int:
+    """The env capacity of the core class a scene of n_envs envs takes."""
+    return SERIAL_MAX_ENVS if n_envs <= SERIAL_MAX_ENVS else 1 << (n_envs - 1).bit_length()
+
+
+def elem_capacity(n: int) -> int:
+    """The element (links, dofs, qs) capacity of the core class a scene of n elements takes."""
+    return max(MIN_ELEMS, 1 << (max(n, 1) - 1).bit_length())
+
+
+def _place_env_major(B, N, elem, mats, ones, slots):
+    """The core's per-env fields env-major (layout.place_env_major): elem [B, N] fields, mats [B, N, N],
+    ones [B], slots [(n, fields [n, B, N])], each list a group of its own."""
+    place_env_major(ti.root, B, [(0, (), ones), (0, (N,), elem), (0, (N, N), mats)]
+                    + [(1, (n, N), xs) for n, xs in slots])
+
+
+@ti.data_oriented
+class RigidCore:
+    """The fields of one capacity class (key: dtype, gradients, env capacity, element capacity, state
+    slots, evaluations, schedule length, specialised, dof tree) and the kernels compiled on them; held
+    by one scene at a time (pool.CorePool).
+
+    Env loops run over the core's env capacity with a guard `if i_b < self.n_envs`, not over
+    `range(self.n_envs)`: Taichi 1.7 evaluates a top-level loop bound read from a field in a task of its
+    own, and the adjoint of a kernel with several such loops came out NaN (kernel_dynamics; each stage
+    alone, or the debug build, was right)."""
+
+    dynamics_stages = DYNAMICS
+    dense_solve = False  # contacts between moving bodies: dense factorisation (SceneCore)
+    has_contact = False
+    contact = None  # the scene's contact solver (SceneCore)
+    external = None  # the scene's external wrenches (SceneCore)
+
+
+    n_envs = _runtime(I_ENVS)
+    n_links = _runtime(I_LINKS)
+    n_dofs = _runtime(I_DOFS)
+    n_qs = _runtime(I_QS)
+    qpos_len = _runtime(I_QPOS_LEN)  # max(n_qs, 1): clamped reads stay inside the scene's entries
+    qvel_len = _runtime(I_QVEL_LEN)
+    limits_on = _runtime(I_LIMITS_ON)
+    limit_k = _runtime(F_LIMIT_K, True)
+    limit_d = _runtime(F_LIMIT_D, True)
+    implicit_on = _runtime(F_IMPLICIT_ON, True)
+    n_anc = _runtime(I_ANC)  # pairs (i, j) with dof j an ancestor-or-self of dof i (anc_i, anc_j)
+
+    def __init__(self, key):
+        f, g, B, N, S, E, n_ops, specialized, tree = key
+        self.key = key
+        # a specialised core (RigidOptions.specialize_kernels) compiles its fused step with gs.init's
+        # optimisation setting (see taichi_compat.compile_options.ForwardCompile). Its sizes stay run-time reads: as constants they
+        # measured no faster (ANYmal 1.38x vs 1.40x MuJoCo's rollout, Panda 1.93x vs 1.92x). Without
+        # gradients it is one scene's dof tree (`tree`, its dof parents), whose factorisation and
+        # solves the fused step unrolls (inertia.TreeSchedule)
+        self.specialized = specialized
+        self.static_tree = TreeSchedule.create(tree) if tree is not None else None
+        self.unrolled = self.static_tree is not None and not g
+        self.dtype = f
+        self.requires_grad = g
+        self.serial = B <= SERIAL_MAX_ENVS
+        self.cap_envs, self.cap_elems = B, N
+        self.n_slots, self.n_evals = S, E
+        self.scene_cfg = [0] * (N_CFG_I + N_CFG_F)
+        V3 = lambda shape: ti.Vector.field(3, f, shape=shape, needs_grad=g)  # noqa: E731
+        V4 = lambda shape: ti.Vector.field(4, f, shape=shape, needs_grad=g)  # noqa: E731
+        M3 = lambda shape: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=g)  # noqa: E731
+        F = lambda shape, grad=g: ti.field(f, shape=shape, needs_grad=grad)  # noqa: E731
+        I = lambda shape: ti.field(ti.i32, shape=shape)  # noqa: E731, E741
+        self.cfg_i, self.cfg_f = I(N_CFG_I), F(N_CFG_F, False)
+        # info
+        self.link_parent, self.link_jtype, self.link_q_start = I(N), I(N), I(N)
+        self.link_dof_start, self.link_ndof = I(N), I(N)
+        self.link_jpos = ti.Vector.field(3, f, shape=N)
+        self.link_jquat = ti.Vector.field(4, f, shape=N)
+        self.link_jaxis = ti.Vector.field(3, f, shape=N)
+        self.dof_link, self.dof_q, self.dof_parent = I(N), I(N), I(N)
+        self.dof_anc = I((N, N))
+        self.anc_i, self.anc_j = I(N * N), I(N * N)
+        self.dof_limit_lo, self.dof_limit_hi = F(N, False), F(N, False)
+        self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
+        # per-env fields: declared without a shape and placed env-major (_place_env_major)
+        s3 = lambda grad=g: ti.field(f, needs_grad=grad)  # noqa: E731
+        v3 = lambda: ti.Vector.field(3, f, needs_grad=g)  # noqa: E731
+        m3 = lambda: ti.Matrix.field(3, 3, f, needs_grad=g)  # noqa: E731
+        # parameters
+        self.link_mass, self.link_com, self.link_inertia = s3(), v3(), m3()
+        self.dof_damping, self.dof_armature, self.dof_frictionloss = s3(), s3(), s3()
+        self.dof_kp, self.dof_kv = s3(), s3()
+        self.dof_force_lo, self.dof_force_hi = s3(False), s3(False)
+        self.gravity = v3()
+        # controls
+        self.ctrl_force, self.ctrl_pos, self.ctrl_vel = s3(), s3(), s3()
+        self.ctrl_mode = ti.field(ti.i32)
+        # state
+        self.qpos, self.qvel = s3(), s3()
+        self.qacc, self.qvel_move = s3(), s3()  # qvel_move[e]: the velocity integration e moves qpos with
+        # per-evaluation scratch
+        self.link_pos, self.link_quat, self.link_R = v3(), ti.Vector.field(4, f, needs_grad=g), m3()
+        self.link_cpos, self.link_h, self.link_J = v3(), v3(), m3()
+        self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v = v3(), v3(), v3(), v3()
+        self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v = v3(), v3(), v3(), v3()
+        self.crb_m, self.crb_h, self.crb_J = s3(), v3(), m3()
+        self.cfrc_n, self.cfrc_f = v3(), v3()
+        self.dof_n, self.dof_f = v3(), v3()
+        self.mass_mat, self.bias, self.force = s3(), s3(), s3()
+        self.mass_fac = s3(False)
+        self.dof_tau = s3(False)
+        self.solve_tmp = s3(False)
+        elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
+                self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_force_lo, self.dof_force_hi, self.ctrl_force,
+                self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos, self.link_quat, self.link_R,
+                self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v,
+                self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n,
+                self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force, self.dof_tau]
+        mats, ones = [self.mass_mat, self.mass_fac], [self.gravity]
+        slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.qvel_move]), (1, [self.solve_tmp])]
+        _place_env_major(B, N, elem, mats, ones, slots)
+        if g:
+            grads = lambda xs: [x.grad for x in xs if x.grad is not None]  # noqa: E731
+            _place_env_major(B, N, grads(elem), grads(mats), grads(ones), [(n, grads(xs)) for n, xs in slots])
+        # per env, the first step after which its state was not finite (fused path), and how many envs
+        # have one
+        self.nan_step = I(B)
+        self.nan_count = I(())
+        self.vjp_loss = F((), True) if g else None
+        # schedule
+        self.sched = I((n_ops, 6))
+        self.sched_h = F(n_ops, False)
+        self.n_ops = n_ops
+        # per-env fields by position of their env axis (zeroed at load), and the differentiable ones
+        state = [self.qpos, self.qvel, self.qacc, self.qvel_move]
+        params = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
+                  self.dof_frictionloss, self.dof_kp, self.dof_kv, self.gravity, self.ctrl_force, self.ctrl_pos,
+                  self.ctrl_vel]
+        scratch = [self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J,
+                   self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w,
+                   self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f,
+                   self.mass_mat, self.bias, self.force]
+        self.zero_plan = ZeroPlan([self.mass_mat, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v], [], N)
+        self.grad_fields0 = [x.grad for x in params + scratch] if g else []
+        self.grad_fields1 = [x.grad for x in state] if g else []
+        self.grad_plan = ZeroPlan(self.grad_fields0, self.grad_fields1, N)
+
+    # ------------------------------------------------------------------ build and reset
+    @ti.kernel
+    def kernel_load(self, cfg_i: ti.types.ndarray(), cfg_f: ti.types.ndarray(), link_i: ti.types.ndarray(),
+                    link_f: ti.types.ndarray(), dof_i: ti.types.ndarray(), dof_f: ti.types.ndarray(),
+                    anc: ti.types.ndarray(), anc_pairs: ti.types.ndarray(), sched: ti.types.ndarray(),
+                    sched_h: ti.types.ndarray()):
+        """A scene's model into the core: sizes and options, link and dof info, the dof tree and the step
+        schedule. The per-env entries that a masked-out term may read before the scene writes them are
+        zeroed, so that no value of an earlier scene (a NaN of a diverged one, say) reaches it: M outside
+        the tree pattern (the dense factorisation multiplies it by 0) and the dof subspaces read at a
+        clamped index when the scene has no dofs; the state's are zeroed by kernel_reset_state."""
+        for k in range(N_CFG_I):
+            self.cfg_i[k] = cfg_i[k]
+        for k in range(N_CFG_F):
+            self.cfg_f[k] = cfg_f[k]
+        for i_b in range(cfg_i[I_ENVS]):
+            func_zero_plan(self.zero_plan, i_b, cfg_i[I_ELEMS])
+        for i in range(link_i.shape[0]):
+            self.link_parent[i] = link_i[i, 0]
+            self.link_jtype[i] = link_i[i, 1]
+            self.link_q_start[i] = link_i[i, 2]
+            self.link_dof_start[i] = link_i[i, 3]
+            self.link_ndof[i] = link_i[i, 4]
+            for k in ti.static(range(3)):
+                self.link_jpos[i][k] = link_f[i, k]
+                self.link_jaxis[i][k] = link_f[i, 7 + k]
+            for k in ti.static(range(4)):
+                self.link_jquat[i][k] = link_f[i, 3 + k]
+        for i in range(dof_i.shape[0]):
+            self.dof_link[i] = dof_i[i, 0]
+            self.dof_q[i] = dof_i[i, 1]
+            self.dof_parent[i] = dof_i[i, 2]
+            self.dof_mimic_leader[i] = dof_i[i, 3]
+            self.dof_limit_lo[i] = dof_f[i, 0]
+            self.dof_limit_hi[i] = dof_f[i, 1]
+            self.dof_mimic_mult[i] = dof_f[i, 2]
+            self.dof_mimic_off[i] = dof_f[i, 3]
+        for i, j in ti.ndrange(anc.shape[0], anc.shape[1]):
+            self.dof_anc[i, j] = anc[i, j]
+        for t in range(anc_pairs.shape[0]):
+            self.anc_i[t] = anc_pairs[t, 0]
+            self.anc_j[t] = anc_pairs[t, 1]
+        for k in range(sched.shape[0]):
+            for c in ti.static(range(6)):
+                self.sched[k, c] = sched[k, c]
+            self.sched_h[k] = sched_h[k]
+
+    @ti.kernel
+    def kernel_reset_state(self, qpos0: ti.types.ndarray()):
+        """Every state slot at qpos0 with zero velocity, zero controls in force mode, no NaN seen."""
+        self.nan_count[None] = 0
+        for i_b in range(self.cap_envs):
+            self.nan_step[i_b] = NO_NAN
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                # the whole capacity: masked-out reads at clamped indices (a free joint's 7 qs and 6 dofs
+                # read by a scene with fewer) must see zeros, not an earlier scene's values
+                for t, i in ti.ndrange(self.n_slots, self.cap_elems):
+                    self.qpos[t, i_b, i] = ti.select(i < self.n_qs, qpos0[ti.min(i, qpos0.shape[0] - 1)], 0.0)
+                    self.qvel[t, i_b, i] = 0.0
+                for i_d in range(self.n_dofs):
+                    self.ctrl_force[i_b, i_d] = 0.0
+                    self.ctrl_pos[i_b, i_d] = 0.0
+                    self.ctrl_vel[i_b, i_d] = 0.0
+                    self.ctrl_mode[i_b, i_d] = 0
+
+    @ti.kernel
+    def kernel_reset_nan(self, envs: ti.types.ndarray()) -> ti.i32:
+        """Forget the NaN record of the envs with envs[i_b] != 0 (all of them: a full reset); returns
+        how many envs stay recorded."""
+        self.nan_count[None] = 0
+        for i_b in range(self.cap_envs):
+            keep = self.nan_step[i_b]
+            if i_b < envs.shape[0]:
+                if envs[i_b] != 0:
+                    keep = NO_NAN
+            self.nan_step[i_b] = keep
+            if keep != NO_NAN:
+                ti.atomic_add(self.nan_count[None], 1)
+        return self.nan_count[None]
+
+    # ------------------------------------------------------------------ kernels of the step
+    # Every stage runs as its own top-level loop over envs (see kinematics.KINEMATICS).
+    def kernel_dynamics(self, e: int, src: int, h: float):
+        """Every dynamics stage of evaluation e at state slot src, substep length h."""
+        self.kernel_dynamics_part(0, len(self.dynamics_stages), e, src, h)
+
+    @ti.kernel
+    def kernel_dynamics_part(self, k0: ti.template(), k1: ti.template(), e: ti.i32, src: ti.i32, h: float):
+        """Stages k0..k1-1 of the dynamics (the gradient path's backward runs their adjoints as
+        separate kernels: see _evaluation_unit)."""
+        for stage in ti.static(self.dynamics_stages[k0:k1]):
+            if ti.static(self.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(self.cap_envs):
+                if i_b < self.n_envs:
+                    stage(self, i_b, e, src, h)
+
+    def kernel_kinematics(self, src: int):
+        """Link poses and velocities at qpos/qvel[src] (what the getters read): the dynamics' first
+        stages, so their adjoints (see RigidSolver._kinematics_unit) are the kernels the dynamics'
+        backward compiles."""
+        self.kernel_dynamics_part(0, len(LINK_STATE), 0, src, 0.0)
+
+    def kernel_factor_solve(self, e: int):
+        """The solve op: qacc[e] (with contacts, the contact solver's passes around the final solve)."""
+        if self.has_contact:
+            self.contact.factor_solve(self, e)
+        else:
+            self.kernel_mass_solve(e, False)
+
+    def kernel_solve_grad(self, e: int):
+        if self.has_contact:
+            self.contact.solve_grad(self, e)
+        else:
+            self.kernel_mass_solve(e, True)
+
+    @ti.kernel
+    def kernel_mass_solve(self, e: ti.i32, adjoint: ti.template()):
+        """qacc[e] = M^-1 force (M factored first; dense where contacts couple moving bodies), or with
+        `adjoint` its hand-written adjoint (inertia.func_solve_grad)."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                if ti.static(adjoint and self.dense_solve):
+                    func_solve_grad_dense(self, i_b, e)
+                elif ti.static(adjoint):
+                    func_solve_grad(self, i_b, e)
+                elif ti.static(self.dense_solve):
+                    func_factor_solve_dense(self, i_b, e)
+                else:
+                    func_factor_solve(self, i_b, e)
+
+    @ti.kernel
+    def kernel_integrate(self, kind: ti.i32, e: ti.i32, base: ti.i32, src: ti.i32, dst: ti.i32, h: float):
+        for stage in ti.static(INTEGRATE):
+            if ti.static(self.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(self.cap_envs):
+                if i_b < self.n_envs:
+                    stage(self, i_b, kind, e, base, src, dst, h)
+
+    @ti.kernel
+    def kernel_step_fused(self, step: ti.i32, k0: ti.i32, k1: ti.i32, finish: ti.i32) -> ti.i32:
+        """Ops k0..k1-1 of the schedule (the whole step, or one substep when another solver steps
+        between substeps), all envs, one launch (no gradient bookkeeping). With `finish` the last slot
+        becomes slot 0 and nan_step[i_b] records the first `step` after which env i_b's state is not
+        finite (checked while copying, so nearly free). Returns how many envs have such a record: the
+        scene reads that integer after every step and looks at the state only when it grew. (A
+        return value, not an external array: an array argument costs ~6 us per launch to set, a
+        returned integer ~0.5 us through taichi_compat's fast launch.)"""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                for k in range(k0, k1):
+                    op = self.sched[k, 0]
+                    kind, e, base, src, dst = self.sched[k, 1], self.sched[k, 2], self.sched[k, 3], self.sched[k, 4], self.sched[k, 5]
+                    h = self.sched_h[k]
+                    if op == OP_DYN:
+                        for stage in ti.static(self.dynamics_stages):
+                            stage(self, i_b, e, src, h)
+                    elif op == OP_SOLVE:
+                        if ti.static(self.has_contact):
+                            func_contact_solve(self, i_b, e)
+                        elif ti.static(self.dense_solve):
+                            func_factor_solve_dense(self, i_b, e)
+                        else:
+                            func_factor_solve(self, i_b, e)
+                    else:
+                        for stage in ti.static(INTEGRATE):
+                            stage(self, i_b, kind, e, base, src, dst, h)
+                if finish:
+                    bad = 0
+                    for i_q in range(self.n_qs):
+                        x = self.qpos[self.n_slots - 1, i_b, i_q]
+                        self.qpos[0, i_b, i_q] = x
+                        bad |= ti.math.isnan(x) or ti.math.isinf(x)
+                    for i_d in range(self.n_dofs):
+                        x = self.qvel[self.n_slots - 1, i_b, i_d]
+                        self.qvel[0, i_b, i_d] = x
+                        bad |= ti.math.isnan(x) or ti.math.isinf(x)
+                    if bad:
+                        if self.nan_step[i_b] == NO_NAN:
+                            self.nan_step[i_b] = step
+                            ti.atomic_add(self.nan_count[None], 1)
+        return self.nan_count[None]
+
+    @ti.kernel
+    def kernel_mass_matrix(self, src: ti.i32):
+        """M (without armature or implicit terms) at qpos[src]."""
+        for stage in ti.static((func_forward_kinematics, func_dof_subspace, func_world_inertia) + INERTIA):
+            if ti.static(self.serial):
+                ti.loop_config(serialize=True)
+            for i_b in range(self.cap_envs):
+                if i_b < self.n_envs:
+                    stage(self, i_b, 0, src, 0.0)
+
+    @ti.kernel
+    def kernel_clear_grads(self):
+        """Zero every adjoint field of the scene's envs, and seed the adjoint of the solver's Tape
+        scalar (see kernel_vjp). Constants, not x * 0: a NaN left by an earlier failed backward must not
+        survive. One top-level loop: each costs a task to load."""
+        self.vjp_loss.grad[None] = 1.0
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                func_zero_plan(self.grad_plan, i_b, self.cfg_i[I_ELEMS])
+
+
+@ti.data_oriented
+class SceneCore(RigidCore):
+    """A RigidCore's fields (the same field objects) with the scene's own dynamics stages: its contact
+    solver and/or its external wrenches. The kernels that include them compile on this object, not on
+    the pooled core. With a contact solver alone it is pooled with its core (CorePool.acquire_scene_core)
+    and serves later scenes of its contact class; with external wrenches it is the scene's own.
+    `core` is the pooled RigidCore whose fields it shares."""
+
+    def __init__(self, core: RigidCore, contact, external):
+        # the core's fields, sizes and plans as attributes of this object (references, nothing copied),
+        # so that stage code reads them from `s` alike on either kind
+        self.__dict__.update(core.__dict__)
+        self.core = core
+        self.contact = contact
+        self.external = external
+        extra = [x for x in (contact, external) if x is not None]
+        self.dynamics_stages = DYNAMICS + sum((tuple(x.stages) for x in extra), ())
+        self.dense_solve = bool(contact is not None and contact.dense)
+        self.has_contact = contact is not None
+        if core.requires_grad:
+            self.grad_plan = ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems,
+                                      [f.grad for x in extra for f in x.grad_fields])
