@@ -52,35 +52,56 @@ EXPEL_DEPTH = 0.5
 
 @ti.data_oriented
 class RigidMPMCoupler:
-    """mpm: the scene's MPMSolver; rigid: the RigidPort of its RigidSolver (built with
+    """Made and pooled by class (`POOL`, `make_key`), loaded with a scene by `load`.
+    mpm: the scene's MPMSolver; rigid: the RigidPort of its RigidSolver (built with
     external_wrench=True, solvers/rigid/port.py); geoms: the GeomTable of its collision
     geoms (solvers/rigid/collision.py build_geoms), of which those at `idx` are coupled; friction:
     Coulomb coefficient per coupled geom;
     softness (m): width of the band outside a surface over which its boundary fades in; reaction:
     whether the rigid bodies feel the MPM material (two-way) or only move it (one-way)."""
 
-    def __init__(self, mpm, rigid, geoms, idx, friction, softness, reaction):
+    def __init__(self, key, mpm, rigid):
+        _, _, _, n_geoms, sdf_types, softness, reaction, kdop_width, B, _ = key
+        self.key = key
         self.mpm = mpm
         self.rigid = rigid
-        idx = np.asarray(idx, dtype=np.int64)
-        self.n_geoms = len(idx)
-        if rigid.requires_grad:
-            require_ad_stack(self.n_geoms)  # each grid node loops over the coupled geoms
-        self.softness = float(softness)
-        self.reaction = bool(reaction)
+        # the fields the kernels compiled on this coupler read: held while it waits in the pool, so that the
+        # ids in its key name them and no other objects
+        self._compiled_against = (rigid.link_R, rigid.ext_f)
+        self.n_geoms = n_geoms
+        self.softness = softness
+        self.reaction = reaction
+        self.sdf_types = sdf_types
         self.lower = ti.Vector([float(v) for v in mpm.np_lower])
         self.dx = float(mpm.dx)
-        grid_res, dtype = mpm.grid_res, mpm.dtype
-        self.sdf_types = tuple(sorted({int(t) for t in geoms.type[idx]}))
-        G, B = max(len(idx), 1), rigid.n_envs
-        npf = np.float64 if dtype == ti.f64 else np.float32
+        dtype = mpm.dtype
+        G = max(n_geoms, 1)
         self.geom_type, self.geom_link = ti.field(ti.i32, shape=G), ti.field(ti.i32, shape=G)
         self.geom_pos = ti.Vector.field(3, dtype, shape=G)
         self.geom_R = ti.Matrix.field(3, 3, dtype, shape=G)
         self.geom_size = ti.Vector.field(3, dtype, shape=G)
-        self.geom_kdop = ti.field(dtype, shape=(G, geoms.kdop.shape[1]))
+        self.geom_kdop = ti.field(dtype, shape=(G, kdop_width))
         self.geom_friction = ti.field(dtype, shape=G)
-        self.node_geom = ti.field(ti.i32, shape=(B,) + tuple(grid_res))
+        self.node_geom = ti.field(ti.i32, shape=(B,) + tuple(mpm.grid_res))
+        self._make_units()
+
+    @staticmethod
+    def make_key(mpm, rigid, geoms, idx, softness, reaction):
+        """What the kernels of a coupler compile in: the MPM solver's and the rigid solver's fields (by
+        identity: both are pooled, solvers/mpm/solver.py and solvers/rigid/pool.py), the coupled geoms'
+        count and SDF types, the band, two-way or not, and the sizes of its own fields."""
+        idx = np.asarray(idx, dtype=np.int64)
+        return (id(mpm), id(rigid.link_R), id(rigid.ext_f), len(idx), tuple(sorted({int(t) for t in geoms.type[idx]})),
+                float(softness), bool(reaction), int(geoms.kdop.shape[1]), rigid.n_envs, rigid.n_links)
+
+    def load(self, rigid, geoms, idx, friction):
+        """A scene into the coupler: its rigid solver's port and the coupled geoms (their Coulomb
+        coefficients against the material: friction)."""
+        self.rigid = rigid
+        if rigid.requires_grad:
+            require_ad_stack(self.n_geoms)  # each grid node loops over the coupled geoms
+        idx = np.asarray(idx, dtype=np.int64)
+        npf = np.float64 if self.mpm.dtype == ti.f64 else np.float32
         quat = geoms.quat[idx]
         self.geom_type.from_numpy(geoms.type[idx].astype(np.int32))
         self.geom_link.from_numpy(geoms.link[idx].astype(np.int32))
@@ -89,7 +110,6 @@ class RigidMPMCoupler:
         self.geom_size.from_numpy(geoms.size[idx].astype(npf))
         self.geom_kdop.from_numpy(np.ascontiguousarray(geoms.kdop[idx]).astype(npf))
         self.geom_friction.from_numpy(np.asarray(friction, dtype=npf))
-        self._make_units()
 
     def _make_units(self):
         @ti.ad.no_grad
@@ -185,3 +205,29 @@ class RigidMPMCoupler:
             self.rigid.ext_f[i_b, sub, l] += f
             self.rigid.ext_t[i_b, sub, l] += x.cross(f)
         return v_new
+
+
+class _Pool:
+    """Free couplers by class (RigidMPMCoupler.make_key). A scene takes one, or has one made, and its
+    coupler bridge gives it back when it dies, so that a later scene of the class compiles nothing."""
+
+    def __init__(self):
+        self.free = {}
+
+    def acquire(self, mpm, rigid, geoms, idx, friction, softness, reaction):
+        """(coupler, reused) for a scene (see RigidMPMCoupler), loaded with it."""
+        key = RigidMPMCoupler.make_key(mpm, rigid, geoms, idx, softness, reaction)
+        free = self.free.get(key)
+        coupler, reused = (free.pop(), True) if free else (RigidMPMCoupler(key, mpm, rigid), False)
+        coupler.load(rigid, geoms, idx, friction)
+        return coupler, reused
+
+    def release(self, coupler):
+        coupler.rigid = None  # the scene's rigid solver goes with the scene (its pooled fields stay held)
+        self.free.setdefault(coupler.key, []).append(coupler)
+
+    def clear(self):
+        self.free.clear()
+
+
+POOL = _Pool()

@@ -214,3 +214,47 @@ def test_bad_coupler_options_are_errors():
         gs.materials.Rigid(coup_friction=-1.0)
     with pytest.raises(TypeError, match="coupler_options"):
         gs.Scene(coupler_options=dict(rigid_mpm=True))
+
+
+def _pushed_jelly(vel):
+    """A coupled scene with gradients (a box pushing a jelly cube): positions and gradients after 3 steps."""
+    scene = _scene(density=24, upper=(0.5, 0.5, 0.5), substeps=4, requires_grad=True)
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.25, 0.25), size=(0.1, 0.1, 0.1)),
+                            material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
+    pusher = scene.add_entity(gs.morphs.Box(pos=(0.21, 0.26, 0.24), size=(0.05, 0.12, 0.1)),
+                              material=gs.materials.Rigid(rho=2000, coup_friction=0.3))
+    scene.build()
+    v = torch.tensor(vel, **F64, requires_grad=True)
+    pusher.set_dofs_velocity(v)
+    for _ in range(3):
+        scene.step()
+    x, q = cube.get_particles_pos(), pusher.get_qpos()
+    ((x[:, 0] ** 2).sum() + q[:3].sum()).backward()
+    reused = (scene._coupler.reused, scene.rigid_solver.reused_core, scene._mpm.reused_solver)
+    return (x.detach(), q.detach(), v.grad), reused
+
+
+def test_a_second_coupled_scene_of_its_class_compiles_nothing_and_gives_the_same_numbers(monkeypatch):
+    import gc
+
+    from taichi.lang import kernel_impl
+
+    first, _ = _pushed_jelly([0.8, 0.0, 0.1, 0.0, 0.3, 0.0])
+    gc.collect()  # the first scene dies: its MPM solver, rigid scene core and coupler go back to their pools
+    compiled = []
+    materialize = kernel_impl.Kernel.materialize
+
+    def recording(self, key=None, args=None, arg_features=None):
+        if (key if key is not None else (self.func, 0, self.autodiff_mode)) not in self.compiled_kernels:
+            compiled.append(self.func.__name__)
+        return materialize(self, key, args, arg_features)
+
+    monkeypatch.setattr(kernel_impl.Kernel, "materialize", recording)
+    again, reused = _pushed_jelly([0.8, 0.0, 0.1, 0.0, 0.3, 0.0])
+    assert reused == (True, True, True)
+    # Taichi's own loss field of the scene's Tape (simulator.py) is new with every scene: its fill kernels
+    # are all that may compile
+    assert set(compiled) <= {"fill_field"}, f"the second coupled scene compiled {compiled}"
+    for a, b in zip(first, again):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert again[2].abs().sum() > 0

@@ -6,6 +6,7 @@ through the MPM and rigid bridges' inputs.
 from __future__ import annotations
 
 import logging
+import weakref
 
 import numpy as np
 
@@ -23,7 +24,7 @@ class CouplerBridge:
     @classmethod
     def create(cls, rigid_entities, rigid, mpm, rigid_options, mpm_options, coupler_options):
         """rigid, mpm: the scene's RigidSim and MPMSim bridges (the rigid one built with external wrenches)."""
-        from solvers.coupling import RigidMPMCoupler
+        from solvers.coupling import POOL
         from solvers.rigid.collision import build_geoms
         from solvers.rigid.port import RigidPort
 
@@ -41,8 +42,14 @@ class CouplerBridge:
         mats = [rigid_entities[int(geoms.entity[i])].material for i in idx]
         softness = min(m.coup_softness if m.coup_softness is not None else 0.5 * dx for m in mats)
         softness = max(softness, 1e-6 * dx)  # 0 (Genesis's hard boundary): a band far below the grid's resolution
-        return cls(RigidMPMCoupler(mpm.solver, RigidPort(rigid.solver), geoms, idx, [m.coup_friction for m in mats],
-                                   softness, coupler_options.mpm_reaction))
+        # a coupler of the scene's class from the pool (its kernels compiled by an earlier scene, if any),
+        # given back when this bridge dies
+        coupler, reused = POOL.acquire(mpm.solver, RigidPort(rigid.solver), geoms, idx, [m.coup_friction for m in mats],
+                                       softness, coupler_options.mpm_reaction)
+        bridge = cls(coupler)
+        bridge.reused = reused
+        weakref.finalize(bridge, POOL.release, coupler)
+        return bridge
 
     def couple(self, i, grad, replay=False):
         """The coupling stage of substep i (see solvers/coupling.py)."""

@@ -225,7 +225,7 @@ class MPMSim:
         shapes = [(B, P, 3), (B, P, 3), (B, P, 3, 3), (B, P, 3, 3)]
         g = [self._c(x) if x is not None else torch.zeros(s, dtype=self.dtype, device=self.device)
              for x, s in zip(grads, shapes)]
-        self.solver.kernel_vjp(self.solver.last_slot, *g, loss)
+        self.solver.kernel_vjp(self.solver.last_slot, *g)
 
     def input_grads(self, needs, step):
         B, P = self.B, self.n_particles

@@ -155,6 +155,7 @@ class MPMSolver:
         # the loss of the nested Tape that replays a substep in its adjoint: nothing reads it (the
         # adjoints start from the grid's and particles' own), but a Tape needs a scalar to seed
         self.replay_loss = ti.field(f, shape=(), needs_grad=True) if g else None
+        self.vjp_loss = ti.field(f, shape=(), needs_grad=True) if g else None  # see kernel_vjp
         self.grad_fields = [self.x, self.v, self.C, self.F, self.tau, self.mu, self.lam, self.yield_stress,
                             self.alpha, self.viscosity, self.f_ext, self.gravity, self.grid_m, self.grid_mv,
                             self.grid_v] if g else []
@@ -392,15 +393,18 @@ class MPMSolver:
 
     @ti.kernel
     def kernel_vjp(self, slot: ti.i32, gx: ti.types.ndarray(), gv: ti.types.ndarray(), gC: ti.types.ndarray(),
-                   gF: ti.types.ndarray(), loss: ti.template()):
-        """loss += <gradients torch hands the step's output state, that state in `slot`>."""
+                   gF: ti.types.ndarray()):
+        """vjp_loss += <gradients torch hands the step's output state, that state in `slot`>: the scalar whose
+        adjoint the step's Tape propagates. It is the solver's own, its adjoint seeded to 1 by
+        kernel_clear_grads, rather than the Tape's loss field, which is new with every scene: a kernel taking
+        that field would compile again for each scene of the class. d(Tape loss)/d(vjp_loss) = 1 either way."""
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
             acc = 0.0
             for a in ti.static(range(3)):
                 acc += gx[i_b, i_p, a] * self.x[slot, i_b, i_p][a] + gv[i_b, i_p, a] * self.v[slot, i_b, i_p][a]
                 for b in ti.static(range(3)):
                     acc += gC[i_b, i_p, a, b] * self.C[slot, i_b, i_p][a, b] + gF[i_b, i_p, a, b] * self.F[slot, i_b, i_p][a, b]
-            loss[None] += acc
+            self.vjp_loss[None] += acc
 
     @ti.kernel
     def kernel_get_state_grads(self, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
@@ -454,6 +458,7 @@ class MPMSolver:
                     x.grad[I] = ti.Vector.zero(float, x.n)
                 else:
                     x.grad[I] = ti.Matrix.zero(float, x.n, x.m)
+        self.vjp_loss.grad[None] = 1.0  # see kernel_vjp
 
     @ti.kernel
     def kernel_count_nonfinite(self, slot: ti.i32, step: ti.i32) -> ti.i32:

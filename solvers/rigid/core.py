@@ -421,8 +421,8 @@ class RigidCore:
 class SceneCore(RigidCore):
     """A RigidCore's fields (the same field objects) with the scene's own dynamics stages: its contact
     solver and/or its external wrenches. The kernels that include them compile on this object, not on
-    the pooled core. With a contact solver alone it is pooled with its core (CorePool.acquire_scene_core)
-    and serves later scenes of its contact class; with external wrenches it is the scene's own.
+    the pooled core. It is pooled with its core (CorePool.acquire_scene_core) and serves later scenes
+    of its contact class and external-wrench sizes.
     `core` is the pooled RigidCore whose fields it shares."""
 
     def __init__(self, core: RigidCore, contact, external):

@@ -23,22 +23,33 @@ class ExternalWrench:
     """ext_f, ext_t [env, substep, link]: the wrench of each substep (written by the coupler);
     carries [link, link]: 1 where the second link is the first or one of its ancestors."""
 
-    def __init__(self, n_envs, substeps, link_parent, evals_per_substep, dtype, requires_grad):
-        L = max(len(link_parent), 1)
-        B, S, g = n_envs, substeps, requires_grad
+    def __init__(self, key):
+        B, S, L, evals_per_substep, dtype, g = key
+        self.key = key
         self.evals_per_substep = evals_per_substep
         self.ext_f = ti.Vector.field(3, dtype, shape=(B, S, L), needs_grad=g)
         self.ext_t = ti.Vector.field(3, dtype, shape=(B, S, L), needs_grad=g)
+        self.carries = ti.field(ti.i32, shape=(L, L))
+        self.grad_fields = [self.ext_f, self.ext_t] if g else []
+        self.stages = (func_external_dof,)
+
+    @staticmethod
+    def make_key(n_envs, substeps, n_links, evals_per_substep, dtype, requires_grad):
+        """What the kernels of a scene's external wrenches compile in (the pool's key)."""
+        return (int(n_envs), int(substeps), max(int(n_links), 1), int(evals_per_substep), dtype, bool(requires_grad))
+
+    def load(self, link_parent):
+        """A scene's tree (link_parent: parent index per link, -1 for a root) and no wrench yet."""
+        L = self.key[2]
         carries = np.zeros((L, L), dtype=np.int32)
         for l in range(len(link_parent)):
             j = l
             while j >= 0:
                 carries[l, j] = 1
                 j = int(link_parent[j])
-        self.carries = ti.field(ti.i32, shape=(L, L))
         self.carries.from_numpy(carries)
-        self.grad_fields = [self.ext_f, self.ext_t] if g else []
-        self.stages = (func_external_dof,)
+        self.ext_f.fill(0)
+        self.ext_t.fill(0)
 
 
 @ti.func

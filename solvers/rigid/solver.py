@@ -14,7 +14,7 @@ A scene with collision pairs (or with external wrenches, external.py) runs its d
 class too (capacities of geoms, pairs, slots; static flags: slot kinds, SDF types, dense
 factorisation, the model's constants) and read the scene's sizes at run time, so SceneCores with a
 contact solver are pooled as well, each keeping its core: a later scene whose contacts fit one compiles
-nothing (a robot over a plane after another). SceneCores with external wrenches stay per scene.
+nothing (a robot over a plane after another), and so do scenes with external wrenches of the same sizes.
 
 Arrays cross in caller-made buffers (numpy, or torch tensors the scene's side makes): this package
 imports taichi and numpy only.
@@ -30,9 +30,9 @@ from ..taichi_compat.adstack import require as require_ad_stack
 from ..taichi_compat.compile_options import AdjointCompile, ForwardCompile
 from . import state_io
 from .actuation import func_generalized_force
-from .contact import ContactPlan, ContactSolver
+from .contact import ContactPlan
 from .core import (DYNAMICS, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
-                   I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT, SceneCore,
+                   I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
                    elem_capacity, env_capacity)
 from .external import ExternalWrench
 from .flatten import FlatModel
@@ -98,26 +98,22 @@ class RigidSolver:
             plan = ContactPlan.create(self.flat, models, contact_options, self.specialized)
         self.contact = None
         self.external = None
-        if plan is not None and not external_wrench:
-            # core + contact solver from the pool: a scene of the same contact class reuses the kernels
-            # compiled on them
-            self.step_core, self.reused_core = POOL.acquire_scene_core(key, plan)
+        if plan is not None or external_wrench:
+            # core + contact solver and / or external wrenches (per substep, written by the rigid-MPM
+            # coupler, external.py) from the pool: a scene of the same class reuses the kernels compiled on them
+            ext_key = ExternalWrench.make_key(self.n_envs, self.substeps, self.n_links, self.evals_per_substep,
+                                              self.dtype, self.requires_grad) if external_wrench else None
+            self.step_core, self.reused_core = POOL.acquire_scene_core(key, plan, ext_key)
             self.core = self.step_core.core
             self.contact = self.step_core.contact
+            self.external = self.step_core.external
+            if self.external is not None:
+                self.external.load(self.flat.np_link_parent)
             weakref.finalize(self, POOL.release_scene_core, self.step_core)
         else:
             self.core, self.reused_core = POOL.acquire(key)
             weakref.finalize(self, POOL.release, self.core)
-            if plan is not None:
-                self.contact = ContactSolver(self.core, plan)
-            # external wrenches per substep (written by the rigid-MPM coupler), see external.py
-            if external_wrench:
-                self.external = ExternalWrench(self.n_envs, self.substeps, self.flat.np_link_parent,
-                                               self.evals_per_substep, self.dtype, self.requires_grad)
-            if self.contact is None and self.external is None:
-                self.step_core = self.core
-            else:
-                self.step_core = SceneCore(self.core, self.contact, self.external)
+            self.step_core = self.core
         self.serial = self.core.serial
         # in place: a SceneCore shares the core's list
         self.core.scene_cfg[:] = self._cfg()
