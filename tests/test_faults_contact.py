@@ -8,8 +8,10 @@
 2. Tunnelling: a box at 1e6 m/s onto the ground or onto another box (1e4 m per step of 0.01 s) ends the
    step metres deep: the scene warns once (ContactPenetrationWarning), naming both bodies, the step and
    what to do (smaller dt / more substeps, or a stiffer contact).
-3. Heavy bodies: a 400 t box sinks into the ground (the stiffness is in N/m per contact point): the scene
-   warns, naming RigidOptions.contact_stiffness; with the stiffness the message asks for, it rests.
+3. Heavy bodies: a 4 t or 400 t box rests on the ground within 0.5 mm (its contacts' stiffness scales
+   with its mass above 100 kg); a 400 t box carried by a light box presses that one into the ground (its
+   contacts keep its own stiffness): the scene warns, naming RigidOptions.contact_stiffness; with the
+   stiffness the message asks for, it rests.
 4. A box sliding over the edge of a fixed box (the setup of the known bug): the contact force on it
    stays within Coulomb's cone, |horizontal| <= mu * vertical (its contacts are face contacts).
 
@@ -109,33 +111,38 @@ def test_box_at_1e6_mps_warns_that_the_step_is_too_long(onto):
         scene.step()
 
 
-def test_heavy_box_sinking_warns_about_contact_stiffness():
-    """A 400 t box (1 m cube, rho = 4e5) set on the ground sinks (its weight, 3.9 MN, on four corners of
-    1e6 N/m each): within 32 steps the scene warns, naming the box and contact_stiffness."""
-    scene, a, b = _ground_and_two_boxes(size_a=(1.0, 1.0, 1.0), rho_a=4e5)
-    _place(a, (0.0, 0.0, 0.5), (0.0,) * 6)
-    _place(b, (0.0, 3.0, 0.1), (0.0,) * 6)
-    with pytest.warns(ContactPenetrationWarning) as rec:
-        for _ in range(32):
-            scene.step()
-    msg = str(rec[0].message)
-    assert f"entity '{a.name}'" in msg and "plane" in msg and "contact_stiffness" in msg, msg
-    assert float(a.get_pos()[0, 2]) < 0.5 - 0.1  # it did sink (more than 10 % of its size)
-
-
-@pytest.mark.slow
-def test_heavy_box_rests_with_the_stiffness_the_message_asks_for():
-    """The remedy works: with contact_stiffness = 1e10 N/m the 400 t box rests on the ground over 2 s,
-    its penetration under 1 mm (0.1 % of its size), and nothing warns. (Its own contact class: compiles.)"""
-    scene, a, b = _ground_and_two_boxes(size_a=(1.0, 1.0, 1.0), rho_a=4e5, contact_stiffness=1e10)
+@pytest.mark.parametrize("tonnes", [4, 400])
+def test_heavy_box_rests_on_the_ground(tonnes):
+    """A 4 t or 400 t box (1 m cube) set on the ground rests on it: its contacts' stiffness and damping
+    scale with its mass above 100 kg (solvers/rigid/contact/law.py, HEAVY_MASS), as MuJoCo's follow the
+    effective mass (MuJoCo: 0.11 mm for a 400 t, 0.2 m box). After 1 s it is within 0.5 mm of resting
+    height (measured: 0.25 mm), at rest, and nothing warns. Before: the 400 t box sank 0.76 m (its
+    weight on four corners of 1e6 N/m)."""
+    scene, a, b = _ground_and_two_boxes(size_a=(1.0, 1.0, 1.0), rho_a=tonnes * 1e3)
     _place(a, (0.0, 0.0, 0.5), (0.0,) * 6)
     _place(b, (0.0, 3.0, 0.1), (0.0,) * 6)
     with warnings.catch_warnings():
         warnings.simplefilter("error", ContactPenetrationWarning)
-        for _ in range(200):
+        for _ in range(100):
             scene.step()
-    z = _np(a.get_pos())[:, 2]
-    assert (np.abs(z - 0.5) < 1e-3).all(), z
+    sink = 0.5 - _np(a.get_pos())[:, 2]
+    assert ((sink > 0) & (sink < 5e-4)).all(), sink
+    assert float(a.get_vel().norm(dim=-1).max()) < 1e-6
+
+
+def test_heavy_load_on_a_light_box_warns_about_contact_stiffness():
+    """The scaling follows each contact's own pair: a 400 t box resting on a light one (box B, 8 kg) presses
+    B into the ground with 3.9 MN through contacts of B's own 1e6 N/m, which cannot hold it. Within 32 steps
+    the scene warns, naming contact_stiffness and the light body's case."""
+    scene, a, b = _ground_and_two_boxes(size_a=(1.0, 1.0, 1.0), rho_a=4e5)
+    _place(b, (0.0, 0.0, 0.1), (0.0,) * 6)
+    _place(a, (0.0, 0.0, 0.7), (0.0,) * 6)
+    with pytest.warns(ContactPenetrationWarning) as rec:
+        for _ in range(32):
+            scene.step()
+    msg = str(rec[0].message)
+    assert f"entity '{b.name}'" in msg and "contact_stiffness" in msg and "light body" in msg, msg
+    assert float(b.get_pos()[0, 2]) < 0.1 - 0.01  # B did sink (more than 10 % of its size)
 
 
 @pytest.mark.slow

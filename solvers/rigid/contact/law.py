@@ -7,6 +7,16 @@ from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
+# a pair whose effective mass m_eff is above HEAVY_MASS (kg) gets its contact stiffness and damping
+# scaled by m_eff / HEAVY_MASS (func_heavy_scale): the options' k and c are per contact point, in N/m,
+# which holds a body of tens of kg within millimetres but lets a 400 t box sink 0.76 m. Scaling k and c
+# by the mass keeps the contact's time constant sqrt(m / k) and damping ratio c / (2 sqrt(k m)) those of
+# a HEAVY_MASS body, as MuJoCo's solref does for every body (its constraint stiffness follows the
+# effective mass: 0.11 mm for the 400 t box). Below HEAVY_MASS the forces are the options' N/m law's,
+# bit for bit: robots' links, tools and props keep it.
+HEAVY_MASS = 100.0
+# a link lighter than this (a massless frame) counts as this heavy in m_eff: 1 / 0 has no adjoint
+MIN_LINK_MASS = 1e-9
 
 
 @ti.func
@@ -22,10 +32,30 @@ def func_softplus(x, xc):
 
 
 @ti.func
-def func_normal_law(c: ti.template(), depth, depth_end, h):
+def func_heavy_scale(s: ti.template(), i_b, i_s):
+    """(heavy, scale): whether slot i_s's pair is heavier than HEAVY_MASS, and m_eff / HEAVY_MASS, the
+    factor on its stiffness and damping (see HEAVY_MASS). m_eff = 1 / (1 / m_a + 1 / m_b) over the sides
+    that move (a static side is infinitely heavy), each side its own link's mass: a light link pressed
+    by a heavy load through its joints (a foot under a heavy robot) keeps the options' law."""
+    c = s.contact
+    la = c.geom_link[c.slot_ga[i_s]]
+    lb = c.geom_link[c.slot_gb[i_s]]
+    inv_a = ti.select(c.link_dyn[la] == 1, 1.0 / ti.max(s.link_mass[i_b, la], MIN_LINK_MASS), 0.0)
+    inv_b = ti.select(c.link_dyn[lb] == 1, 1.0 / ti.max(s.link_mass[i_b, lb], MIN_LINK_MASS), 0.0)
+    inv = inv_a + inv_b
+    heavy = inv * HEAVY_MASS < 1.0
+    # inv > 0 on the heavy side; the other side's value is never used (nor its adjoint: 0)
+    scale = ti.select(heavy, 1.0 / (ti.max(inv, 1e-30) * HEAVY_MASS), 1.0)
+    return heavy, scale
+
+
+@ti.func
+def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale):
     """(normal force, slope h * dF/d(approach speed)) of the implicit law for the depth now and the
     depth predicted for the end of the step, and the force of the current state alone (the spring on
-    the current depth and the damper on the current approach)."""
+    the current depth and the damper on the current approach). heavy, scale: func_heavy_scale's, the
+    factor on k and c (all three are linear in them); each side of the kink is its own branch (ti.select),
+    exact on its side."""
     z = depth / c.delta
     zp = depth_end / c.delta
     # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
@@ -36,7 +66,20 @@ def func_normal_law(c: ti.template(), depth, depth_end, h):
     sg = 1.0 / (1.0 + ti.exp(-zpc))
     ch = c.d / h
     fn = (c.k + ch) * c.delta * spp - ch * c.delta * sp
-    return fn, h * (c.d + h * c.k) * sg, c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+    wn = h * (c.d + h * c.k) * sg
+    fn_now = c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+    # the heavy law spelled out with its own k and c, not as scale * fn: LLVM's fast math folds
+    # select(heavy, scale * fn, fn) into fn * select(heavy, scale, 1) and regroups that product with
+    # fn's terms, which moved the light law's rounding (a contact scene's gradient build left main's
+    # trajectory by 1e-19 m in its first steps). Spelled out, a light pair's forces are the options'
+    # law's to the bit; its gradients move at rounding level (the adjoint sums are regrouped)
+    k = c.k * scale
+    d = c.d * scale
+    chs = d / h
+    fn_h = (k + chs) * c.delta * spp - chs * c.delta * sp
+    wn_h = h * (d + h * k) * sg
+    fn_now_h = k * c.delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+    return ti.select(heavy, fn_h, fn), ti.select(heavy, wn_h, wn), ti.select(heavy, fn_now_h, fn_now)
 
 
 @ti.func

@@ -5,7 +5,7 @@ import taichi as ti
 
 from ..collision import TINY, func_broad_phase, func_geom_pose, func_slot_geometry
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
-from .law import func_normal_law, func_rot_corr
+from .law import func_heavy_scale, func_normal_law, func_rot_corr
 
 
 # ------------------------------------------------------------------------------------------------
@@ -39,7 +39,8 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand, c
     # the normal force is linearised about the depth predicted for the end of the step, so a contact
     # that closes its gap within the step acts in it (speculative contact, see the module docstring)
     # (corr: how much further the rotations close the gap than the linear prediction h u.n says)
-    fn_pred, wn, fn_now = func_normal_law(c, depth, depth - h * u.dot(n) - corr, h)
+    heavy, scale = func_heavy_scale(s, i_b, i_s)
+    fn_pred, wn, fn_now = func_normal_law(c, depth, depth - h * u.dot(n) - corr, h, heavy, scale)
     # on while the force of the current state pushes (a contact creeping out of a deep overlap, whose
     # predicted force sits at ~0), the predicted one does (a gap closing within the step), or the pair
     # is a candidate (cand: its gap could close within the step if the bodies' motion changes; the
