@@ -1,0 +1,47 @@
+"""Stage 6, collision: which geoms can touch (built once, numpy), and the narrow phase (Taichi).
+
+Every candidate pair of geoms gets a fixed set of contact *slots* at build time, so a step has a
+fixed amount of work and a fixed computation graph (what Taichi's reverse mode needs): a slot is a
+sample point of one geom (the "point side", with a radius) tested against the signed distance
+function (SDF) of the other (the "SDF side"):
+
+  pair                        point side                                   SDF side
+  plane  x any                sphere centre / capsule ends / box corners /  plane
+                              cylinder rims / mesh hull vertices
+  sphere x any non-plane      the sphere centre (radius r): exact           the other geom
+  capsule x capsule           closest points of the two segments, and each  the other capsule
+                              capsule's end points
+  box x box                   as other primitive pairs below, plus the      the other box
+                              closest points of the edge pair whose axis
+                              (cross product) separates the boxes best,
+                              where it beats every face axis (edge on edge)
+  other primitive pairs,      corners + edge midpoints (box), rim and cap   the other geom
+  mesh x primitive            samples (cylinder), axis samples (capsule),
+                              hull vertices (mesh), in both directions
+  mesh x mesh                 unsupported (an error at build, see below)
+
+SDFs are exact for plane, sphere, capsule, box and cylinder; a mesh is its convex hull, whose SDF is
+approximated by a 26-plane discrete-orientation polytope (k-DOP) around it. Inside a box, cylinder or
+k-DOP the nearest face is ambiguous where faces meet (two stacked identical boxes touch corner on
+corner), so the face is chosen by penetration plus a bias towards the face that looks at the other
+geom's centre.
+
+Which pairs are candidates: geoms of different entities; geoms of one entity only with
+`enable_self_collision`, and never on the same or adjacent (parent/child) links; never two geoms that
+cannot move. A cheap test per pair (the broad phase: the geom's support function against a plane,
+bounding spheres otherwise) skips the slots of pairs that are not within the contact margin, so a
+robot standing on the ground computes only its feet's slots. A mesh is contacted through at most
+RigidOptions.max_mesh_contact_points of its hull vertices (farthest-point sampled, extremes kept).
+
+Modules: geoms.py (host side: geoms, candidate pairs, slots), sdf.py (the SDFs), narrow.py (the step's
+stages: geom poses, broad phase, slot geometry).
+"""
+from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CAPSULE, GEOM_CODE, GEOM_CYLINDER,
+                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_POINT,
+                    SLOT_SEGSEG, ContactBuildError, GeomTable, build_geoms, build_slots, candidate_pairs,
+                    geom_rotations, link_is_dynamic, sample_points)
+from .narrow import func_broad_phase, func_geom_pose, func_slot_geometry
+from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_of, func_segment_closest
+
+__all__ = ["build_geoms", "candidate_pairs", "build_slots", "func_geom_pose", "func_broad_phase",
+           "func_slot_geometry", "ContactBuildError"]

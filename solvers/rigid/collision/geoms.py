@@ -1,0 +1,283 @@
+"""Collision, host side (numpy, once per scene): the geoms of the entities (GeomTable), which pairs can
+touch (candidate_pairs) and the contact slots of each pair (build_slots, sample_points). See the
+package's docstring for the slot kinds.
+"""
+
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+
+
+GEOM_PLANE, GEOM_SPHERE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH = 0, 1, 2, 3, 4, 5
+GEOM_CODE = {"plane": GEOM_PLANE, "sphere": GEOM_SPHERE, "box": GEOM_BOX, "capsule": GEOM_CAPSULE,
+             "cylinder": GEOM_CYLINDER, "mesh": GEOM_MESH}
+# slot kinds: a fixed sample point of the point-side geom; the deepest rim point of a cylinder cap
+# towards a plane (aux = cap side +-1); the closest points of two capsule segments; the closest points
+# of the two box edges whose cross product separates two boxes best (edge against edge)
+SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE = 0, 1, 2, 3
+# an edge-edge axis counts only where it separates two boxes better than every face axis by this
+# fraction of the smaller box's smallest half size (ties, as in face-on-face stacks, are the faces')
+BOXEDGE_TOL = 0.02
+
+# k-DOP directions: 3 axes, 6 edge diagonals, 4 corner diagonals, each with both signs
+_D = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1), (0, 1, 1), (0, 1, -1),
+      (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1)]
+KDOP_DIRS = np.array([d for d in _D] + [tuple(-x for x in d) for d in _D], dtype=float)
+KDOP_DIRS /= np.linalg.norm(KDOP_DIRS, axis=1, keepdims=True)
+N_KDOP = len(KDOP_DIRS)
+
+CYL_RIM_PLANE = 3  # rim samples per cap against a plane (plus the deepest rim point of each cap)
+CYL_RIM_OTHER = 8  # rim samples per cap against other geoms
+
+
+class ContactBuildError(ValueError):
+    """A scene whose collision geometry cannot be simulated (the message says which geoms and why)."""
+
+
+@dataclass
+class GeomTable:
+    """All collision geoms of a scene, entity after entity, link after link (global geom index)."""
+
+    type: np.ndarray            # (G,) int
+    link: np.ndarray            # (G,) global link index
+    entity: np.ndarray          # (G,) entity index
+    pos: np.ndarray             # (G, 3) in the link frame
+    quat: np.ndarray            # (G, 4)
+    size: np.ndarray            # (G, 3)
+    friction: np.ndarray        # (G,)
+    center: np.ndarray          # (G, 3) centre in the geom frame (mesh: hull centroid)
+    rbound: np.ndarray          # (G,) bounding radius about `center` (plane: inf)
+    beta: np.ndarray            # (G,) face-choice bias length of its SDF
+    kdop: np.ndarray            # (G, 26) k-DOP plane offsets (meshes)
+    points: List[np.ndarray]    # per geom: hull sample points in the geom frame (meshes)
+    names: List[str]            # "entity 'x', link 'y', <type> geom #k" for messages
+    entity_start: List[int] = field(default_factory=list)
+    entity_count: List[int] = field(default_factory=list)
+
+    @property
+    def n(self):
+        return len(self.type)
+
+
+def _farthest_points(V: np.ndarray, k: int) -> np.ndarray:
+    """k of the points V, spread out (greedy farthest-point order from the most extreme point):
+    contacts of a hull against a plane happen at its extreme points, which this keeps."""
+    if len(V) <= k:
+        return V
+    c = V.mean(0)
+    first = int(np.argmax(((V - c) ** 2).sum(1)))
+    chosen = [first]
+    d = ((V - V[first]) ** 2).sum(1)
+    for _ in range(k - 1):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, ((V - V[i]) ** 2).sum(1))
+    return V[np.sort(chosen)]
+
+
+def _mesh_hull_points(g, what: str, max_points: int):
+    V = np.asarray(g.vertices, dtype=float).reshape(-1, 3) if g.vertices is not None else np.zeros((0, 3))
+    if len(V) < 4 or not np.all(np.isfinite(V)):
+        raise ContactBuildError(f"{what}: a collision mesh needs at least 4 finite vertices that enclose a volume "
+                                f"(it has {len(V)}); fix the mesh or use a primitive collision shape")
+    h = getattr(g, "hull", None)
+    if h is not None:
+        # the loader computed the same hull (model.GeomDesc.hull): no trimesh import on a warm start
+        hv, hc = np.asarray(h["vertices"], dtype=float), np.asarray(h["centroid"], dtype=float)
+        ok = bool(h["is_volume"]) and h["volume"] > 1e-12 * max(np.ptp(V, 0).max(), 1e-9) ** 3
+    else:
+        import trimesh
+
+        try:
+            hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
+            ok = hull.is_volume and hull.volume > 1e-12 * max(np.ptp(V, 0).max(), 1e-9) ** 3
+            hv, hc = np.asarray(hull.vertices, dtype=float), np.asarray(hull.centroid, dtype=float)
+        except Exception:  # qhull rejects flat or degenerate point sets
+            ok = False
+    if not ok:
+        raise ContactBuildError(f"{what}: the collision mesh has no volume (its points are flat or degenerate), so "
+                                "it has no inside to push out of; use a closed mesh that encloses a volume, a "
+                                "primitive shape, or remove the <collision> element")
+    P = _farthest_points(hv, max_points)
+    return P, hv, hc
+
+
+def link_is_dynamic(flat) -> np.ndarray:  # flat: the scene's flatten.FlatModel
+    """(L,) bool: the link moves with some dof (it or an ancestor has a joint with dofs)."""
+    L = flat.n_links
+    dyn = np.zeros(L, dtype=bool)
+    for i in range(L):
+        p = flat.np_link_parent[i]
+        dyn[i] = flat.np_link_ndof[i] > 0 or (p >= 0 and dyn[p])
+    return dyn
+
+
+def build_geoms(models, max_mesh_points: int) -> GeomTable:
+    types, link, ent, pos, quat, size, fric, center, rb, beta, kdop, pts, names = ([] for _ in range(13))
+    starts, counts = [], []
+    nl = 0
+    for i_e, m in enumerate(models):
+        starts.append(len(types))
+        for i_l, l in enumerate(m.links):
+            for k, g in enumerate(l.geoms):
+                what = f"entity '{m.name}', link '{l.name}', {g.type} geom #{k}"
+                if g.type not in GEOM_CODE:
+                    raise ContactBuildError(f"{what}: unknown collision geometry type '{g.type}'; supported are "
+                                            f"{sorted(GEOM_CODE)}")
+                sz = np.zeros(3)
+                s = np.asarray(g.size, dtype=float).reshape(-1)
+                sz[: len(s)] = s
+                if g.type != "plane" and g.type != "mesh":
+                    need = {"sphere": 1, "box": 3, "capsule": 2, "cylinder": 2}[g.type]
+                    if len(s) < need or not np.all(np.isfinite(s[:need])) or np.any(s[:need] <= 0):
+                        raise ContactBuildError(f"{what}: size {tuple(s)} must be {need} positive numbers")
+                mu = 1.0 if g.friction is None else float(g.friction)
+                if not (np.isfinite(mu) and mu >= 0):
+                    raise ContactBuildError(f"{what}: friction {mu} must be a finite number >= 0")
+                c = np.zeros(3)
+                kd = np.zeros(N_KDOP)
+                P = np.zeros((0, 3))
+                if g.type == "plane":
+                    r, b = np.inf, 1.0
+                elif g.type == "sphere":
+                    r, b = sz[0], sz[0]
+                elif g.type == "box":
+                    r, b = float(np.linalg.norm(sz)), 0.5 * float(sz.min())
+                elif g.type == "capsule":
+                    r, b = sz[0] + sz[1], sz[0]
+                elif g.type == "cylinder":
+                    r, b = float(np.hypot(sz[0], sz[1])), 0.5 * float(min(sz[0], sz[1]))
+                else:
+                    P, H, c = _mesh_hull_points(g, what, max_mesh_points)
+                    # the k-DOP is built from the full hull; contacts use the reduced point set
+                    kd = (H @ KDOP_DIRS.T).max(0)
+                    r = float(np.sqrt(((H - c) ** 2).sum(1).max()))
+                    ext = kd[:3] + kd[N_KDOP // 2: N_KDOP // 2 + 3]
+                    b = 0.25 * float(ext.min())
+                types.append(GEOM_CODE[g.type]); link.append(nl + i_l); ent.append(i_e)
+                pos.append(np.asarray(g.pos, dtype=float)); quat.append(np.asarray(g.quat, dtype=float))
+                size.append(sz); fric.append(mu); center.append(c); rb.append(r); beta.append(b)
+                kdop.append(kd); pts.append(P); names.append(what)
+        counts.append(len(types) - starts[-1])
+        nl += m.n_links
+    G = len(types)
+    arr = lambda x, shape: np.array(x, dtype=float).reshape(shape)  # noqa: E731
+    return GeomTable(np.array(types, dtype=np.int32).reshape(G), np.array(link, dtype=np.int32).reshape(G),
+                     np.array(ent, dtype=np.int32).reshape(G), arr(pos, (G, 3)), arr(quat, (G, 4)),
+                     arr(size, (G, 3)), arr(fric, (G,)), arr(center, (G, 3)), arr(rb, (G,)), arr(beta, (G,)),
+                     arr(kdop, (G, N_KDOP)), pts, names, starts, counts)
+
+
+def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool):
+    """[(ga, gb)] of geoms that may touch (see the module docstring for the rules)."""
+    dyn = link_is_dynamic(flat)
+    parent = flat.np_link_parent
+    pairs, bad = [], []
+    for a in range(geoms.n):
+        for b in range(a + 1, geoms.n):
+            la, lb = geoms.link[a], geoms.link[b]
+            if la == lb or not (dyn[la] or dyn[lb]):
+                continue
+            if geoms.entity[a] == geoms.entity[b]:
+                if not self_collision or parent[la] == lb or parent[lb] == la:
+                    continue
+            ta, tb = geoms.type[a], geoms.type[b]
+            if ta == GEOM_PLANE and tb == GEOM_PLANE:
+                continue
+            moving_plane = (ta == GEOM_PLANE and dyn[la]) or (tb == GEOM_PLANE and dyn[lb])
+            if (ta == GEOM_MESH and tb == GEOM_MESH) or moving_plane:
+                bad.append((a, b, "a plane on a moving link" if moving_plane else "mesh against mesh"))
+                continue
+            # a plane is always the second geom of its pair (the broad phase tests the first against it)
+            pairs.append((b, a) if ta == GEOM_PLANE else (a, b))
+    if bad and not ignore_unsupported:
+        a, b, why = bad[0]
+        more = f" (and {len(bad) - 1} more such pairs)" if len(bad) > 1 else ""
+        raise ContactBuildError(
+            f"unsupported collision pair ({why}): {geoms.names[a]} and {geoms.names[b]}{more}. Supported are plane "
+            "(static) against every shape, sphere/box/capsule/cylinder among themselves, and meshes against planes "
+            "and primitives. Give one of them primitive collision shapes, turn self-collision off "
+            "(RigidOptions(enable_self_collision=False)) if they belong to one entity, or pass "
+            "RigidOptions(ignore_unsupported_pairs=True) to let such pairs pass through each other.")
+    return pairs
+
+
+def _box_points(b, edges: bool):
+    s = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    pts = list(s * b)
+    if edges:
+        for ax in range(3):
+            o = [i for i in range(3) if i != ax]
+            for s1 in (-1, 1):
+                for s2 in (-1, 1):
+                    p = np.zeros(3)
+                    p[o[0]], p[o[1]] = s1 * b[o[0]], s2 * b[o[1]]
+                    pts.append(p)
+    return pts
+
+
+def _cyl_rim(r, hl, n, side):
+    return [np.array([r * np.cos(2 * np.pi * k / n), r * np.sin(2 * np.pi * k / n), side * hl]) for k in range(n)]
+
+
+def sample_points(geoms: GeomTable, g: int, against_plane: bool):
+    """[(kind, point in the geom frame, radius, aux)] of geom g as the point side of a pair."""
+    t, sz = geoms.type[g], geoms.size[g]
+    P = lambda pts, r=0.0: [(SLOT_POINT, np.asarray(p, float), r, 0.0) for p in pts]  # noqa: E731
+    if t == GEOM_SPHERE:
+        return P([np.zeros(3)], sz[0])
+    if t == GEOM_CAPSULE:
+        ts = (-1.0, 1.0) if against_plane else (-1.0, -0.5, 0.0, 0.5, 1.0)
+        return P([np.array([0.0, 0.0, u * sz[1]]) for u in ts], sz[0])
+    if t == GEOM_BOX:
+        return P(_box_points(sz, edges=not against_plane))
+    if t == GEOM_CYLINDER:
+        r, hl = sz[0], sz[1]
+        if against_plane:
+            out = [(SLOT_CYL_RIM, np.zeros(3), 0.0, side) for side in (-1.0, 1.0)]
+            # rim samples keep a cylinder standing on a cap from rocking on the two deepest points
+            return out + P(_cyl_rim(r, hl, CYL_RIM_PLANE, -1) + _cyl_rim(r, hl, CYL_RIM_PLANE, 1))
+        return P(_cyl_rim(r, hl, CYL_RIM_OTHER, -1) + _cyl_rim(r, hl, CYL_RIM_OTHER, 1)
+                 + [np.array([0.0, 0.0, -hl]), np.array([0.0, 0.0, hl])])
+    if t == GEOM_MESH:
+        return P(geoms.points[g])
+    raise ValueError(f"no sample points for geom type {t}")
+
+
+def build_slots(geoms: GeomTable, pairs):
+    """Contact slots of the candidate pairs: list of (pair, kind, ga, gb, point, radius, aux) with ga the
+    point side and gb the SDF side."""
+    slots = []
+    for i_p, (a, b) in enumerate(pairs):
+        ta, tb = geoms.type[a], geoms.type[b]
+        if ta == GEOM_PLANE or tb == GEOM_PLANE:
+            pa, pb = (b, a) if ta == GEOM_PLANE else (a, b)
+            jobs = [(pa, pb, True)]
+        elif ta == GEOM_SPHERE or tb == GEOM_SPHERE:
+            pa, pb = (a, b) if ta == GEOM_SPHERE else (b, a)
+            jobs = [(pa, pb, False)]
+        elif ta == GEOM_CAPSULE and tb == GEOM_CAPSULE:
+            slots.append((i_p, SLOT_SEGSEG, a, b, np.zeros(3), geoms.size[a][0], 0.0))
+            for pa, pb in ((a, b), (b, a)):
+                for u in (-1.0, 1.0):
+                    slots.append((i_p, SLOT_POINT, pa, pb, np.array([0.0, 0.0, u * geoms.size[pa][1]]),
+                                  geoms.size[pa][0], 0.0))
+            continue
+        else:
+            jobs = [(a, b, False), (b, a, False)]
+            if ta == GEOM_BOX and tb == GEOM_BOX:
+                tol = BOXEDGE_TOL * float(min(geoms.size[a].min(), geoms.size[b].min()))
+                slots.append((i_p, SLOT_BOXEDGE, a, b, np.zeros(3), 0.0, tol))
+        for pa, pb, plane in jobs:
+            for kind, p, r, aux in sample_points(geoms, pa, plane):
+                slots.append((i_p, kind, pa, pb, p, r, aux))
+    return slots
+
+
+def geom_rotations(quat: np.ndarray) -> np.ndarray:
+    w, x, y, z = quat.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)

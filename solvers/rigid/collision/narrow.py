@@ -1,0 +1,262 @@
+"""Collision, Taichi side: the stages of the step (geom poses, the broad phase) and the geometry of each
+contact slot (its point, normal and depth), in the single-assignment form of the differentiated stages.
+"""
+import taichi as ti
+
+from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG
+from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_round, func_segment_closest, func_sgn3
+
+@ti.func
+def func_geom_pose(s: ti.template(), i_b, e, src, h):
+    """World pose of every collision geom (from its link's pose)."""
+    c = s.contact
+    for g in range(c.n_geoms):
+        l = c.geom_link[g]
+        R = s.link_R[i_b, l]
+        c.geom_xpos[i_b, g] = s.link_pos[i_b, l] + R @ c.geom_pos[g]
+        c.geom_xR[i_b, g] = R @ c.geom_R[g]
+
+
+@ti.func
+def func_plane_extent(c: ti.template(), g, R, n, branch: ti.template()):
+    """How far geom g (rotation R) reaches from its centre along -n: its support function. Exact for
+    sphere, capsule, box and cylinder; the bounding radius for meshes. With `branch` (no gradients)
+    only the geom's own type is evaluated; else every type's, selected (single-assignment form)."""
+    t = c.geom_type[g]
+    sz = c.geom_size[g]
+    a = R.transpose() @ n  # n in the geom frame
+    r = c.geom_rbound[g]
+    if ti.static(branch):
+        if t == GEOM_BOX:
+            r = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
+        elif t == GEOM_CYLINDER:
+            r = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
+        elif t == GEOM_CAPSULE:
+            r = sz[1] * ti.abs(a[2]) + sz[0]
+        elif t == GEOM_SPHERE:
+            r = sz[0]
+    else:
+        box = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
+        cyl = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
+        cap = sz[1] * ti.abs(a[2]) + sz[0]
+        r = ti.select(t == GEOM_BOX, box, ti.select(t == GEOM_CYLINDER, cyl, ti.select(
+            t == GEOM_CAPSULE, cap, ti.select(t == GEOM_SPHERE, sz[0], r))))
+    return r
+
+
+@ti.func
+def func_broad_phase(s: ti.template(), i_b, e, src, h):
+    """pair_active: the geom reaches within the contact margin of a plane (support function), or two
+    bounding spheres do, now or within the step (the margin grows by how far the two can approach each
+    other in h at their current velocities: speculative contacts, see contact.py; a turn sweeps a
+    geom's extent by at most its diameter, so the spin term is capped at 2 / h). Without gradients
+    the plane and sphere tests are branches (each pair evaluates its own: a fifth of the stage on
+    ANYmal); with them both are evaluated and selected (single-assignment form)."""
+    c = s.contact
+    for i_p in range(c.n_pairs):
+        ga = c.pair_ga[i_p]
+        gb = c.pair_gb[i_p]
+        la = c.geom_link[ga]
+        lb = c.geom_link[gb]
+        Ra = c.geom_xR[i_b, ga]
+        Rb = c.geom_xR[i_b, gb]
+        ca = c.geom_xpos[i_b, ga] + Ra @ c.geom_center[ga]
+        cb = c.geom_xpos[i_b, gb] + Rb @ c.geom_center[gb]
+        is_plane = c.geom_type[gb] == GEOM_PLANE
+        # closing speed bound: centre velocities, plus rotation of the geoms' extents (a plane does not
+        # move: candidate_pairs rejects moving planes); either body may also turn towards the other
+        # within the step (stopped by a third one): their speeds bound that (contact.py linearises such
+        # candidate contacts again after its first solve)
+        va = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(ca)
+        vb = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(cb)
+        wa = s.cvel_w[i_b, la]
+        # (a turn sweeps a geom's extent by at most its diameter, whatever the spin: 2 / h caps |w|)
+        rot_a = ti.min(ti.sqrt(wa.dot(wa) + TINY), 2.0 / h) * ti.min(c.geom_rbound[ga], 1e6)
+        closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a
+        gap = ti.cast(0.0, s.dtype)
+        if ti.static(s.requires_grad):
+            gap_plane = func_gap_plane(c, ga, Ra, Rb, ca, cb, False)
+            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
+            gap = ti.select(is_plane, gap_plane, gap_pair)
+            closing += ti.select(is_plane, 0.0, rot_b)
+        else:
+            if is_plane:
+                gap = func_gap_plane(c, ga, Ra, Rb, ca, cb, True)
+            else:
+                gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
+                gap = gap_pair
+                closing += rot_b
+        c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
+
+
+@ti.func
+def func_gap_plane(c: ti.template(), ga, Ra, Rb, ca, cb, branch: ti.template()):
+    """Gap of geom ga (rotation Ra, centre ca) above the plane of rotation Rb through cb (its normal the
+    plane's z axis)."""
+    nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+    return (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb, branch)
+
+
+@ti.func
+def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb, h):
+    """Gap of the bounding spheres of geoms ga and gb (centres ca, cb), and how fast gb's rotation can
+    sweep its extent."""
+    c = s.contact
+    dc = ca - cb
+    # norms with TINY under the root: no infinite derivative at 0 in the adjoint (0 * inf is NaN)
+    ldc = ti.sqrt(dc.dot(dc) + TINY)
+    wb = s.cvel_w[i_b, lb]
+    return ldc - c.geom_rbound[ga] - c.geom_rbound[gb], ti.min(ti.sqrt(wb.dot(wb) + TINY), 2.0 / h) * ti.min(c.geom_rbound[gb], 1e6)
+
+
+@ti.func
+def func_slot_point(c: ti.template(), i_s, kind, ga, xa, Ra, zb):
+    """The point-side point of a slot: a fixed sample point, or the deepest rim point of a cylinder cap
+    towards a plane (normal zb)."""
+    p_fixed = xa + Ra @ c.slot_p[i_s]
+    if ti.static(c.has_rim):
+        nl = Ra.transpose() @ zb
+        rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + 1e-12)
+        r_cyl = c.geom_size[ga][0]
+        p_rim = xa + Ra @ ti.Vector([-r_cyl * nl[0] / rho, -r_cyl * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]])
+        return ti.select(kind == SLOT_CYL_RIM, p_rim, p_fixed)
+    else:
+        return p_fixed
+
+
+@ti.func
+def func_with_segseg(c: ti.template(), kind, ga, gb, xa, za, xb, zb, p, phi, n):
+    """(point, signed distance, normal) of the slot: those of the SDF test, or for capsule pairs the
+    closest points of the two segments."""
+    if ti.static(c.has_segseg):
+        hla = c.geom_size[ga][1]
+        hlb = c.geom_size[gb][1]
+        pa, pb = func_segment_closest(xa - hla * za, xa + hla * za, xb - hlb * zb, xb + hlb * zb)
+        phi_ss, n_ss = func_sdf_round(pa - pb, c.geom_size[gb][0], zb)
+        ss = kind == SLOT_SEGSEG
+        return ti.select(ss, pa, p), ti.select(ss, phi_ss, phi), ti.select(ss, n_ss, n)
+    else:
+        return p, phi, n
+
+
+@ti.func
+def func_box_axis_sep(T, L, Ra, ha, Rb, hb):
+    """Separation of two boxes (centre offset T = xb - xa, rotations, half sizes) along the unit axis L:
+    |T . L| minus the two boxes' half extents along L (negative: the projections overlap)."""
+    ra = ha[0] * ti.abs(Ra[0, 0] * L[0] + Ra[1, 0] * L[1] + Ra[2, 0] * L[2]) \
+        + ha[1] * ti.abs(Ra[0, 1] * L[0] + Ra[1, 1] * L[1] + Ra[2, 1] * L[2]) \
+        + ha[2] * ti.abs(Ra[0, 2] * L[0] + Ra[1, 2] * L[1] + Ra[2, 2] * L[2])
+    rb = hb[0] * ti.abs(Rb[0, 0] * L[0] + Rb[1, 0] * L[1] + Rb[2, 0] * L[2]) \
+        + hb[1] * ti.abs(Rb[0, 1] * L[0] + Rb[1, 1] * L[1] + Rb[2, 1] * L[2]) \
+        + hb[2] * ti.abs(Rb[0, 2] * L[0] + Rb[1, 2] * L[1] + Rb[2, 2] * L[2])
+    return ti.abs(T.dot(L)) - ra - rb
+
+
+@ti.func
+def func_col(R, i: ti.template()):
+    return ti.Vector([R[0, i], R[1, i], R[2, i]])
+
+
+@ti.func
+def func_face_sep(T, Ra, ha, Rb, hb):
+    """Largest separation of two boxes over their 6 face axes."""
+    return ti.max(ti.max(ti.max(func_box_axis_sep(T, func_col(Ra, 0), Ra, ha, Rb, hb),
+                                func_box_axis_sep(T, func_col(Ra, 1), Ra, ha, Rb, hb)),
+                         ti.max(func_box_axis_sep(T, func_col(Ra, 2), Ra, ha, Rb, hb),
+                                func_box_axis_sep(T, func_col(Rb, 0), Ra, ha, Rb, hb))),
+                  ti.max(func_box_axis_sep(T, func_col(Rb, 1), Ra, ha, Rb, hb),
+                         func_box_axis_sep(T, func_col(Rb, 2), Ra, ha, Rb, hb)))
+
+
+@ti.func
+def func_edge_best(T, Ra, ha, Rb, hb, k: ti.template()):
+    """Over the edge axes k..8 (a_i x b_j, i = k // 3, j = k % 3): (separation, unit axis oriented from
+    box a to box b, i, j) of the best-separating one; near-parallel edge pairs never win."""
+    i = ti.static(k // 3)
+    j = ti.static(k % 3)
+    C = func_col(Ra, i).cross(func_col(Rb, j))
+    ln = ti.sqrt(C.dot(C) + TINY)
+    ok = ln > 1e-6
+    Lu = C / ti.max(ln, 1e-6)
+    L = ti.select(T.dot(Lu) >= 0, Lu, -Lu)
+    v = ti.select(ok, func_box_axis_sep(T, L, Ra, ha, Rb, hb), -1e30)
+    if ti.static(k == 8):
+        return v, L, i, j
+    else:
+        bv, bL, bi, bj = func_edge_best(T, Ra, ha, Rb, hb, k + 1)
+        take = v > bv
+        return ti.select(take, v, bv), ti.select(take, L, bL), ti.select(take, i, bi), ti.select(take, j, bj)
+
+
+@ti.func
+def func_box_edge_contact(c: ti.template(), ga, gb, xa, Ra, xb, Rb, tol):
+    """(point midway between the two edges, normal from box b towards box a, depth) of the edge pair
+    whose axis separates boxes a and b best; depth -1 (no contact) unless that axis beats every face
+    axis by tol and the closest points lie inside both edges (else corners and faces carry the contact)."""
+    ha = c.geom_size[ga]
+    hb = c.geom_size[gb]
+    T = xb - xa
+    sep_f = func_face_sep(T, Ra, ha, Rb, hb)
+    sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
+    # the supporting edge of a (towards b) runs along a_i; that of b (towards a) along b_j
+    sa = func_sgn3(Ra.transpose() @ L)
+    sb = func_sgn3(Rb.transpose() @ L)
+    ea = ti.Vector([ti.select(i == 0, 0.0, sa[0] * ha[0]), ti.select(i == 1, 0.0, sa[1] * ha[1]),
+                    ti.select(i == 2, 0.0, sa[2] * ha[2])])
+    eb = ti.Vector([ti.select(j == 0, 0.0, sb[0] * hb[0]), ti.select(j == 1, 0.0, sb[1] * hb[1]),
+                    ti.select(j == 2, 0.0, sb[2] * hb[2])])
+    ua = ti.Vector([ti.select(i == 0, ha[0], 0.0), ti.select(i == 1, ha[1], 0.0), ti.select(i == 2, ha[2], 0.0)])
+    ub = ti.Vector([ti.select(j == 0, hb[0], 0.0), ti.select(j == 1, hb[1], 0.0), ti.select(j == 2, hb[2], 0.0)])
+    ca = xa + Ra @ ea
+    cb = xb - Rb @ eb
+    da = Ra @ ua
+    db = Rb @ ub
+    pa, pb = func_segment_closest(ca - da, ca + da, cb - db, cb + db)
+    # inside both edges: the closest points are not end points (parameters strictly inside (0, 1))
+    ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), ti.static(_div_floor()))
+    tb = (pb - (cb - db)).dot(db) / ti.max(2.0 * db.dot(db), ti.static(_div_floor()))
+    inner = (ta > 1e-9) & (ta < 1.0 - 1e-9) & (tb > 1e-9) & (tb < 1.0 - 1e-9)
+    on = (sep_e > sep_f + tol) & inner
+    return 0.5 * (pa + pb), -L, ti.select(on, -sep_e, -1.0)
+
+
+@ti.func
+def func_with_boxedge(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, n, depth):
+    """(point, normal, depth) of the slot: those given, or for box edge slots the edge-edge contact."""
+    if ti.static(c.has_boxedge):
+        pe, ne, de = func_box_edge_contact(c, ga, gb, xa, Ra, xb, Rb, c.slot_aux[i_s])
+        be = kind == SLOT_BOXEDGE
+        return ti.select(be, pe, pos), ti.select(be, ne, n), ti.select(be, de, depth)
+    else:
+        return pos, n, depth
+
+
+@ti.func
+def func_slot_geometry(s: ti.template(), i_b, i_s):
+    """(contact point, normal from the SDF side to the point side, depth) of slot i_s; depth > 0 is
+    penetration."""
+    c = s.contact
+    kind = c.slot_kind[i_s]
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    xa = c.geom_xpos[i_b, ga]
+    Ra = c.geom_xR[i_b, ga]
+    xb = c.geom_xpos[i_b, gb]
+    Rb = c.geom_xR[i_b, gb]
+    ra = c.slot_r[i_s]
+    za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
+    zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+    p = func_slot_point(c, i_s, kind, ga, xa, Ra, zb)
+    q = Rb.transpose() @ (p - xb)
+    # unit direction from the SDF geom's centre to the point geom's centre, in the SDF frame
+    cl = Rb.transpose() @ (xa + Ra @ c.geom_center[ga] - xb) - c.geom_center[gb]
+    chat = cl / ti.sqrt(cl.dot(cl) + 1e-24)
+    phi_sdf, n_loc = func_sdf_any(c, 0, c.geom_type[gb], gb, q, chat, c.geom_beta[gb])
+    pt, phi, n = func_with_segseg(c, kind, ga, gb, xa, za, xb, zb, p, phi_sdf, Rb @ n_loc)
+    depth = ra - phi
+    # the contact point: on the point side's surface against a static geom (where that side's velocity
+    # and Jacobian belong: a speculative contact's gap can be centimetres, and a fast-turning link's
+    # velocity changes across it), else midway between the two surfaces
+    mid = pt - n * (0.5 * (ra + phi))
+    cp = ti.select(c.link_dyn[c.geom_link[gb]] == 1, mid, pt - n * ra)
+    return func_with_boxedge(c, i_s, kind, ga, gb, xa, Ra, xb, Rb, cp, n, depth)
