@@ -1,5 +1,5 @@
 """What a coupler sees of the rigid solver: the links' poses and velocities at the start of a substep
-(in), and a wrench per link and substep that the rigid dynamics of that substep adds to its
+and their masses (in), and a wrench per link and substep that the rigid dynamics of that substep adds to its
 generalised force (out, solvers/rigid/external.py). A coupler (solvers/coupling.py) reads and writes
 these fields inside its own kernels and calls nothing else of the solver.
 """
@@ -8,7 +8,8 @@ these fields inside its own kernels and calls nothing else of the solver.
 class RigidPort:
     """link_pos [env, link] (m, world), link_R [env, link] (rotation, world), cvel_v / cvel_w [env, link]
     (the link's spatial velocity at the world origin: linear m/s, angular rad/s; a point x moves at
-    cvel_v + cvel_w x x), ext_f / ext_t [env, substep, link] (force N, torque N m about the world origin);
+    cvel_v + cvel_w x x), link_mass [env, link] (kg), ext_f / ext_t [env, substep, link] (force N, torque
+    N m about the world origin);
     n_envs, n_links: the scene's counts. `update_poses(i)` fills the poses and velocities for substep i."""
 
     def __init__(self, solver):
@@ -19,6 +20,7 @@ class RigidPort:
         self.n_envs, self.n_links = solver.n_envs, solver.n_links
         self.link_pos, self.link_R = solver.link_pos, solver.link_R
         self.cvel_v, self.cvel_w = solver.cvel_v, solver.cvel_w
+        self.link_mass = solver.core.link_mass
         self.ext_f, self.ext_t = solver.external.ext_f, solver.external.ext_t
 
     def update_poses(self, i):
