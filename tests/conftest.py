@@ -125,3 +125,21 @@ def urdf_path():
 def assets_dir() -> Path:
     """The repository's assets/ directory (URDFs written for the tests)."""
     return ASSETS_DIR
+
+
+@pytest.fixture
+def compiled(monkeypatch):
+    """The names of the kernels Taichi compiles from now on (Taichi's Kernel.materialize wrapped: every
+    kernel Taichi builds, ours and its own field-copy kernels, goes through it)."""
+    from taichi.lang import kernel_impl
+
+    names = []
+    original = kernel_impl.Kernel.materialize
+
+    def materialize(self, key=None, args=None, arg_features=None):
+        if (key if key is not None else (self.func, 0, self.autodiff_mode)) not in self.compiled_kernels:
+            names.append(self.func.__name__ + ("" if self.autodiff_mode == kernel_impl.AutodiffMode.NONE else ".grad"))
+        return original(self, key, args, arg_features)
+
+    monkeypatch.setattr(kernel_impl.Kernel, "materialize", materialize)
+    return names

@@ -10,7 +10,6 @@ import gc
 import numpy as np
 import pytest
 import torch
-from taichi.lang import kernel_impl
 
 import genesis_lite as gs
 from solvers.rigid.pool import POOL
@@ -20,21 +19,6 @@ from conftest import ASSETS_DIR
 ARM = str(ASSETS_DIR / "urdf" / "arm.urdf")  # 4 dofs
 PENDULUM = str(ASSETS_DIR / "urdf" / "double_pendulum.urdf")  # 2 dofs
 F64 = dict(dtype=torch.float64)
-
-
-@pytest.fixture
-def compiled(monkeypatch):
-    """The names of the kernels Taichi compiles from now on."""
-    names = []
-    original = kernel_impl.Kernel.materialize
-
-    def materialize(self, key=None, args=None, arg_features=None):
-        if (key if key is not None else (self.func, 0, self.autodiff_mode)) not in self.compiled_kernels:
-            names.append(self.func.__name__ + ("" if self.autodiff_mode == kernel_impl.AutodiffMode.NONE else ".grad"))
-        return original(self, key, args, arg_features)
-
-    monkeypatch.setattr(kernel_impl.Kernel, "materialize", materialize)
-    return names
 
 
 def _fresh():
