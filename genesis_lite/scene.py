@@ -281,6 +281,8 @@ class Scene:
         sim = self._sim("step")
         sim.step()
         self._nan.after_step(sim.step_count)
+        if self._coupler is not None:
+            self._coupler.check(sim.step_count, self.n_envs > 0)
 
     def get_error_envs_mask(self):
         """Bool tensor (n_envs,) (a 0-d one when built with n_envs=0): True for the envs whose state
@@ -318,6 +320,8 @@ class Scene:
             return
         sim.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
         self._nan.clear(np.ones(self._nan.B, dtype=bool))
+        if self._coupler is not None:
+            self._coupler.coupler.clear_through()
 
     def _reset_envs(self, state, envs_idx):
         if self.n_envs == 0:
@@ -345,6 +349,8 @@ class Scene:
                 new.append(torch.where(keep, x0.to(x.dtype), x))
             b.set_state(*new)
         self._nan.clear(mask)
+        if self._coupler is not None:
+            self._coupler.coupler.clear_through()
 
     def set_gravity(self, gravity, envs_idx=None):
         """Gravity (m/s^2, world frame) of every solver; differentiable."""

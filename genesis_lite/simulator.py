@@ -46,6 +46,19 @@ from .grad.growth import GrowthMonitor
 from .grad.indexing import incoming_grads
 
 
+_TAPE_LOSS = {}
+
+
+def tape_loss(dtype):
+    """The 0-d field every scene's Tape names as its loss. It is a token: Taichi seeds its adjoint with 1,
+    and the solvers' vjp kernels accumulate into scalars of their own. One per precision for the process
+    (gs.init is once per process): a field per scene cost each scene a new SNode tree (memory Taichi keeps)
+    and a compile of its fill kernel."""
+    if dtype not in _TAPE_LOSS:
+        _TAPE_LOSS[dtype] = ti.field(dtype, shape=(), needs_grad=True)
+    return _TAPE_LOSS[dtype]
+
+
 class Simulator:
     """rigid, mpm: the scene's solver bridges (RigidSim, MPMSim) or None; coupler: its CouplerBridge or None."""
 
@@ -65,7 +78,7 @@ class Simulator:
         self.growth = GrowthMonitor()  # warns when a backward pass blows the gradient up (grad/growth.py)
         self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
         # the Tape's loss: <gradient torch hands a node's outputs, those outputs>
-        self.loss = ti.field(gs.ti_float, shape=(), needs_grad=True) if self.requires_grad else None
+        self.loss = tape_loss(gs.ti_float) if self.requires_grad else None
         for b in self.bridges:
             b.sim = self
 

@@ -92,6 +92,12 @@ class RigidMPMCoupler:
         self.geom_kdop = ti.field(dtype, shape=(G, kdop_width))
         self.geom_friction = ti.field(dtype, shape=G)
         self.node_geom = ti.field(ti.i32, shape=(B,) + tuple(mpm.grid_res))
+        # the domain's floor, watched (see kernel_select): 1 where geom g's origin was inside the domain at
+        # the last substep; 1 where it has since gone below the floor within the domain's footprint
+        self.upper = ti.Vector([float(v) for v in mpm.np_upper])
+        self.geom_in = ti.field(ti.i32, shape=(B, G))
+        self.geom_through = ti.field(ti.i32, shape=(B, G))
+        self.n_through = ti.field(ti.i32, shape=())
         self._make_units()
 
     @staticmethod
@@ -119,6 +125,19 @@ class RigidMPMCoupler:
         self.geom_size.from_numpy(geoms.size[idx].astype(npf))
         self.geom_kdop.from_numpy(np.ascontiguousarray(geoms.kdop[idx]).astype(npf))
         self.geom_friction.from_numpy(np.asarray(friction, dtype=npf))
+        self.clear_through()
+
+    def clear_through(self):
+        """Forget the floor watch (a new scene, or a reset): no geom counts as inside until a substep sees it."""
+        self.geom_in.fill(0)
+        self.geom_through.fill(0)
+        self.n_through[None] = 0
+
+    def through_floor(self):
+        """None, or (env, coupled geom) index arrays of the geoms that went below the domain's floor."""
+        if self.n_through[None] == 0:
+            return None
+        return np.nonzero(self.geom_through.to_numpy())
 
     def _make_units(self):
         @ti.ad.no_grad
@@ -173,6 +192,21 @@ class RigidMPMCoupler:
         for i_b, l in ti.ndrange(self.rigid.n_envs, max(self.rigid.n_links, 1)):
             self.rigid.ext_f[i_b, sub, l] = ti.Vector.zero(float, 3)
             self.rigid.ext_t[i_b, sub, l] = ti.Vector.zero(float, 3)
+        # The domain's walls stop particles, not rigid bodies: a geom whose origin was inside the domain and is
+        # now below its floor, within its footprint, went through it (the scene raises, CouplerBridge.check)
+        for i_b, g in ti.ndrange(self.rigid.n_envs, self.n_geoms):
+            R, p, l = self.func_geom_frame(i_b, g)
+            over = 1
+            inside = 1
+            for d in ti.static(range(3)):
+                if d < 2 and (p[d] < self.lower[d] or p[d] > self.upper[d]):
+                    over = 0
+                if p[d] < self.lower[d] or p[d] > self.upper[d]:
+                    inside = 0
+            if self.geom_in[i_b, g] == 1 and over == 1 and p[2] < self.lower[2]:
+                self.geom_through[i_b, g] = 1
+                ti.atomic_add(self.n_through[None], 1)
+            self.geom_in[i_b, g] = inside
 
     @ti.kernel
     def kernel_grid_update(self, mpm: ti.template(), h: float, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32,

@@ -928,6 +928,8 @@ def test_grad_crossed_edges_rest_height_wrt_mass():
     assert float(rep.autograd[0]) < 0
 
 
+# slow (suite time, ~70 s): the gradient matrix's slide_land cases check a sliding landing's gradients by default
+@pytest.mark.slow
 def test_grad_through_a_sliding_landing():
     """A box dropped while sliding (the friction passes of the solve at work): its position 0.3 s later
     against mu, the initial velocity and the drop height, exact against finite differences."""

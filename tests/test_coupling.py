@@ -134,6 +134,9 @@ def test_gradient_of_soft_body_centre_wrt_rigid_pusher_velocity_and_mass():
                         "mass": torch.tensor([pusher.get_mass()], **F64)}, rng)
 
 
+# slow (suite time, ~55 s): the gradient matrix's ball_in_block case checks the same scene's gradients
+# (E, the ball's velocity and mass, the particles' velocities) by default
+@pytest.mark.slow
 def test_gradient_of_ball_sink_depth_wrt_block_stiffness_and_material_velocity():
     """A rigid ball dropped on an elastic block: its height after it has pressed in against the block's
     Young's modulus (and Poisson's ratio) and the block's initial particle velocities."""
@@ -242,9 +245,9 @@ def test_a_second_coupled_scene_of_its_class_compiles_nothing_and_gives_the_same
     compiled.clear()
     again, reused = _pushed_jelly([0.8, 0.0, 0.1, 0.0, 0.3, 0.0])
     assert reused == (True, True, True)
-    # Taichi's own loss field of the scene's Tape (simulator.py) is new with every scene: its fill kernels
-    # are all that may compile
-    assert set(compiled) <= {"fill_field"}, f"the second coupled scene compiled {compiled}"
+    # nothing at all: not even the fill kernel of the Tape's loss field, which every scene shares
+    # (simulator.py tape_loss; a field per scene compiled it again each time)
+    assert not compiled, f"the second coupled scene compiled {compiled}"
     for a, b in zip(first, again):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert again[2].abs().sum() > 0

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 WORKER = Path(__file__).parent / "workers" / "grad_digest.py"
 
 
@@ -19,6 +21,9 @@ def _run(env_extra):
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+# slow (suite time: two fresh processes compile the contact and coupled scenes cold, ~240 s of the 2-core
+# budget); the default suite's fresh-process gradient checks are tests/test_adstack.py's
+@pytest.mark.slow
 def test_gradients_are_bitwise_reproducible():
     first = _run({})
     second = _run({"GS_TAICHI_FAST_LAUNCH": "0"})

@@ -17,6 +17,9 @@ wrong result, and scenes built in a loop neither leak nor recompile.
    box's exact geometry; before: 22 inside, 4 of them deeper than half a cell).
 5. The README's `entity.set_position((x, y, z))` on an unbatched scene moves the centre of mass there
    and keeps the shape.
+6. A heavy box on jelly in a scene with no floor for rigid bodies: the domain's walls stop particles,
+   not bodies, so it goes through the domain's floor. The scene raises at that step, naming the box,
+   the floor and what to do (before: it fell on, out of the domain, without a word).
 
 Every test but the coupled ones uses one scene shape (a small elastic cube with gradients) so its
 kernels compile once.
@@ -247,3 +250,23 @@ def test_no_particle_stays_inside_a_heavy_box_resting_on_jelly(tonnes):
     assert (depth > 0).sum() == 0
     # the body rests on the plane within 1 mm (its mass-scaled contact: ~0.25 mm), not in it or through it
     assert abs(box.get_pos()[2].item() - size[2] / 2) < 1e-3
+
+
+# ------------------------------------------------------------------------------- 6. through the domain's floor
+def test_a_body_going_through_the_domain_floor_is_an_error_naming_it():
+    scene = _scene()  # the class of _cube's scenes (its MPM kernels are shared), with a box coupled to it
+    scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, 0.1), size=(0.05,) * 3),
+                     material=gs.materials.MPM.Elastic(E=2e4, nu=0.3, rho=1000), name="jelly")
+    box = scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, 0.16), size=(0.04,) * 3),
+                           material=gs.materials.Rigid(rho=4e5 / 0.04 ** 3), name="anvil")
+    scene.build()
+    with pytest.raises(GenesisException, match=r"'anvil' went through the floor of the MPM domain \(z = 0 m\)") as e:
+        for _ in range(400):
+            scene.step()
+    msg = str(e.value)
+    assert "gs.morphs.Plane()" in msg and "at step" in msg, msg
+    step = int(msg.split("at step ")[1].split(":")[0])
+    # it raised at the step the box's centre crossed z = 0 (the coupler sees it at the next substep's start)
+    z = float(box.get_pos()[2])
+    assert z < 0.0 and z > -0.05, z
+    assert step == scene._simulator.step_count

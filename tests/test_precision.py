@@ -124,6 +124,10 @@ def test_float32_mpm_and_coupling_gradients_match_float64():
     _compare(MPM, 1e-3)
 
 
+# slow (suite time: two fresh processes, each compiling the contact adjoint cold, ~240 s); the default
+# suite keeps float32 gradients through the gradient matrix's free_box f32 case (tests/gradient_cases.py;
+# its f32 contact case, slide_land, is slow too)
+@pytest.mark.slow
 def test_float32_contact_gradients_match_float64():
     """A ball landing and sliding on the plane (speculative contact, Coulomb friction): gradients of
     its end position w.r.t. initial velocity and friction. Before the fix in contact.func_contact_slots,

@@ -18,8 +18,10 @@ class CouplerBridge:
     of the MPM grid, and (with CouplerOptions(mpm_reaction=True)) the material's reaction on their links.
     Made by `create`, which returns None when no geom couples."""
 
-    def __init__(self, coupler):
+    def __init__(self, coupler, names=(), floor=0.0):
         self.coupler = coupler
+        self.names = list(names)  # entity name of each coupled geom
+        self.floor = floor  # the MPM domain's lower z
 
     @classmethod
     def create(cls, rigid_entities, rigid, mpm, rigid_options, mpm_options, coupler_options):
@@ -46,7 +48,7 @@ class CouplerBridge:
         # given back when this bridge dies
         coupler, reused = POOL.acquire(mpm.solver, RigidPort(rigid.solver), geoms, idx, [m.coup_friction for m in mats],
                                        softness, coupler_options.mpm_reaction)
-        bridge = cls(coupler)
+        bridge = cls(coupler, [rigid_entities[int(geoms.entity[i])].name for i in idx], float(mpm.solver.np_lower[2]))
         bridge.reused = reused
         weakref.finalize(bridge, POOL.release, coupler)
         return bridge
@@ -54,3 +56,22 @@ class CouplerBridge:
     def couple(self, i, grad, replay=False):
         """The coupling stage of substep i (see solvers/coupling.py)."""
         self.coupler.couple(i, grad, replay)
+
+    def check(self, step, batched):
+        """After a step: raise when a coupled body went below the MPM domain's floor within its footprint.
+        The domain's walls stop particles only; a body the material cannot bear (or no floor at all) would
+        otherwise leave the material behind and fall on without a word."""
+        hit = self.coupler.through_floor()
+        if hit is None:
+            return
+        envs, geoms = hit
+        self.coupler.clear_through()
+        names = sorted({self.names[int(g)] for g in geoms})
+        env_txt = f" in env{'s' if len(set(envs.tolist())) > 1 else ''} {sorted(set(envs.tolist()))[:8]}" if batched else ""
+        from ..errors import GenesisException
+
+        raise GenesisException(
+            f"rigid entit{'ies' if len(names) > 1 else 'y'} {', '.join(repr(n) for n in names)} went through the floor of the "
+            f"MPM domain (z = {self.floor:g} m) at step {step}{env_txt}: the domain's walls stop particles, not rigid "
+            "bodies. Give the scene a floor for them (gs.morphs.Plane() at or above the domain's lower_bound), or "
+            "lower MPMOptions.lower_bound.")
