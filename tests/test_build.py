@@ -313,6 +313,9 @@ def _quadruped(urdf, n_envs, specialize):
     return scene, robot, dofs
 
 
+# slow (suite time, ~40 s: a specialised compile of its own); test_specialized_kernels_give_the_shared_kernels_results
+# keeps the specialised path in the default suite
+@pytest.mark.slow
 def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_path):
     """A specialised scene without gradients unrolls the factorisations and solves of its contact solve
     over its dof tree (inertia.TreeSchedule, contact.func_contact_solve_rounds); the shared kernels loop

@@ -110,6 +110,9 @@ def _fd_check(rollout, inputs, rng, rel=2e-6):
         assert abs(ad - fd) <= rel * abs(fd), (k, ad, fd)
 
 
+# slow (suite time, ~60 s): the gradient matrix's ball_in_block case checks the coupling's gradients to a
+# rigid body's velocity and mass against finite differences by default
+@pytest.mark.slow
 def test_gradient_of_soft_body_centre_wrt_rigid_pusher_velocity_and_mass():
     """A rigid box (offset, rotated, spinning) pushes an elastic cube sideways without gravity: the
     cube's final centre of mass against the box's initial linear and angular velocity and its mass."""
