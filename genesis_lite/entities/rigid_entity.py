@@ -18,7 +18,7 @@ from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 from ..errors import GenesisException, ZeroGainWarning
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
-from ..utils.geom import quat_to_R as _quat_to_R
+from ..utils.geom import _unit_quat_to_R as _quat_to_R
 from .contact_api import ContactMixin
 from .kinematics_api import KinematicsMixin
 
