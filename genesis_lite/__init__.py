@@ -24,6 +24,8 @@ from solvers.taichi_compat import adstack, checked_runtime  # noqa: E402  (isort
 import torch  # noqa: E402
 
 from . import materials, morphs, options, surfaces, utils
+from .utils import tools  # Genesis's gs.tools (Timer)
+from .utils.uid import UID
 from .errors import GenesisException
 from .options import constraint_solver, integrator
 
@@ -229,5 +231,5 @@ from .grad.creation import from_torch, ones, rand, tensor, zeros  # noqa: E402
 from .scene import Scene  # noqa: E402
 
 __all__ = ["init", "default_num_threads", "Scene", "options", "morphs", "materials", "integrator",
-           "constraint_solver", "tc_int", "tc_bool", "cpu", "gpu",
+           "constraint_solver", "tc_int", "tc_bool", "cpu", "gpu", "tools", "UID",
            "device", "tensor", "zeros", "ones", "rand", "from_torch", "grad", "surfaces", "GenesisException"]

@@ -1,6 +1,7 @@
 """Materials: physical properties an entity is made of."""
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import Optional
 
@@ -23,6 +24,12 @@ class Rigid:
     coup_softness: Optional[float] = None
 
     def __post_init__(self):
+        for name in ("rho", "friction", "coup_friction", "coup_softness"):
+            v = getattr(self, name)
+            real = isinstance(v, numbers.Real) or (isinstance(v, np.ndarray) and v.ndim == 0
+                                                   and np.issubdtype(v.dtype, np.number))
+            if not (real and not isinstance(v, bool) or (v is None and name == "coup_softness")):
+                raise TypeError(f"gs.materials.Rigid({name}={v!r}): give a number, not a {type(v).__name__}")
         if not (np.isfinite(self.rho) and self.rho > 0):
             raise ValueError(f"gs.materials.Rigid(rho={self.rho!r}): density must be a positive number (kg/m^3)")
         if not (np.isfinite(self.friction) and self.friction >= 0):

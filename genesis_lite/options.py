@@ -110,7 +110,13 @@ class RigidOptions(_Options):
     as constants and Taichi's full optimisation (~25 % faster batched contact steps, ~50 s more compile
     on a cold cache, nothing shared with other scenes); False shares compiled kernels with every scene
     of its size class (a second robot compiles nothing); None (default) specialises scenes of at least
-    64 environments, where the step's run time outweighs its compile."""
+    64 environments, where the step's run time outweighs its compile.
+
+    batch_links_info / batch_dofs_info / batch_joints_info (Genesis's; True or False): in Genesis they give
+    each environment its own copy of the links' / dofs' / joints' parameters, so that scripts can set them
+    per env (set_dofs_kp(..., envs_idx=), set_mass_shift(..., envs_idx=) and the like). genesis_lite
+    keeps those parameters per environment always, so the flags are checked and change nothing: per-env
+    setters work with them False as well, and the step is the same."""
 
     integrator: integrator = integrator.implicitfast
     enable_collision: bool = True

@@ -87,20 +87,35 @@ class Scene:
 
     @property
     def entity_names(self):
-        """The entities' names, in the order they were added (Genesis's `scene.entity_names`)."""
-        return [e.name for e in self.entities]
+        """The entities' names, in the order they were added (a tuple, as Genesis's `scene.entity_names`)."""
+        return tuple(e.name for e in self.entities)
 
-    def get_entity(self, name=None, uid=None):
-        """The entity called `name` (or with index `uid` in the order of add_entity, or its
-        `uid.short()` string), as Genesis's `scene.get_entity`."""
+    def get_entity(self, name=None, *, uid=None):
+        """The entity called `name`, or the one whose uid is `uid`, as Genesis's `scene.get_entity`: `uid`
+        is the short string of `entity.uid.short()` (Genesis's), the uid's full string, or the gs.UID itself.
+        Give one of the two; an entity that is not there raises, listing the scene's names."""
+        from .utils.uid import UID
+
         if (name is None) == (uid is None):
             raise ValueError("scene.get_entity: give name= or uid=, one of them")
-        for i, e in enumerate(self.entities):
-            # uid: the int, or Genesis's short string of it (entity.uid.short())
-            if (name is not None and e.name == name) or (uid is not None and (i == uid or e.uid.short() == uid)):
-                return e
-        what = f"name {name!r}" if name is not None else f"uid {uid!r}"
-        raise GenesisException(f"scene.get_entity: no entity with {what}; the scene has {self.entity_names}")
+        if name is not None:
+            if not isinstance(name, str):
+                raise TypeError(f"scene.get_entity(name={name!r}): a name is a string (see scene.entity_names)")
+            found = [e for e in self.entities if e.name == name]
+            what = f"name {name!r}"
+        else:
+            if isinstance(uid, UID):
+                uid = str(uid)
+            if not isinstance(uid, str):
+                raise TypeError(f"scene.get_entity(uid={uid!r}): a uid is a string, e.g. entity.uid.short(); the "
+                                "entity at index i in the order of add_entity is scene.entities[i]")
+            key = uid.replace("-", "")
+            found = [e for e in self.entities if e.uid.match(key, short_only=len(key) == 7)]
+            what = f"uid {uid!r}"
+        if found:
+            return found[0]
+        raise GenesisException(f"scene.get_entity: no entity with {what}; the scene has "
+                               f"{[f'{e.name} (uid {e.uid.short()})' for e in self.entities]}")
 
     def _reconcile_rigid_options(self, sim_given):
         """RigidOptions(dt=, gravity=) are Genesis's per-solver copies of SimOptions': one scene steps
@@ -157,6 +172,7 @@ class Scene:
         with MPM particles."""
         from .entities.rigid_entity import RigidEntity
         from .loaders import load_morph
+        from .utils.uid import UID
 
         if self._built:
             raise GenesisException("scene.add_entity() after scene.build(): add every entity before building")
@@ -170,9 +186,19 @@ class Scene:
                             f"{type(material).__name__}")
         if surface is not None and not isinstance(surface, gs_surfaces.Surface):
             raise TypeError(f"add_entity: surface must be a gs.surfaces.* instance, got {type(surface).__name__}")
+        taken = set(self.entity_names)
         if name is None:
             stem = os.path.splitext(os.path.basename(morph.file))[0] if isinstance(morph, gm.FileMorph) else type(morph).__name__.lower()
-            name = f"{stem}_{len(self.entities)}"
+            k = len(self.entities)
+            while f"{stem}_{k}" in taken:  # (a name the user gave an earlier entity)
+                k += 1
+            name = f"{stem}_{k}"
+        elif not isinstance(name, str) or not name:
+            raise TypeError(f"scene.add_entity(name={name!r}): a name is a non-empty string (or None for one made "
+                            "from the morph)")
+        elif name in taken:
+            raise GenesisException(f"scene.add_entity(name={name!r}): the scene already has an entity of that name "
+                                   "(scene.get_entity(name=) finds one entity per name): give another name")
         if isinstance(material, gmat.MPM.Base):
             ent = self._add_mpm_entity(morph, material, name)
         else:
@@ -183,6 +209,7 @@ class Scene:
             ent._solver_idx = len(self.rigid_entities)
             self.rigid_entities.append(ent)
         ent.surface = surface  # read by cameras (colour, vis_mode)
+        ent._uid = UID.unique({e.uid.short() for e in self.entities})
         self.entities.append(ent)
         return ent
 

@@ -7,12 +7,20 @@ writes them, each checked against what the name means rather than against our ow
 - set_friction_ratio: the model's coefficient times the ratio on the named links' geoms only, and a box
   that slides or sticks on a slope as Coulomb's law says for tan(slope) against the new coefficient;
 - get_AABB: against the corners of the boxes and spheres it encloses;
-- a slice as dofs_idx_local, a boolean envs_idx mask, base_joint, get_dofs_invweight (diag of M^-1).
+- a slice as dofs_idx_local, a boolean envs_idx mask, base_joint, get_dofs_invweight (diag of M^-1);
+- entity.uid (Genesis's UID: 32 hex digits, short() the first 7) and scene.get_entity / entity_names;
+- RigidJoint.dofs_idx / qs_idx / dof_start / q_start (the scene's numbering) against the scene's state
+  vectors, and their _local forms against the entity's own getters, on an entity that is not the first;
+- gs.tools.Timer against the wall clock;
+- gs.materials.Rigid(coup_softness=0.0), Genesis's hard boundary, in a coupled scene.
 """
 from __future__ import annotations
 
 import os
+import re
 import tempfile
+import time
+import uuid
 
 import numpy as np
 import pytest
@@ -185,5 +193,134 @@ def test_particles_in_bbox_and_attachment_refused():
     # the top half of the cube (z from 0.2 to 0.4): the particles above 0.35
     np.testing.assert_array_equal(mask, x[:, 2] >= 0.35)
     assert 0 < mask.sum() < len(mask)
+    assert scene.get_entity(uid=cube.uid.short()) is cube  # an MPM entity has Genesis's uid too
     with pytest.raises(gs.GenesisException, match="set_particle_constraints .* not implemented"):
         cube.set_particle_constraints(mask, 0, 1e4)
+
+
+def test_entity_uid_is_genesis_uid_and_names_find_one_entity():
+    """Genesis's entity.uid: a random version-4 UUID; str() its 32 hex digits, short() the first 7 (what
+    Genesis prints and scene.get_entity(uid=) takes), full() with a dash after the 7th, `<short>` in an
+    f-string. No build needed."""
+    scene = gs.Scene(show_viewer=False)
+    box = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)))
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(1.0, 0.0, 0.0)), name="ball")
+    for e in (box, ball):
+        uid, digits = e.uid, str(e.uid)
+        assert re.fullmatch("[0-9a-f]{32}", digits) and uuid.UUID(hex=digits).version == 4
+        assert uid.short() == digits[:7] and uid.full() == f"{digits[:7]}-{digits[7:]}"
+        assert f"{uid}" == f"<{digits[:7]}>"
+        assert uid.match(digits) and uid.match(digits[:7], short_only=True) and not uid.match(digits[:7])
+        for key in (uid.short(), digits, uid.full(), uid):
+            assert scene.get_entity(uid=key) is e
+    assert box.uid != ball.uid and box.uid == box.uid and isinstance(box.uid, gs.UID)
+    other = gs.Scene(show_viewer=False).add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)))
+    assert other.uid not in (box.uid, ball.uid)  # ids are not indices: another scene's first entity differs
+    assert box.idx == 0 and ball.idx == 1  # (the index in the scene is idx)
+
+    assert scene.entity_names == ("box_0", "ball") and scene.get_entity(name="ball") is ball
+    with pytest.raises(TypeError, match=r"uid is a string.*scene.entities\[i\]"):
+        scene.get_entity(uid=1)
+    with pytest.raises(gs.GenesisException, match="no entity with uid 'abcdefg'.*ball"):
+        scene.get_entity(uid="abcdefg")
+    with pytest.raises(ValueError, match="one of them"):
+        scene.get_entity()
+    # a name finds one entity: a second entity of a name is refused (as Genesis), and a made-up name skips
+    # the ones the user took
+    with pytest.raises(gs.GenesisException, match="already has an entity of that name"):
+        scene.add_entity(gs.morphs.Sphere(radius=0.1), name="ball")
+    scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(2.0, 0.0, 0.0)), name="sphere_3")
+    assert scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(3.0, 0.0, 0.0))).name == "sphere_4"
+    with pytest.raises(TypeError, match="non-empty string"):
+        scene.add_entity(gs.morphs.Sphere(radius=0.1), name=7)
+
+
+def test_joint_indices_number_the_scene_and_the_entity(arm_path):
+    """Genesis's numbering: the scene's rigid solver lists every rigid entity's links (one joint each),
+    position coordinates q and dofs in the order of add_entity. Two free bodies come first (7 q, 6 dofs
+    each), then the arm (a fixed base link and two revolute joints): its shoulder is dof 12 and q 14 of the
+    scene, dof 0 and q 0 of the arm. The scene's state vectors (get_state().qpos / qvel) are indexed by the
+    global names; the entity's getters by the _local ones. (The scene of test_aabb_slices_masks_and_small_names:
+    its kernels are compiled already.)"""
+    scene = gs.Scene(show_viewer=False, rigid_options=gs.options.RigidOptions(enable_collision=False))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.4, 0.6), pos=(1.0, 2.0, 3.0), euler=(0, 0, 90)))
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.25, pos=(-1.0, 0.0, 0.5)))
+    arm = scene.add_entity(gs.morphs.URDF(file=arm_path, fixed=True))
+    base, shoulder, elbow = arm.joints
+    expect = [  # joint: idx, dof_start, dofs_idx, dofs_idx_local, q_start, qs_idx, qs_idx_local
+        (box.base_joint, (0, 0, list(range(0, 6)), list(range(6)), 0, list(range(0, 7)), list(range(7)))),
+        (ball.base_joint, (1, 6, list(range(6, 12)), list(range(6)), 7, list(range(7, 14)), list(range(7)))),
+        (base, (2, 12, [], [], 14, [], [])),
+        (shoulder, (3, 12, [12], [0], 14, [14], [0])),
+        (elbow, (4, 13, [13], [1], 15, [15], [1])),
+    ]
+
+    def check():
+        for j, (idx, d0, d, dl, q0, q, ql) in expect:
+            got = (j.idx, j.dof_start, j.dofs_idx, j.dofs_idx_local, j.q_start, j.qs_idx, j.qs_idx_local)
+            assert got == (idx, d0, d, dl, q0, q, ql), (j.name, got)
+            assert (j.dof_end, j.q_end) == (d0 + len(d), q0 + len(q))
+        # Genesis's older singular names: an int for one index, None for none, the list otherwise
+        assert (elbow.dof_idx, elbow.dof_idx_local, elbow.q_idx, elbow.q_idx_local) == (13, 1, 15, 1)
+        assert base.dof_idx is None and base.q_idx_local is None and ball.base_joint.dof_idx == list(range(6, 12))
+        assert (arm.link_start, arm.joint_start, arm.dof_start, arm.q_start) == (2, 2, 12, 14)
+        assert (arm.link_end, arm.dof_end, arm.q_end) == (5, 14, 16) and elbow.link is arm.links[2]
+
+    check()  # known from add_entity on, as in Genesis
+    scene.build(n_envs=4)
+    check()
+    arm.set_dofs_position(torch.tensor([0.3, -0.2]))
+    arm.set_dofs_velocity(torch.tensor([0.5, -0.7]))
+    ball.set_pos(torch.tensor([-1.0, 0.25, 0.75]))
+    state = scene.get_state()
+    np.testing.assert_allclose(state.qpos[:, elbow.qs_idx].numpy(), -0.2)
+    np.testing.assert_allclose(state.qvel[:, shoulder.dofs_idx + elbow.dofs_idx].numpy(), [[0.5, -0.7]] * 4)
+    np.testing.assert_allclose(state.qpos[:, ball.base_joint.qs_idx[:3]].numpy(), [[-1.0, 0.25, 0.75]] * 4)
+    np.testing.assert_allclose(arm.get_dofs_position(dofs_idx_local=elbow.dofs_idx_local).numpy(), [[-0.2]] * 4)
+    np.testing.assert_allclose(arm.get_qpos(qs_idx_local=shoulder.qs_idx_local).numpy(), [[0.3]] * 4)
+    np.testing.assert_allclose(ball.get_dofs_velocity(dofs_idx_local=ball.base_joint.dofs_idx_local).numpy(),
+                               state.qvel[:, ball.base_joint.dofs_idx].numpy())
+
+
+def test_timer_stamps_the_wall_clock(capsys):
+    """gs.tools.Timer (Genesis's): stamp(msg) prints and keeps the ms since the previous stamp and since
+    reset; skip=True prints nothing."""
+    timer = gs.tools.Timer()
+    time.sleep(0.05)
+    timer.stamp("first")
+    time.sleep(0.02)
+    timer.stamp("first")
+    count, step_sum, accu_sum = timer.accu_log["first"]
+    assert count == 2 and 70.0 <= step_sum < 70.0 + 500.0 and accu_sum >= 50.0 + 70.0
+    out = capsys.readouterr().out
+    steps = [float(x) for x in re.findall(r"\[first\] step: ([0-9.]+)ms", out)]
+    assert len(steps) == 2 and steps[0] >= 50.0 and steps[1] >= 20.0
+    quiet = gs.tools.Timer(skip=True)
+    quiet.stamp("x")
+    assert capsys.readouterr().out == "" and quiet.accu_log == {}
+    with pytest.raises(ValueError, match="level"):
+        gs.tools.Timer(level=-1)
+
+
+def test_hard_coupling_boundary_holds_a_box_on_an_elastic_block():
+    """sand_wheel's gs.materials.Rigid(coup_softness=0.0), Genesis's hard boundary, in a coupled scene (the
+    shape of test_coupling.py's box on an elastic block): a box dropped 5 mm onto the block is stopped by
+    the material at its surface within 0.1 s (free fall would take it 5 cm down), and no particle gets
+    into it."""
+    dens, g = 48, 9.81
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=8, gravity=(0, 0, -g)),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.4, 0.4, 0.3),
+                                                       grid_density=dens), show_viewer=False)
+    block = scene.add_entity(gs.morphs.Box(pos=(0.2, 0.2, 3 / dens + 0.05), size=(0.2, 0.2, 0.1)),
+                             material=gs.materials.MPM.Elastic(E=5e4, nu=0.3))
+    box = scene.add_entity(gs.morphs.Box(pos=(0.2, 0.2, 3 / dens + 0.13), size=(0.1, 0.1, 0.05)),
+                           material=gs.materials.Rigid(rho=500, coup_softness=0.0))
+    scene.build()
+    for _ in range(50):
+        scene.step()
+    z = box.get_pos()[2].item()
+    # on the block's top face (3 cells + 0.1 m) with its half height 0.025 m below its centre, within half a cell
+    assert abs(z - (3 / dens + 0.1 + 0.025)) < 0.5 / dens, (z - (3 / dens + 0.125)) * dens
+    x = block.get_particles_pos().numpy()
+    under = (np.abs(x[:, 0] - 0.2) < 0.05) & (np.abs(x[:, 1] - 0.2) < 0.05)
+    assert under.sum() > 100 and x[under, 2].max() < z - 0.025  # none inside the box

@@ -127,9 +127,8 @@ def test_entities_by_name_and_uid_and_the_control_force():
     scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_collision=False))
     scene.add_entity(gs.morphs.Plane())
     arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True), name="arm")
-    assert scene.entity_names == ["plane_0", "arm"]
-    assert scene.get_entity("arm") is arm and scene.get_entity(uid=1) is arm and arm.uid == 1
-    assert scene.get_entity(uid=arm.uid.short()) is arm and isinstance(arm.uid.short(), str)
+    assert scene.entity_names == ("plane_0", "arm")
+    assert scene.get_entity("arm") is arm and scene.get_entity(uid=arm.uid.short()) is arm
     with pytest.raises(GenesisException, match="no entity with name 'hand'"):
         scene.get_entity("hand")
     scene.build()
@@ -163,6 +162,86 @@ def test_utils_geom_rotations_against_scipy():
     np.testing.assert_allclose(geom.transform_by_quat(torch.tensor(v), torch.tensor(geom.inv_quat(qu))).numpy(),
                                u.inv().apply(v), atol=1e-12)
     np.testing.assert_allclose(geom.quat_to_R(geom.transform_quat_by_quat(qw, qu)), (u * w).as_matrix(), atol=1e-12)
+
+
+def test_utils_geom_as_the_locomotion_envs_use_it():
+    """go2_env.py's and hover_env.py's calls, batched torch in and out, against scipy: the projected gravity
+    (the world's -z in the base frame), the base's roll / pitch / yaw in degrees relative to its initial
+    orientation (quat_to_xyz(transform_quat_by_quat(inv_quat(q0), q), rpy=True, degrees=True)), and the base
+    velocity in the base frame. Quaternions of any norm stand for their rotation (as in Genesis); at
+    pitch +-90 degrees the angles still give the rotation back."""
+    from scipy.spatial.transform import Rotation
+
+    from genesis_lite.utils.geom import inv_quat, quat_to_xyz, transform_by_quat, transform_quat_by_quat, xyz_to_quat
+
+    def wxyz(r):
+        return torch.tensor(np.roll(r.as_quat(), 1, axis=-1))
+
+    n = 6
+    base, init = Rotation.random(n, random_state=4), Rotation.from_euler("z", 30, degrees=True)
+    q, q0 = wxyz(base) * torch.linspace(0.5, 2.0, n)[:, None], wxyz(init)  # (n, 4) of assorted norms, (4,)
+    gravity = torch.tensor([0.0, 0.0, -1.0])
+    np.testing.assert_allclose(transform_by_quat(gravity.double(), inv_quat(q)).numpy(),
+                               base.inv().apply([0.0, 0.0, -1.0]), atol=1e-12)
+    rel = transform_quat_by_quat(inv_quat(q0), q)  # (v, u): v then u, R(rel) = R(q) R(q0)^-1
+    np.testing.assert_allclose(rel.norm(dim=-1).numpy(), 1.0, atol=1e-12)  # a unit quaternion
+    euler = quat_to_xyz(rel, rpy=True, degrees=True)
+    assert euler.shape == (n, 3) and euler.dtype == torch.float64
+    np.testing.assert_allclose(euler.numpy(), (base * init.inv()).as_euler("xyz", degrees=True), atol=1e-9)
+    vel = torch.tensor(np.random.default_rng(5).normal(size=(n, 3)))
+    np.testing.assert_allclose(transform_by_quat(vel, inv_quat(q)).numpy(), base.inv().apply(vel.numpy()), atol=1e-12)
+    # a (4,) quaternion against (n, 3) vectors, and float32 in gives float32 out
+    np.testing.assert_allclose(transform_by_quat(vel, q0).numpy(), init.apply(vel.numpy()), atol=1e-12)
+    assert quat_to_xyz(q.float()).dtype == torch.float32
+
+    # gimbal lock: pitch +-90 degrees (scipy warns there and picks its own split of roll and yaw)
+    for rpy, seq in ((True, "xyz"), (False, "XYZ")):
+        for pitch in (90.0, -90.0):
+            r = Rotation.from_euler(seq, [20.0, pitch, -50.0], degrees=True)
+            for qq in (wxyz(r), wxyz(r).float()):
+                e = quat_to_xyz(qq, rpy=rpy, degrees=True).double()
+                assert abs(float(e[1]) - pitch) < 1e-2 and float(e[0]) == 0.0
+                back = Rotation.from_euler(seq, e.numpy(), degrees=True).as_matrix()
+                np.testing.assert_allclose(back, r.as_matrix(), atol=1e-6 if qq.dtype == torch.float32 else 1e-12)
+                np.testing.assert_allclose(
+                    Rotation.from_quat(np.roll(xyz_to_quat(e, rpy=rpy, degrees=True).numpy(), -1)).as_matrix(),
+                    r.as_matrix(), atol=1e-6 if qq.dtype == torch.float32 else 1e-12)
+    # gradients flow (a policy's loss through the observation)
+    qg = q.clone().requires_grad_(True)
+    quat_to_xyz(transform_quat_by_quat(inv_quat(q0), qg), rpy=True).sum().backward()
+    assert torch.isfinite(qg.grad).all() and qg.grad.abs().sum() > 0
+    with pytest.raises(TypeError, match="all as numpy arrays, not a mix"):
+        transform_by_quat(vel.numpy(), q)
+    with pytest.raises(ValueError, match="quat must have 4 components"):
+        quat_to_xyz(torch.zeros(3, 3))
+    with pytest.raises(TypeError, match="numpy array or a torch tensor"):
+        inv_quat([1.0, 0.0, 0.0, 0.0])
+
+
+def test_batch_info_options_change_nothing():
+    """RigidOptions(batch_dofs_info=, batch_links_info=, batch_joints_info=) are Genesis's switch to
+    per-environment link / dof parameters. genesis_lite's are per environment always: with the flags off, a
+    kp per env still acts per env (the stiffer position servo, 4x the kp, is twice as fast; after 0.1 s from
+    rest toward 0.2 rad the joint of env 1 is further on), and with them on the step is the same."""
+    finals = []
+    for flag in (False, True):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, gravity=(0, 0, 0)),
+                         rigid_options=gs.options.RigidOptions(enable_collision=False, batch_dofs_info=flag,
+                                                               batch_links_info=flag, batch_joints_info=flag))
+        arm = scene.add_entity(gs.morphs.URDF(file="assets/urdf/arm.urdf", fixed=True))
+        scene.build(n_envs=2)
+        arm.set_dofs_kp(torch.tensor([[50.0], [200.0]], dtype=torch.float64), dofs_idx_local=[0])
+        np.testing.assert_array_equal(arm.get_dofs_kp(dofs_idx_local=[0]).numpy(), [[50.0], [200.0]])
+        arm.control_dofs_position(torch.full((2, 1), 0.2, dtype=torch.float64), dofs_idx_local=[0])
+        for _ in range(10):
+            scene.step()
+        finals.append(arm.get_dofs_position().numpy())
+    q = finals[0][:, 0]
+    assert 0.0 < q[0] < q[1] < 0.25, q
+    np.testing.assert_array_equal(finals[0], finals[1])
+    for name in ("batch_dofs_info", "batch_links_info", "batch_joints_info"):
+        with pytest.raises(ValueError, match=f"RigidOptions.{name}='yes': must be True or False"):
+            gs.options.RigidOptions(**{name: "yes"})
 
 
 def test_link_mass_and_set_qpos_skip_forward():

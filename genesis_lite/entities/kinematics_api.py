@@ -19,7 +19,7 @@ import torch
 from ..errors import GenesisException
 from ..grad.tensor import wrap
 from ..utils.geom import quat_mul as _qmul
-from ..utils.geom import quat_to_R as _R
+from ..utils.geom import _unit_quat_to_R as _R
 
 
 def _skew(v):

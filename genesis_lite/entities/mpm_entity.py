@@ -37,12 +37,7 @@ class MPMEntity:
     _values = RigidEntity._values
     _device = RigidEntity._device
 
-    @property
-    def uid(self):
-        """Genesis's entity id: its index in the scene, in the order of add_entity (with `.short()`)."""
-        from .rigid_entity import EntityUID
-
-        return EntityUID(self.idx)
+    uid = RigidEntity.uid  # (gs.UID, given by scene.add_entity)
 
     def __init__(self, scene, idx, morph, material, name, particles, vol):
         self._scene = scene

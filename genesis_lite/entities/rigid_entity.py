@@ -18,7 +18,7 @@ from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 from ..errors import GenesisException, ZeroGainWarning
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
-from ..utils.geom import quat_to_R as _quat_to_R
+from ..utils.geom import _unit_quat_to_R as _quat_to_R
 from .contact_api import ContactMixin
 from .kinematics_api import KinematicsMixin
 
@@ -45,13 +45,6 @@ class RigidLink:
         self.entity.set_links_mass(m.reshape(*m.shape, 1), [self.idx_local], envs_idx)
 
 
-class EntityUID(int):
-    """An entity's id: an int (its index in the scene) with Genesis's `short()` (a short string for logs)."""
-
-    def short(self) -> str:
-        return f"{int(self):07d}"
-
-
 @dataclass
 class RigidJoint:
     name: str
@@ -64,36 +57,76 @@ class RigidJoint:
     n_qs: int
     entity: Optional["RigidEntity"] = field(default=None, repr=False, compare=False)
 
+    # Genesis's index names. Without `_local` they number the scene's rigid solver (every rigid entity's
+    # links, joints, positions q and dofs, in the order of add_entity); with it, the joint's entity. A
+    # `*s_idx*` name is always a list; the older singular `dof_idx*` / `q_idx*` (deprecated in Genesis) are an
+    # int for one index, None for none, a list otherwise. Known from add_entity on, before build too.
     @property
-    def dof_start(self) -> int:
-        """The joint's first dof in the scene's dof numbering (Genesis's)."""
-        return self.entity._dof_start + self.dof_start_local
+    def idx(self) -> int:
+        """The joint's index among the scene's joints (one per link: the link's joint to its parent)."""
+        return self.entity.joint_start + self.idx_local
 
     @property
-    def dofs_idx(self):
-        """The joint's dofs in the scene's dof numbering (Genesis's)."""
-        return [self.dof_start + i for i in range(self.n_dofs)]
+    def link(self) -> "RigidLink":
+        """The link this joint moves (Genesis's joint.link)."""
+        return self.entity.links[self.link_idx_local]
+
+    @property
+    def dof_start(self) -> int:
+        """The joint's first dof in the scene's dof numbering."""
+        return self.entity.dof_start + self.dof_start_local
+
+    @property
+    def dof_end(self) -> int:
+        return self.dof_start + self.n_dofs
 
     @property
     def q_start(self) -> int:
-        return self.entity._q_start + self.q_start_local
+        """The joint's first position coordinate in the scene's q numbering (qpos)."""
+        return self.entity.q_start + self.q_start_local
 
     @property
-    def dof_idx_local(self):
-        """int for a 1-dof joint, a list for a free joint, None for a fixed one (Genesis convention)."""
-        if self.n_dofs == 1:
-            return self.dof_start_local
-        if self.n_dofs == 0:
-            return None
-        return list(range(self.dof_start_local, self.dof_start_local + self.n_dofs))
+    def q_end(self) -> int:
+        return self.q_start + self.n_qs
+
+    @property
+    def dofs_idx(self):
+        """The joint's dofs in the scene's dof numbering: `scene.rigid_solver`'s dofs_idx= arguments."""
+        return list(range(self.dof_start, self.dof_end))
 
     @property
     def dofs_idx_local(self):
+        """The joint's dofs in its entity: the entity's dofs_idx_local= arguments."""
         return list(range(self.dof_start_local, self.dof_start_local + self.n_dofs))
 
     @property
+    def qs_idx(self):
+        return list(range(self.q_start, self.q_end))
+
+    @property
+    def qs_idx_local(self):
+        """The joint's position coordinates in its entity: the entity's qs_idx_local= arguments."""
+        return list(range(self.q_start_local, self.q_start_local + self.n_qs))
+
+    @staticmethod
+    def _one_or_list(idx):
+        return idx[0] if len(idx) == 1 else (None if not idx else idx)
+
+    @property
+    def dof_idx(self):
+        return self._one_or_list(self.dofs_idx)
+
+    @property
+    def dof_idx_local(self):
+        return self._one_or_list(self.dofs_idx_local)
+
+    @property
+    def q_idx(self):
+        return self._one_or_list(self.qs_idx)
+
+    @property
     def q_idx_local(self):
-        return self.q_start_local if self.n_qs == 1 else list(range(self.q_start_local, self.q_start_local + self.n_qs))
+        return self._one_or_list(self.qs_idx_local)
 
 
 def _quat_to_rotvec(q):
@@ -136,10 +169,10 @@ class RigidEntity(ContactMixin, KinematicsMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
     @property
-    def uid(self) -> "EntityUID":
-        """Genesis's entity id: its index in the scene, in the order of add_entity (an int; `.short()` gives
-        Genesis's short string form)."""
-        return EntityUID(self.idx)
+    def uid(self):
+        """Genesis's entity id (gs.UID: `str(uid)`, `uid.short()`), given by scene.add_entity; unique in
+        the scene by its short form. The entity's index in the scene, in the order of add_entity, is `idx`."""
+        return self._uid
 
     def __init__(self, scene, idx: int, model: EntityModel, morph, material):
         self._scene = scene
@@ -176,6 +209,47 @@ class RigidEntity(ContactMixin, KinematicsMixin):
     @property
     def n_joints(self):
         return len(self.joints)
+
+    def _solver_starts(self):
+        """(links, qs, dofs) of the rigid entities added before this one: where its own begin in the scene's
+        rigid solver (the same before build as after)."""
+        if self._dof_start >= 0:
+            return self._link_start, self._q_start, self._dof_start
+        before = self._scene.rigid_entities[:self._solver_idx]
+        return (sum(e.n_links for e in before), sum(e.n_qs for e in before), sum(e.n_dofs for e in before))
+
+    # Genesis's ranges of this entity in the scene's rigid solver (its joints are one per link)
+    @property
+    def link_start(self) -> int:
+        return self._solver_starts()[0]
+
+    @property
+    def link_end(self) -> int:
+        return self.link_start + self.n_links
+
+    @property
+    def joint_start(self) -> int:
+        return self._solver_starts()[0]
+
+    @property
+    def joint_end(self) -> int:
+        return self.joint_start + self.n_joints
+
+    @property
+    def q_start(self) -> int:
+        return self._solver_starts()[1]
+
+    @property
+    def q_end(self) -> int:
+        return self.q_start + self.n_qs
+
+    @property
+    def dof_start(self) -> int:
+        return self._solver_starts()[2]
+
+    @property
+    def dof_end(self) -> int:
+        return self.dof_start + self.n_dofs
 
     @property
     def base_link(self):

@@ -1,2 +1,3 @@
-"""Genesis's `gs.utils` helpers that its scripts call (`gs.utils.geom`)."""
-from . import geom  # noqa: F401
+"""Genesis's `gs.utils` helpers that its scripts call (`gs.utils.geom`, `gs.tools`, `gs.UID`)."""
+from . import geom, tools  # noqa: F401
+from .uid import UID  # noqa: F401
