@@ -302,6 +302,8 @@ def test_timer_stamps_the_wall_clock(capsys):
         gs.tools.Timer(level=-1)
 
 
+# slow (suite time: its coupler compiles the softness in, ~28 s on an empty kernel cache)
+@pytest.mark.slow
 def test_hard_coupling_boundary_holds_a_box_on_an_elastic_block():
     """sand_wheel's gs.materials.Rigid(coup_softness=0.0), Genesis's hard boundary, in a coupled scene (the
     shape of test_coupling.py's box on an elastic block): a box dropped 5 mm onto the block is stopped by
