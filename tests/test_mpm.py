@@ -364,7 +364,11 @@ def test_tape_validation_of_one_step_of_each_solver():
             b.upload()
         rigid, mpm = scene.rigid_solver, scene.mpm_solver
         for launches in (lambda: (rigid.step_core.kernel_dynamics(0, 0, 1e-3), rigid.core.kernel_integrate(0, 0, 0, 0, 1, 1e-3)),
-                         lambda: mpm._substep_launches(0, 0, 1, taped=True)):
+                         # the MPM substep's stages as its adjoint records them (the simulator's order; the
+                         # hand-differentiated SVD constitutive update is not on a Tape), and the constitutive
+                         # update that Taichi differentiates
+                         lambda: (mpm.kernel_constitutive_ad(0, 1, mpm.h) if mpm.has_ad else None,
+                                  sim._mpm_substep(0, True, replay=True))):
             with ti.ad.Tape(loss=sim.loss, validation=True, clear_gradients=False):
                 launches()
         print("validated")
