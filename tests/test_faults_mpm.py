@@ -198,6 +198,43 @@ def test_a_dropped_scene_gives_its_solver_to_the_next_one_of_its_class():
     assert v0.grad[:2].abs().max().item() < 1e-10 * cube.n_particles * n * h
 
 
+def _free_fall(size):
+    """A cube of edge `size` thrown in free flight for 3 steps and a backward pass: (its particle count,
+    whether its scene reused a pooled solver, the largest error against x0 + v0 t - g t^2 / 2, the error of
+    d(sum z) / d v0_z against n t)."""
+    scene, cube = _cube(size=size, pos=(0.15, 0.15, 0.2))
+    x0 = cube.get_particles_pos().detach().clone()
+    v0 = torch.tensor([0.1, 0.2, -0.4], **F64, requires_grad=True)
+    cube.set_velocity(v0)
+    T, h = 3, 2e-3 / 4
+    for _ in range(T):
+        scene.step()
+    n = 4 * T
+    x = cube.get_particles_pos()
+    expect = x0 + n * h * v0.detach() - torch.tensor([0, 0, G * h * h * n * (n + 1) / 2], **F64)
+    err = (x.detach() - expect).abs().max().item()
+    x[:, 2].sum().backward()
+    P = cube.n_particles
+    return P, scene._mpm.reused_solver, err, abs(v0.grad[2].item() - P * n * h) / (P * n * h)
+
+
+def test_a_scene_of_another_particle_count_in_the_class_compiles_nothing(compiled):
+    """MPM solvers are pooled by a particle capacity (512, 768, 1024, 1536, ...: solvers/mpm/solver.py
+    cap_particles), the count read at run time, as rigid scenes share by size class: a sweep over a
+    body's size reuses the compiled kernels. A cube of another size (another particle count, the same
+    capacity) after a dropped one compiles nothing, and both fall as x0 + v0 t - g t^2 / 2 with the
+    gradient d(sum z) / d v0_z = n t."""
+    from solvers.mpm.solver import cap_particles
+
+    n1, _, err1, gerr1 = _free_fall(0.05)
+    gc.collect()
+    compiled.clear()
+    n2, reused, err2, gerr2 = _free_fall(0.075)
+    assert n2 != n1 and cap_particles(n2) == cap_particles(n1), (n1, n2)
+    assert reused and not compiled, f"a cube of another size in the class compiled {compiled}"
+    assert max(err1, err2) < 1e-12 and max(gerr1, gerr2) < 1e-10, (err1, err2, gerr1, gerr2)
+
+
 # ------------------------------------------------------------------------------- 5. README set_position
 def test_readme_set_position_moves_the_centre_of_mass_of_an_unbatched_entity():
     scene, cube = _cube()

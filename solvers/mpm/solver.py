@@ -22,11 +22,11 @@ its outputs (F of the next slot, tau of this one) are kept.
 One compile serves every scene of a class, as in the rigid solver (solvers/rigid/solver.py): Taichi
 bakes the fields a kernel touches, and every Python value it reads while compiling, into the compiled
 kernel, keyed by the object that owns the kernel. So a solver is pooled by its class (`_key`: dtype,
-gradients, envs, the particle count, state slots, the grid (lower corner, cell size, resolution), the
+gradients, envs, the particle capacity, state slots, the grid (lower corner, cell size, resolution), the
 walls' friction and the set of materials), and a scene takes a solver of its class from `POOL` and
-gives it back when its bridge dies (weakref.finalize in genesis_lite/bridges/mpm.py). (With
-RUNTIME_PARTICLE_COUNT the class has a particle capacity instead, the fields are sized by it and the
-scene's count is read at run time from the small `cfg_i` field; see there why it is off.) A coupled
+gives it back when its bridge dies (weakref.finalize in genesis_lite/bridges/mpm.py). The class has a
+particle capacity, not a count (RUNTIME_PARTICLE_COUNT): the fields are sized by it and the scene's
+count is read at run time from the small `cfg_i` field. A coupled
 scene's grid update, which reads that scene's rigid fields, is compiled on its coupler
 (solvers/coupling.py), never on the pooled solver, which holds no reference to any scene.
 """
@@ -48,12 +48,12 @@ from .svd import func_svd3
 BOUND = 3  # grid nodes at each face that act as walls (particles live inside them)
 NAN_BIG = 1 << 30  # nan_env holds NAN_BIG - (first non-finite step) (kernel_count_nonfinite)
 # Whether the particle count is read at run time, so that scenes of nearby counts share a solver of
-# one capacity (cap_particles). Off: the count is a compile-time constant, and only scenes of the same
-# count share. Measured on an elastic + plasticine scene and a coupled one (6-8 steps and a backward
-# pass, one thread): with a run-time count the loops compile differently and trajectories and gradients
-# move in their last bit (2.8e-17 m, relative 1e-16), so switching it on is not bitwise neutral; the
-# physics and the gradients are otherwise the same (tests/test_faults_mpm.py passes either way).
-RUNTIME_PARTICLE_COUNT = False
+# one capacity (cap_particles), as rigid scenes share by size class: a sweep over a body's size compiles
+# once (tests/test_faults_mpm.py). Off: the count is a compile-time constant, and only scenes of the same
+# count share. The run-time count compiles the loops differently: trajectories and gradients move in their
+# last bit against a compile-time count (measured 2.8e-17 m, relative 1e-16, on an elastic + plasticine
+# scene and a coupled one), the physics and the gradients are otherwise the same.
+RUNTIME_PARTICLE_COUNT = True
 MIN_PARTICLES = 512  # the smallest particle capacity with a run-time count
 
 
