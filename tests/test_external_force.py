@@ -11,6 +11,7 @@ each checked against physics rather than against our own output:
 - gravity_compensation=1 holds a free box and a fixed arm still under gravity, 0.5 halves the fall;
 - Genesis's example script (examples/rigid/apply_external_force_torque.py) runs unchanged and spins the
   cube at tau t / I;
+- a force on a body coupled to an MPM block adds exactly its impulse to the system's momentum (-m slow);
 - bad input (shape, link index, NaN, ref) raises an error naming it;
 - gradients of the forces, the gravity compensation and the initial velocity against central finite
   differences in float64 (-m slow: the gradient kernels' first compile).
@@ -160,10 +161,11 @@ def _after_one_step(scene, tree, state):
     return P, L
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def free_tree():
     """skew_arm.urdf on a free base, in zero gravity: three links with offset centres of mass and rotated
-    non-diagonal inertias, hinges on skewed axes; its joint damping off (implicitfast treats damping
+    non-diagonal inertias, hinges on skewed axes (a scene per test: a scene kept for the module would
+    hold its core, and later tests of its class would compile a core of their own); its joint damping off (implicitfast treats damping
     implicitly, which would take momentum from the step's impulse: the damper acts on the hinges, not
     between the tree and the world, but h D enters the step's solve)."""
     scene = _scene()
@@ -258,6 +260,33 @@ def test_gravity_compensation_set_after_build_per_env():
         gs.materials.Rigid(gravity_compensation=float("nan"))
 
 
+def test_bad_input_raises_naming_it():
+    scene, box = _box_scene(n_envs=2)
+    solver = scene.sim.rigid_solver
+    link = box.links[0].idx
+    with pytest.raises(GenesisException, match=r"force has shape \(2, 2, 3\); expected \(2, 1, 3\)"):
+        solver.apply_links_external_force(np.zeros((2, 2, 3)), [link])
+    with pytest.raises(GenesisException, match=r"torque has shape \(4,\)"):
+        solver.apply_links_external_torque([1.0, 2.0, 3.0, 4.0], [link])
+    with pytest.raises(GenesisException, match=r"links_idx \[7\] out of range; the scene's rigid solver has 1 links"):
+        solver.apply_links_external_force([0.0, 0.0, 1.0], [7])
+    with pytest.raises(GenesisException, match=r"links_idx must be integer"):
+        solver.apply_links_external_force([0.0, 0.0, 1.0], [0.5])
+    with pytest.raises(GenesisException, match=r"envs_idx \[5\] out of range"):
+        solver.apply_links_external_force([0.0, 0.0, 1.0], [link], envs_idx=[5])
+    with pytest.raises(GenesisException, match=r"force contains NaN or infinite values"):
+        solver.apply_links_external_force([[[0.0, float("nan"), 1.0]], [[0.0, 0.0, 1.0]]], [link])
+    with pytest.raises(GenesisException, match=r"ref='com'"):
+        solver.apply_links_external_force([0.0, 0.0, 1.0], [link], ref="com")
+    with pytest.raises(ValueError, match=r"local=True is not compatible with ref='root_com'"):
+        solver.apply_links_external_torque([0.0, 0.0, 1.0], [link], ref="root_com", local=True)
+    with pytest.raises(GenesisException, match=r"requires grad but the scene was built without gradients"):
+        solver.apply_links_external_force(torch.zeros(3, **F64, requires_grad=True), [link])
+    # nothing of the refused calls was applied
+    scene.step()
+    np.testing.assert_allclose(_np(box.get_vel()), 0.0, atol=1e-14)
+
+
 def test_genesis_example_apply_external_force_torque():
     """examples/rigid/apply_external_force_torque.py of Genesis, its loop as written (shorter): a spring
     force towards (0, 0, 1) on the cube's origin and a torque of 5 N m about z, reversed every 100
@@ -290,31 +319,31 @@ def test_genesis_example_apply_external_force_torque():
     assert abs(z - (1.0 - m * 9.81 / 100.0)) <= m * 9.81 / 100.0 + 1e-6
 
 
-def test_bad_input_raises_naming_it():
-    scene, box = _box_scene(n_envs=2)
-    solver = scene.sim.rigid_solver
-    link = box.links[0].idx
-    with pytest.raises(GenesisException, match=r"force has shape \(2, 2, 3\); expected \(2, 1, 3\)"):
-        solver.apply_links_external_force(np.zeros((2, 2, 3)), [link])
-    with pytest.raises(GenesisException, match=r"torque has shape \(4,\)"):
-        solver.apply_links_external_torque([1.0, 2.0, 3.0, 4.0], [link])
-    with pytest.raises(GenesisException, match=r"links_idx \[7\] out of range; the scene's rigid solver has 1 links"):
-        solver.apply_links_external_force([0.0, 0.0, 1.0], [7])
-    with pytest.raises(GenesisException, match=r"links_idx must be integer"):
-        solver.apply_links_external_force([0.0, 0.0, 1.0], [0.5])
-    with pytest.raises(GenesisException, match=r"envs_idx \[5\] out of range"):
-        solver.apply_links_external_force([0.0, 0.0, 1.0], [link], envs_idx=[5])
-    with pytest.raises(GenesisException, match=r"force contains NaN or infinite values"):
-        solver.apply_links_external_force([[[0.0, float("nan"), 1.0]], [[0.0, 0.0, 1.0]]], [link])
-    with pytest.raises(GenesisException, match=r"ref='com'"):
-        solver.apply_links_external_force([0.0, 0.0, 1.0], [link], ref="com")
-    with pytest.raises(ValueError, match=r"local=True is not compatible with ref='root_com'"):
-        solver.apply_links_external_torque([0.0, 0.0, 1.0], [link], ref="root_com", local=True)
-    with pytest.raises(GenesisException, match=r"requires grad but the scene was built without gradients"):
-        solver.apply_links_external_force(torch.zeros(3, **F64, requires_grad=True), [link])
-    # nothing of the refused calls was applied
-    scene.step()
-    np.testing.assert_allclose(_np(box.get_vel()), 0.0, atol=1e-14)
+@pytest.mark.slow  # an MPM scene coupled to a rigid body: ~25 s of compiles on 2 cores
+def test_force_on_a_body_coupled_to_mpm_adds_its_impulse_to_the_whole_system():
+    """A ball pushed by F through an elastic block (two-way coupling, zero gravity, 8 substeps a step):
+    the momentum of ball + material grows by exactly F t (the coupling exchanges momentum within the
+    system; the force acts during every substep of its step)."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=8, gravity=(0, 0, 0)),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5),
+                                                       grid_density=32))
+    block = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.25, 0.25), size=(0.12, 0.12, 0.12)),
+                             material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
+    ball = scene.add_entity(gs.morphs.Sphere(pos=(0.2, 0.25, 0.25), radius=0.04),
+                            material=gs.materials.Rigid(rho=500, coup_friction=0.3))
+    scene.build()
+    ball.set_dofs_velocity(torch.tensor([0.5, 0.0, 0.0, 0.0, 0.0, 0.0], **F64))
+
+    def momentum():
+        return _np((block._masses()[:, None] * block.get_particles_vel()).sum(0) + ball.get_mass() * ball.get_vel())
+
+    p0 = momentum()
+    F, N = np.array([2.0, 0.5, -0.3]), 40
+    for _ in range(N):
+        scene.sim.rigid_solver.apply_links_external_force(F, [ball.links[0].idx])
+        scene.step()
+    assert np.abs(_np((block._masses()[:, None] * block.get_particles_vel()).sum(0))).max() > 0.1 * np.abs(p0).max()
+    np.testing.assert_allclose(momentum() - p0, F * N * 2e-3, rtol=1e-9, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------------------- gradients

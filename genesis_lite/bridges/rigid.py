@@ -7,9 +7,9 @@ current state is also a pair of torch tensors (qpos, qvel) in the autograd graph
 parameters are torch tensors whose values are uploaded to the fields before the next launch.
 
 Applied wrenches (the user's link forces, gravity compensation; solvers/rigid/external.py): the
-wrench the user applies between two steps accumulates in a torch tensor (B, n_links, 6) that the next
-step takes as an input and then drops (a force lasts one step, as in Genesis); gravity compensation is
-a parameter (B, n_links). Both exist once the solver has applied wrenches (at build when an entity's
+wrench the user applies between two steps accumulates (in numpy where nothing needs a gradient, else
+in torch) into a (B, n_links, 6) tensor that the next step takes as an input and then drops (a force
+lasts one step, as in Genesis); gravity compensation is a parameter (B, n_links). Both exist once the solver has applied wrenches (at build when an entity's
 material has gravity_compensation, else from the first apply call); a step recorded before that has
 neither among its inputs.
 """
@@ -177,8 +177,8 @@ class RigidSim:
         self.enable_applied()
         if torch.is_tensor(force) or torch.is_tensor(moment):
             ref = force if torch.is_tensor(force) else moment
-            parts = [torch.zeros_like(ref) if x is None else torch.as_tensor(x, device=ref.device).to(ref.dtype)
-                     for x in (force, moment)]
+            parts = [torch.zeros_like(ref) if x is None else x.to(ref.dtype) if torch.is_tensor(x)
+                     else torch.as_tensor(np.array(x), device=ref.device).to(ref.dtype) for x in (force, moment)]
             w = torch.cat(parts, -1).to(self.dtype)
             e = torch.as_tensor(envs, device=self.device)
             l = torch.as_tensor(links, device=self.device)  # noqa: E741

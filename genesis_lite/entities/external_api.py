@@ -73,6 +73,10 @@ class RigidSolverAPI:
         n = self._bridge.n_links
         if links_idx is None:
             return np.arange(n)
+        if isinstance(links_idx, int) and 0 <= links_idx < n:
+            return np.array([links_idx])
+        if type(links_idx) in (list, tuple) and all(type(i) is int and 0 <= i < n for i in links_idx):
+            return np.array(links_idx, dtype=np.int64)  # the common case, checked without numpy's overheads
         if isinstance(links_idx, slice):
             return np.arange(n)[links_idx]
         t = np.asarray(links_idx.detach().cpu().numpy() if torch.is_tensor(links_idx) else links_idx)
@@ -106,9 +110,10 @@ class RigidSolverAPI:
         return t
 
     def _vectors(self, x, envs, links, who, what):
-        """x as (len(envs), len(links), 3): a numpy array in the solver's precision, or a torch tensor in
-        the scene precision where x is a tensor that requires grad (autograd kept). A batched scene takes
-        (envs, links, 3) or anything that broadcasts to it, an unbatched one (links, 3)."""
+        """x as (len(envs), len(links), 3), or for a numpy array a shape that broadcasts to it (the caller
+        adds it into a full array): a numpy array in the solver's precision, or a torch tensor in the scene
+        precision where x is a tensor that requires grad (autograd kept). A batched scene takes (envs,
+        links, 3) or anything that broadcasts to it, an unbatched one (links, 3)."""
         import genesis_lite as gs
 
         scene = self._scene
@@ -144,9 +149,7 @@ class RigidSolverAPI:
             t = torch.broadcast_to(x.to(gs.tc_float), want)
             return t if batched else t.unsqueeze(0)
         out = a.astype(self._bridge.solver.np_dtype, copy=False)
-        if out.shape != want:
-            out = np.broadcast_to(out, want)
-        return out if batched else out[None]
+        return out if batched or out.ndim < len(want) else out[None]
 
     def _ref(self, ref, local, who):
         if ref not in REFS:
@@ -251,7 +254,8 @@ class RigidSolverAPI:
         pos, R, com = self._poses()
         e, l = torch.as_tensor(envs, device=pos.device), torch.as_tensor(links, device=pos.device)
         pos, R_sel = pos[e][:, l], R[e][:, l]
-        f = torch.as_tensor(np.array(f), device=pos.device).to(pos.dtype) if not torch.is_tensor(f) else f
+        if not torch.is_tensor(f):
+            f = torch.as_tensor(np.array(f), device=pos.device).to(pos.dtype).expand(len(envs), len(links), 3)
         if local:
             f = (R_sel @ f.unsqueeze(-1))[..., 0]
         moment = None
@@ -272,7 +276,8 @@ class RigidSolverAPI:
         if local:
             _, R, _ = self._poses()
             e, l = torch.as_tensor(envs, device=R.device), torch.as_tensor(links, device=R.device)
-            t = torch.as_tensor(np.array(t), device=R.device).to(R.dtype) if not torch.is_tensor(t) else t
+            if not torch.is_tensor(t):
+                t = torch.as_tensor(np.array(t), device=R.device).to(R.dtype).expand(len(envs), len(links), 3)
             t = (R[e][:, l] @ t.unsqueeze(-1))[..., 0]
         self._bridge.add_applied(envs, links, None, t)
 
