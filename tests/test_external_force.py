@@ -364,13 +364,16 @@ def _fd_check(f, x, h, n_dirs=3, seed=0, rtol=1e-6):
     return g
 
 
-@pytest.mark.slow  # compiles the free tree's gradient kernels (~40 s cold on 2 cores)
-def test_gradients_of_forces_gravity_compensation_and_velocity_match_finite_differences():
-    """The skew arm on a free base under gravity, 5 steps: a force at link 2's centre of mass in its own axes
-    (so the lever and the axes depend on the state) and a world torque on link 1 each step, tensors that
-    require grad; gravity compensation a tensor that requires grad (its material's); the loss reads the
-    final state. Each against central differences in float64. A second scene whose first force comes at
-    step 2 (steps recorded before the solver had applied wrenches) gives the same kind of gradient."""
+SEQ = np.random.default_rng(3)
+T_GRAD = 5
+FORCES = torch.tensor(SEQ.normal(size=(T_GRAD, 3)), **F64)
+TORQUES = torch.tensor(0.1 * SEQ.normal(size=(T_GRAD, 3)), **F64)
+V0 = torch.tensor([0.2, -0.1, 0.3, 0.5, -0.4, 0.8, 1.0, -0.5, 0.7], **F64)
+WQ = torch.tensor(SEQ.normal(size=16), **F64)
+
+
+def _check_applied_gradients():
+    """Forces, torques, gravity compensation (its material's tensor) and the initial velocity."""
     scene = _scene(gravity=(0.0, 0.0, -9.81), requires_grad=True)
     gc0 = torch.tensor(0.3, **F64, requires_grad=True)
     tree = scene.add_entity(gs.morphs.URDF(file=SKEW_ARM, fixed=False, pos=(0.2, -0.1, 1.0)),
@@ -378,24 +381,17 @@ def test_gradients_of_forces_gravity_compensation_and_velocity_match_finite_diff
     scene.build()
     solver = scene.sim.rigid_solver
     l1, l2 = tree.links[1].idx, tree.links[2].idx
-    T = 5
-    rng = np.random.default_rng(3)
-    forces = torch.tensor(rng.normal(size=(T, 3)), **F64)
-    torques = torch.tensor(0.1 * rng.normal(size=(T, 3)), **F64)
-    v0 = torch.tensor([0.2, -0.1, 0.3, 0.5, -0.4, 0.8, 1.0, -0.5, 0.7], **F64)
-    wq = torch.tensor(rng.normal(size=16), **F64)
 
-    def rollout(forces=forces, torques=torques, gc=None, v=v0, first=0):
+    def rollout(forces=FORCES, torques=TORQUES, gc=None, v=V0):
         scene.reset()
         if gc is not None:
             tree.set_gravity_compensation(gc)
         tree.set_dofs_velocity(v)
-        for t in range(T):
-            if t >= first:
-                solver.apply_links_external_force(forces[t], [l2], ref="link_com", local=True)
-                solver.apply_links_external_torque(torques[t], [l1])
+        for t in range(T_GRAD):
+            solver.apply_links_external_force(forces[t], [l2], ref="link_com", local=True)
+            solver.apply_links_external_torque(torques[t], [l1])
             scene.step()
-        return (wq[:10] * tree.get_qpos()).sum() + (wq[10:] * tree.get_dofs_velocity()[:6]).sum()
+        return (WQ[:10] * tree.get_qpos()).sum() + (WQ[10:] * tree.get_dofs_velocity()[:6]).sum()
 
     # the material's tensor: its gradient reaches the leaf, rollout after rollout (checked against finite
     # differences below, through the setter)
@@ -405,25 +401,39 @@ def test_gradients_of_forces_gravity_compensation_and_velocity_match_finite_diff
         rollout().backward()
         grads.append(float(gc0.grad))
     assert grads[0] == grads[1] != 0.0
-    _fd_check(lambda x: rollout(forces=x), forces, 1e-6)
-    _fd_check(lambda x: rollout(torques=x), torques, 1e-6)
-    _fd_check(lambda x: rollout(v=x), v0, 1e-6)
+    _fd_check(lambda x: rollout(forces=x), FORCES, 1e-6)
+    _fd_check(lambda x: rollout(torques=x), TORQUES, 1e-6)
+    _fd_check(lambda x: rollout(v=x), V0, 1e-6)
     g = _fd_check(lambda x: rollout(gc=x), gc0, 1e-6, n_dirs=1)
     np.testing.assert_allclose(float(g), grads[0], rtol=1e-10)
-    # forces from step 2 on, in a scene that had no applied wrench until then
-    del scene, tree, solver
-    scene2 = _scene(gravity=(0.0, 0.0, -9.81), requires_grad=True)
-    tree2 = scene2.add_entity(gs.morphs.URDF(file=SKEW_ARM, fixed=False, pos=(0.2, -0.1, 1.0)))
-    scene2.build()
-    solver2 = scene2.sim.rigid_solver
+
+
+def _check_late_force_gradient():
+    """Forces from step 2 on, in a scene that had no applied wrench until then: its first two steps were
+    recorded without them."""
+    scene = _scene(gravity=(0.0, 0.0, -9.81), requires_grad=True)
+    tree = scene.add_entity(gs.morphs.URDF(file=SKEW_ARM, fixed=False, pos=(0.2, -0.1, 1.0)))
+    scene.build()
+    solver = scene.sim.rigid_solver
 
     def late(x):
-        scene2.reset()
-        tree2.set_dofs_velocity(v0)
-        for t in range(T):
+        scene.reset()
+        tree.set_dofs_velocity(V0)
+        for t in range(T_GRAD):
             if t >= 2:
-                solver2.apply_links_external_force(x[t], [tree2.links[2].idx])
-            scene2.step()
-        return (wq[:10] * tree2.get_qpos()).sum()
+                solver.apply_links_external_force(x[t], [tree.links[2].idx])
+            scene.step()
+        return (WQ[:10] * tree.get_qpos()).sum()
 
-    _fd_check(late, forces, 1e-6)
+    _fd_check(late, FORCES, 1e-6)
+
+
+@pytest.mark.slow  # compiles the free tree's gradient kernels: ~18 s cold on 2 cores
+def test_gradients_of_forces_gravity_compensation_and_velocity_match_finite_differences():
+    """The skew arm on a free base under gravity, 5 steps: a force at link 2's centre of mass in its own axes
+    (so the lever and the axes depend on the state) and a world torque on link 1 each step, tensors that
+    require grad; gravity compensation a tensor that requires grad (its material's); the loss reads the
+    final state. Each against central differences in float64. Then a scene whose first force comes at
+    step 2 (steps recorded before the solver had applied wrenches) on the first one's core."""
+    _check_applied_gradients()
+    _check_late_force_gradient()
