@@ -32,10 +32,10 @@ SKEW_ARM = str(ASSETS_DIR / "urdf" / "skew_arm.urdf")
 F64 = dict(dtype=torch.float64)
 
 
-def _scene(gravity=(0.0, 0.0, 0.0), requires_grad=False, substeps=1):
+def _scene(gravity=(0.0, 0.0, 0.0), requires_grad=False, substeps=1, checkpoint_every=None):
     # no collisions: the bodies here touch nothing, and a contact solver would add a compile per test
     return gs.Scene(sim_options=gs.options.SimOptions(dt=DT, gravity=gravity, requires_grad=requires_grad,
-                                                      substeps=substeps),
+                                                      substeps=substeps, checkpoint_every=checkpoint_every),
                     rigid_options=gs.options.RigidOptions(enable_collision=False), show_viewer=False)
 
 
@@ -410,8 +410,8 @@ def _check_applied_gradients():
 
 def _check_late_force_gradient():
     """Forces from step 2 on, in a scene that had no applied wrench until then: its first two steps were
-    recorded without them."""
-    scene = _scene(gravity=(0.0, 0.0, -9.81), requires_grad=True)
+    recorded without them; with checkpoints every 2 steps (backward replays steps from their inputs)."""
+    scene = _scene(gravity=(0.0, 0.0, -9.81), requires_grad=True, checkpoint_every=2)
     tree = scene.add_entity(gs.morphs.URDF(file=SKEW_ARM, fixed=False, pos=(0.2, -0.1, 1.0)))
     scene.build()
     solver = scene.sim.rigid_solver
