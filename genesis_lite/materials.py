@@ -15,13 +15,17 @@ class Rigid:
     materials (Genesis's names): needs_coup (the body is a boundary for MPM particles), coup_friction
     (Coulomb coefficient against them), coup_softness (m: width of the band outside the surface over
     which the boundary fades in; None: half an MPM grid cell; 0: none, the boundary acts from the
-    surface in)."""
+    surface in). gravity_compensation: the fraction of gravity cancelled on the entity's links (0: none,
+    1: it floats; Genesis's meaning: an upward force gc m g at each link's centre of mass); a 0-d torch
+    tensor that requires grad makes it a differentiable parameter (entity.set_gravity_compensation
+    changes it after build)."""
 
     rho: float = 200.0
     friction: float = 1.0
     needs_coup: bool = True
     coup_friction: float = 0.1
     coup_softness: Optional[float] = None
+    gravity_compensation: float = 0.0
 
     def __post_init__(self):
         for name in ("rho", "friction", "coup_friction", "coup_softness"):
@@ -39,6 +43,26 @@ class Rigid:
         if self.coup_softness is not None and not (np.isfinite(self.coup_softness) and self.coup_softness >= 0):
             raise ValueError(f"gs.materials.Rigid(coup_softness={self.coup_softness!r}): must be None or a number "
                              ">= 0 (m; 0: a hard boundary, as in Genesis)")
+        check_gravity_compensation(self.gravity_compensation, "gs.materials.Rigid(gravity_compensation=...)")
+
+
+def check_gravity_compensation(gc, who):
+    """Raise unless gc is a finite number (or a one-element tensor) in [0, 1]."""
+    import torch
+
+    if torch.is_tensor(gc):
+        if gc.numel() != 1 or not gc.is_floating_point():
+            raise ValueError(f"{who}: a tensor must hold one floating-point number, got shape {tuple(gc.shape)} "
+                             f"dtype {gc.dtype}")
+        v = float(gc.detach().reshape(()))
+    else:
+        try:
+            v = float(gc)
+        except (TypeError, ValueError):
+            raise ValueError(f"{who}: must be a number in [0, 1], got {gc!r}") from None
+    if not (np.isfinite(v) and 0.0 <= v <= 1.0):
+        raise ValueError(f"{who}: must be a number in [0, 1] (the fraction of gravity cancelled: 0 none, 1 all), "
+                         f"got {v}")
 
 
 def _check_positive(owner, name, v, unit):

@@ -270,9 +270,17 @@ class Scene:
         self._nan = NaNWatch(self, self.sim_options.nan_policy)
         self._simulator.nan_watch = self._nan
         if self._rigid is not None:
-            # Genesis's name for it: scene.rigid_solver.get_error_envs_mask() (held weakly: no cycle)
+            from .entities.external_api import RigidSolverAPI
+
+            # Genesis's names on the rigid solver: scene.rigid_solver.get_error_envs_mask() (held weakly: no
+            # cycle), apply_links_external_force/torque and the link getters (entities/external_api.py)
             self._rigid.solver.get_error_envs_mask = _WeakCall(self, "get_error_envs_mask")
+            self._rigid_api = RigidSolverAPI(self)
+            for name in RigidSolverAPI.METHODS:
+                setattr(self._rigid.solver, name, getattr(self._rigid_api, name))
         self._built = True
+        if self._rigid is not None:
+            self._rigid.after_build(self.rigid_entities)
         self._init_state = self.get_state()
 
     def _build_mpm(self):
@@ -376,6 +384,8 @@ class Scene:
                 new.append(torch.where(keep, x0.to(x.dtype), x))
             b.set_state(*new)
         self._nan.clear(mask)
+        if self._rigid is not None:
+            self._rigid.clear_applied(mask)
         if self._coupler is not None:
             self._coupler.coupler.clear_through()
 

@@ -5,6 +5,13 @@ link getters' nodes (grad/functions.py).
 Invariant: slot 0 of the solver's state fields holds the current state. With gradients, the
 current state is also a pair of torch tensors (qpos, qvel) in the autograd graph; controls and
 parameters are torch tensors whose values are uploaded to the fields before the next launch.
+
+Applied wrenches (the user's link forces, gravity compensation; solvers/rigid/external.py): the
+wrench the user applies between two steps accumulates (in numpy where nothing needs a gradient, else
+in torch) into a (B, n_links, 6) tensor that the next step takes as an input and then drops (a force
+lasts one step, as in Genesis); gravity compensation is a parameter (B, n_links). Both exist once the solver has applied wrenches (at build when an entity's
+material has gravity_compensation, else from the first apply call); a step recorded before that has
+neither among its inputs.
 """
 from __future__ import annotations
 
@@ -32,7 +39,10 @@ PARAMS = {
     "kv": ("dof_kv", (), "dof"),
     "gravity": ("gravity", (3,), "env"),
     "friction": ("contact.geom_friction", (), "geom"),  # only when the scene has contacts
+    "gravity_compensation": ("applied_gcomp", (), "link"),  # only when the solver has applied wrenches
 }
+# the parameters outside the core, and the solver object each needs
+OPTIONAL_PARAMS = {"friction": "contact", "gravity_compensation": "applied"}
 DEFAULT_KP, DEFAULT_KV = 100.0, 10.0  # Genesis's gains of a joint whose file sets none (N m/rad, N m s/rad)
 CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dofs)
 
@@ -64,19 +74,28 @@ class RigidSim:
                                   rigid_options.joint_limit_damping,
                                   contact_options=rigid_options if rigid_options.enable_collision else None,
                                   mimic=rigid_options.enable_mimic, external_wrench=external_wrench,
-                                  specialize=rigid_options.specialize_kernels)
+                                  specialize=rigid_options.specialize_kernels,
+                                  applied_wrench=any(_has_gravity_compensation(e) for e in scene.rigid_entities))
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.sim = None  # the scene's Simulator, set when it takes this bridge
         # parameters: base values from the model, then the user's setter calls replayed on top
-        self.param_names = [k for k in PARAMS if not PARAMS[k][0].startswith("contact.") or s.contact is not None]
-        self.core_params = [k for k in self.param_names if not PARAMS[k][0].startswith("contact.")]
+        self.param_names = [k for k in PARAMS if k not in OPTIONAL_PARAMS or getattr(s, OPTIONAL_PARAMS[k]) is not None]
+        self.core_params = [k for k in self.param_names if k not in OPTIONAL_PARAMS]
         base = s.initial_params(sim_options.gravity)
         self.param_base = {k: torch.as_tensor(v, device=self.device).to(self.dtype) for k, v in base.items()
                            if k in self.core_params}
         self._default_gains(scene.rigid_entities)
         if s.contact is not None:
             self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
+        # the applied wrench accumulated for the next step: a numpy (B, n_links, 6) array of what needs no
+        # gradient and a torch tensor of what may, each None when nothing
+        self._pending_np = self._pending_t = None
+        self._step_applied = None  # the one the running step takes as its input
+        self._loaded_applied = None  # the tensor whose values are in the solver's fields
+        self._zero_applied = None
+        if s.applied is not None:
+            self.param_base["gravity_compensation"] = self._material_gcomp(scene.rigid_entities)
         self.param_ops = {k: [] for k in self.param_names}
         self.params = dict(self.param_base)
         self.force_lo = torch.as_tensor(base["force_lo"], device=self.device).to(self.dtype)
@@ -90,6 +109,8 @@ class RigidSim:
         self.set_state(*self.init_state)
         self._outputs = None
         self._nan_count = 0  # envs with a NaN record, as the last fused launch returned it
+        if s.applied is not None:
+            self._applied_on()
 
     def _default_gains(self, entities):
         """Genesis's PD gains for what the model leaves unset: kp 100, kv 10 on revolute and prismatic
@@ -106,6 +127,104 @@ class RigidSim:
                 d += n
         assert d == self.n_dofs, (d, self.n_dofs)
         self.param_base["kp"], self.param_base["kv"] = kp, kv
+
+    # ---------------------------------------------------------------- applied wrenches
+    def _material_gcomp(self, entities):
+        """(B, n_links): every link's gravity compensation, its entity's material's (values only)."""
+        g = torch.zeros(self.B, self.n_links, dtype=self.dtype, device=self.device)
+        for ent in entities:
+            gc = ent.material.gravity_compensation
+            g[:, ent._link_start: ent._link_start + ent.n_links] = float(gc.detach()) if torch.is_tensor(gc) else float(gc)
+        return g
+
+    def after_build(self, entities):
+        """Once the scene is built: a material's gravity compensation given as a tensor that requires grad
+        becomes the entity's parameter through its setter, so that it receives gradients (rollout after
+        rollout)."""
+        for ent in entities:
+            gc = ent.material.gravity_compensation
+            if torch.is_tensor(gc) and gc.requires_grad:
+                ent.set_gravity_compensation(gc)
+
+    def enable_applied(self):
+        """Give the solver applied wrenches (if it has none yet): the user's first force, or a gravity
+        compensation set after build. The parameter list grows by gravity_compensation (zero)."""
+        if self.solver.applied is not None:
+            return
+        self.solver.enable_applied()
+        self.param_names.append("gravity_compensation")
+        self.param_base["gravity_compensation"] = torch.zeros(self.B, self.n_links, dtype=self.dtype,
+                                                              device=self.device)
+        self.param_ops["gravity_compensation"] = []
+        self.params["gravity_compensation"] = self.param_base["gravity_compensation"]
+        self._applied_on()
+
+    def _applied_on(self):
+        self._zero_applied = torch.zeros(self.B, self.n_links, 6, dtype=self.dtype, device=self.device)
+        self._loaded_applied = self._zero_applied  # AppliedWrench.clear() zeroed the fields
+        self._params_dirty.add("gravity_compensation")
+        self._loaded_params.pop("gravity_compensation", None)
+
+    @property
+    def has_applied(self):
+        return self.solver.applied is not None
+
+    def add_applied(self, envs, links, force, moment):
+        """Add to the wrench of the next step, on links (numpy int array) of envs (numpy int array), the force
+        and the moment about the link origin (world axes), each (len(envs), len(links), 3) or None (zero):
+        numpy arrays in the solver's precision (kept in numpy: no autograd to carry), or torch tensors.
+        Repeated links add up."""
+        self.enable_applied()
+        if torch.is_tensor(force) or torch.is_tensor(moment):
+            ref = force if torch.is_tensor(force) else moment
+            parts = [torch.zeros_like(ref) if x is None else x.to(ref.dtype) if torch.is_tensor(x)
+                     else torch.as_tensor(np.array(x), device=ref.device).to(ref.dtype) for x in (force, moment)]
+            w = torch.cat(parts, -1).to(self.dtype)
+            e = torch.as_tensor(envs, device=self.device)
+            l = torch.as_tensor(links, device=self.device)  # noqa: E741
+            base = self._pending_t if self._pending_t is not None else self._zero_applied
+            self._pending_t = base.index_put((e[:, None], l[None, :]), w, accumulate=True)
+            return
+        if self._pending_np is None:
+            self._pending_np = np.zeros((self.B, self.n_links, 6), dtype=self.solver.np_dtype)
+        idx = (envs[:, None], links[None, :])
+        # np.add.at sums repeated indices; plain += (faster) keeps one of them
+        repeats = ((len(links) > 1 and len(set(links.tolist())) < len(links))
+                   or (len(envs) > 1 and len(set(envs.tolist())) < len(envs)))
+        for k, x in ((0, force), (3, moment)):
+            if x is None:
+                continue
+            if repeats:
+                np.add.at(self._pending_np[..., k:k + 3], idx, x)
+            else:
+                self._pending_np[envs[:, None], links[None, :], k:k + 3] += x
+
+    def clear_applied(self, envs=None):
+        """Drop the wrench applied for the next step (of the envs flagged in the numpy bool array `envs`)."""
+        if envs is None:
+            self._pending_np = self._pending_t = None
+            return
+        if self._pending_np is not None:
+            self._pending_np[envs] = 0
+        if self._pending_t is not None:
+            keep = torch.as_tensor(~envs, device=self.device).to(self.dtype).reshape(-1, 1, 1)
+            self._pending_t = self._pending_t * keep
+
+    def _take_applied(self):
+        """The wrench of the step about to run, as a tensor (its input) and, where it came from numpy
+        alone, that array (a cheaper upload); the pending wrench is consumed."""
+        a, t = self._pending_np, self._pending_t
+        self._pending_np = self._pending_t = None
+        if a is None and t is None:
+            return self._zero_applied, None
+        if t is None:
+            return torch.from_numpy(a).to(self.device).to(self.dtype), a
+        return (t + torch.from_numpy(a).to(t.device).to(t.dtype) if a is not None else t), None
+
+    def _load_applied(self, w, raw=None):
+        if w is not self._loaded_applied:
+            self.solver.write_applied(raw if raw is not None else self._c(w))
+            self._loaded_applied = w
 
     # ---------------------------------------------------------------- helpers
     def param_field(self, name):
@@ -135,7 +254,10 @@ class RigidSim:
     state = get_state
 
     def inputs(self):
-        return list(self.get_state()) + [self.ctrl] + [self.params[k] for k in self.param_names]
+        x = list(self.get_state()) + [self.ctrl] + [self.params[k] for k in self.param_names]
+        if self.has_applied:
+            x.append(self._step_applied if self._step_applied is not None else self._zero_applied)
+        return x
 
     def context(self):
         """The control modes of the step (which of the packed controls act)."""
@@ -176,8 +298,9 @@ class RigidSim:
             return
         if any(k in self.core_params for k in stale):
             self._upload_core_params()
-        if "friction" in stale:
-            self.param_field("friction").load(self._c(self.params["friction"]))
+        for k in stale:
+            if k in OPTIONAL_PARAMS:
+                self.param_field(k).load(self._c(self.params[k]))
         for k in stale:
             self._loaded_params[k] = self.params[k]
 
@@ -268,7 +391,13 @@ class RigidSim:
         self._upload_core_params()
 
     # ---------------------------------------------------------------- stepping
-    upload = _upload
+    def upload(self):
+        """Before a step: the current values into the fields, and the step takes the wrench applied since
+        the last one (or none)."""
+        self._upload()
+        if self.has_applied:
+            self._step_applied, raw = self._take_applied()
+            self._load_applied(self._step_applied, raw)
 
     def step_fused(self, step):
         self._nan_count = self.solver.step(step)
@@ -320,9 +449,26 @@ class RigidSim:
         return out
 
     # ---------------------------------------------------------------- the rigid part of the step node
+    def _split_inputs(self, values):
+        """A recorded step's inputs (qpos, qvel, ctrl, *params[, applied]) as (head, {param: x}, applied):
+        a step recorded before the solver had applied wrenches has neither gravity_compensation nor
+        applied (None: zero)."""
+        names = self.param_names
+        if self.has_applied and len(values) == 3 + len(names) - 1:
+            names = [k for k in names if k != "gravity_compensation"]
+            return values[:3], dict(zip(names, values[3:])), None
+        applied = values[3 + len(names)] if self.has_applied else None
+        return values[:3], dict(zip(names, values[3:3 + len(names)])), applied
+
     def load(self, values, mode):
-        """Write a step's inputs (qpos, qvel, ctrl, *params) into the fields, for its backward or replay."""
-        qpos, qvel, ctrl, params = values[0], values[1], values[2], values[3:]
+        """Write a step's inputs (qpos, qvel, ctrl, *params[, applied]) into the fields, for its backward or
+        replay."""
+        (qpos, qvel, ctrl), given, applied = self._split_inputs(values)
+        if self.has_applied:
+            if "gravity_compensation" not in given:  # (zero before applied wrenches came: param_base's)
+                given["gravity_compensation"] = self.param_base["gravity_compensation"]
+            self._load_applied(applied if applied is not None else self._zero_applied)
+        params = [given[k] for k in self.param_names]
         self._write_state(qpos, qvel)
         self._load_ctrl(ctrl, mode)
         self._ctrl_dirty = True
@@ -347,21 +493,34 @@ class RigidSim:
         self.solver.accumulate_vjp(self.solver.last_slot, self._c(gx))
 
     def input_grads(self, needs, step):
-        """Gradients of one step's inputs (qpos, qvel, ctrl, *params) from the adjoint fields."""
+        """Gradients of one step's inputs (qpos, qvel, ctrl, *params[, applied]) from the adjoint fields."""
+        s = self.solver
+        (n0, n1, n2), wanted, applied = self._split_inputs(list(needs))
+        out = self._input_grads([n0, n1, n2] + [wanted[k] for k in wanted], list(wanted), step)
+        if applied is not None:
+            g = None
+            if applied:
+                g = torch.empty(self.B, self.n_links, 6, dtype=self.dtype, device=self.device)
+                s.read_applied_grad(g)
+                raise_if_nan_grad([g], step)
+            out.append(g)
+        return out
+
+    def _input_grads(self, needs, param_names, step):
         s = self.solver
         nx = self.n_qs + self.n_dofs
         g = torch.empty(self.B, nx + 3 * self.n_dofs, dtype=self.dtype, device=self.device)
         s.read_grads(g)
         out = [g[:, : self.n_qs] if needs[0] else None, g[:, self.n_qs: nx] if needs[1] else None,
                g[:, nx:].reshape(self.B, 3, self.n_dofs) if needs[2] else None]
-        wanted = dict(zip(self.param_names, needs[3:]))
+        wanted = dict(zip(param_names, needs[3:]))
         packed = {}
         if any(wanted[k] for k in self.core_params):
             layout = [(k, w) for k, w in s.param_layout() if k in self.core_params]
             pg = torch.empty(self.B, sum(w for _, w in layout), dtype=self.dtype, device=self.device)
             s.read_param_grads(pg)
             packed = dict(zip([k for k, _ in layout], torch.split(pg, [w for _, w in layout], -1)))
-        for k in self.param_names:
+        for k in param_names:
             if not wanted[k]:
                 out.append(None)
             elif k in packed:
@@ -418,10 +577,16 @@ class RigidSim:
     # ---------------------------------------------------------------- rollouts
     def new_rollout(self, state):
         qpos, qvel = state
+        self._pending_np = self._pending_t = self._step_applied = None
         self._nan_count = self.solver.reset_nan()
         self.reset_controls()
         self.rebuild_params()
         self.set_state(qpos, qvel)
+
+
+def _has_gravity_compensation(ent):
+    gc = ent.material.gravity_compensation
+    return bool(torch.is_tensor(gc)) or float(gc) != 0.0
 
 
 def _entity_of(entities, i, name):

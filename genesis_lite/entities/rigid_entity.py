@@ -20,6 +20,7 @@ from ..grad.indexing import index_put
 from ..grad.tensor import wrap
 from ..utils.geom import _unit_quat_to_R as _quat_to_R
 from .contact_api import ContactMixin
+from .external_api import GravityCompensationMixin
 from .kinematics_api import KinematicsMixin
 
 
@@ -165,7 +166,7 @@ def _raise_if_not_finite(t, who, what, batched):
         f"({int(bad.sum())} of {bad.numel()}; {what}{where} = {value}). Pass finite values.{hint}")
 
 
-class RigidEntity(ContactMixin, KinematicsMixin):
+class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
     """An articulated rigid body (URDF robot) or a single rigid shape in a scene."""
 
     @property

@@ -24,8 +24,9 @@ import taichi as ti
 
 from .. import taichi_compat
 from .actuation import func_generalized_force
-from .bias import BIAS
+from .bias import BIAS, func_link_forces
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
+from .external import AppliedWrench, func_applied_wrench
 from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INTEGRATE
 from .kinematics import KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_world_inertia
@@ -92,6 +93,7 @@ class RigidCore:
     has_contact = False
     contact = None  # the scene's contact solver (SceneCore)
     external = None  # the scene's external wrenches (SceneCore)
+    applied = None  # the user's wrenches and gravity compensation (SceneCore)
 
 
     n_envs = _runtime(I_ENVS)
@@ -420,22 +422,42 @@ class RigidCore:
 @ti.data_oriented
 class SceneCore(RigidCore):
     """A RigidCore's fields (the same field objects) with the scene's own dynamics stages: its contact
-    solver and/or its external wrenches. The kernels that include them compile on this object, not on
-    the pooled core. It is pooled with its core (CorePool.acquire_scene_core) and serves later scenes
-    of its contact class and external-wrench sizes.
+    solver, its external wrenches (the coupler's) and/or its applied wrenches (the user's forces and
+    gravity compensation, external.AppliedWrench: a stage right after the bias's link forces). The
+    kernels that include them compile on this object, not on the pooled core. It is pooled with its core
+    (CorePool.acquire_scene_core) and serves later scenes of its contact class and external-wrench sizes;
+    `with_applied(step_core)` is a core with applied wrenches added, made once and kept.
     `core` is the pooled RigidCore whose fields it shares."""
 
-    def __init__(self, core: RigidCore, contact, external):
+    def __init__(self, core: RigidCore, contact, external, applied=None):
         # the core's fields, sizes and plans as attributes of this object (references, nothing copied),
         # so that stage code reads them from `s` alike on either kind
         self.__dict__.update(core.__dict__)
         self.core = core
         self.contact = contact
         self.external = external
+        self.applied = applied
+        self._with_applied = None  # not the plain core's (copied above): this SceneCore's own
         extra = [x for x in (contact, external) if x is not None]
-        self.dynamics_stages = DYNAMICS + sum((tuple(x.stages) for x in extra), ())
+        stages = DYNAMICS
+        if applied is not None:
+            k = DYNAMICS.index(func_link_forces) + 1
+            stages = DYNAMICS[:k] + (func_applied_wrench,) + DYNAMICS[k:]
+        self.dynamics_stages = stages + sum((tuple(x.stages) for x in extra), ())
         self.dense_solve = bool(contact is not None and contact.dense)
         self.has_contact = contact is not None
         if core.requires_grad:
             self.grad_plan = ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems,
-                                      [f.grad for x in extra for f in x.grad_fields])
+                                      [f.grad for x in extra + [applied] if x is not None for f in x.grad_fields])
+
+
+def with_applied(step_core):
+    """`step_core` (a RigidCore or a SceneCore) with applied wrenches added: a SceneCore over the same
+    fields, stages and contact solver, made at the first request and kept on `step_core`, so that a later
+    scene that takes `step_core` from the pool and applies forces compiles nothing new."""
+    if step_core.applied is not None:
+        return step_core
+    if getattr(step_core, "_with_applied", None) is None:
+        core = step_core.core if isinstance(step_core, SceneCore) else step_core
+        step_core._with_applied = SceneCore(core, step_core.contact, step_core.external, AppliedWrench(core))
+    return step_core._with_applied

@@ -33,7 +33,7 @@ from .actuation import func_generalized_force
 from .contact import ContactPlan
 from .core import (DYNAMICS, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
                    I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
-                   elem_capacity, env_capacity)
+                   elem_capacity, env_capacity, with_applied)
 from .external import ExternalWrench
 from .flatten import FlatModel
 from .inertia import TreeSchedule
@@ -59,13 +59,16 @@ class RigidSolver:
     The fields live in `self.core` (a pooled RigidCore, core.py); the step's dynamics kernels run on
     `self.step_core`: that core, or a SceneCore over it that adds the scene's contact solver
     (`self.contact`) and external wrenches (`self.external`, written by the rigid-MPM coupler).
+    Applied wrenches (`self.applied`: the user's link forces and gravity compensation, external.py) are
+    added by `enable_applied()`, at build (`applied_wrench`) or at the first use: a scene that applies
+    none runs, and compiles, exactly what it did without them.
     """
 
     NO_NAN = NO_NAN
 
     def __init__(self, models: List[EntityModel], n_envs: int, dt: float, substeps: int, integrator: int,
                  gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float,
-                 contact_options=None, mimic=False, external_wrench=False, specialize=None):
+                 contact_options=None, mimic=False, external_wrench=False, specialize=None, applied_wrench=False):
         self.models = models
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
@@ -134,8 +137,26 @@ class RigidSolver:
         self._fill_info(gravity)
         self._scratch = None  # the (e, src, h) whose evaluation the scratch fields hold, if any
         self._fused_ready = False  # kernel_step_fused compiled (see taichi_compat.compile_options.ForwardCompile)
+        self.applied = None
         self.evaluate = self._evaluation_unit()
         self.kinematics = self._kinematics_unit()
+        if applied_wrench:
+            self.enable_applied()
+
+    def enable_applied(self):
+        """Run the dynamics with applied wrenches from now on (external.AppliedWrench, zero until written):
+        the step core becomes its applied-wrench form (core.with_applied: the same fields, so the state,
+        controls and parameters stay where they are; its kernels compile at their first launch unless an
+        earlier scene on this core compiled them). Returns the AppliedWrench."""
+        if self.applied is None:
+            self.step_core = with_applied(self.step_core)
+            self.applied = self.step_core.applied
+            self.applied.clear()
+            self.dynamics_stages = self.step_core.dynamics_stages
+            self._scratch = None
+            self._fused_ready = False
+            self.evaluate = self._evaluation_unit()
+        return self.applied
 
     # the core's fields that the scene's side and the coupler read (capacity-sized: the scene's block is
     # [.., :n_envs, :n_links or n_dofs]); with gradients, `.grad` is their adjoint
@@ -380,6 +401,23 @@ class RigidSolver:
         """The solver's vjp scalar += <output gradients, read_link_outputs's outputs>."""
         state_io.kernel_link_outputs(self.core, pos, quat, vel, ang, True)
 
+    def write_applied(self, w):
+        """The applied wrench of the next step from w (n_envs, n_links, 6) = [force | moment about the link
+        origin] (N, N m, world axes); enable_applied() first."""
+        if self.n_links:
+            self.applied.kernel_set_wrench(w)
+
+    def read_applied_grad(self, g):
+        """Adjoint of the applied wrench into g (n_envs, n_links, 6)."""
+        if self.n_links:
+            self.applied.kernel_get_wrench_grad(g)
+
+    @property
+    def applied_gcomp(self):
+        """The gravity compensation of every link as the scene's (n_envs, n_links) block (load / to_numpy /
+        field, as the contact friction's)."""
+        return _Block(self.applied.gcomp, (self.n_envs, self.n_links), self.applied.kernel_set_gcomp)
+
     RESULTS = ("mass_mat", "qacc", "dof_tau")
 
     def read_result(self, name: str, out):
@@ -388,3 +426,25 @@ class RigidSolver:
         accelerations of the last step's evaluations, "dof_tau" (n_envs, 1, n_dofs) the actuator forces."""
         if self.n_envs * self.n_dofs:
             state_io.kernel_get_result(self.core, self.RESULTS.index(name), out)
+
+
+class _Block:
+    """A scene's (n_envs, n) block of a capacity-sized [env, element] parameter field."""
+
+    def __init__(self, field, shape, setter):
+        self.field, self.shape, self._setter = field, shape, setter
+
+    @property
+    def grad(self):
+        return self.field.grad
+
+    def to_numpy(self):
+        B, n = self.shape
+        return self.field.to_numpy()[:B, :n]
+
+    def load(self, x):
+        """The block from x (n_envs, n), a numpy array or a contiguous CPU tensor."""
+        if tuple(x.shape) != self.shape:
+            raise ValueError(f"expected shape {self.shape}, got {tuple(x.shape)}")
+        if self.shape[1]:
+            self._setter(x.contiguous() if hasattr(x, "contiguous") else np.ascontiguousarray(x))
