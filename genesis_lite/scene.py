@@ -356,7 +356,7 @@ class Scene:
         sim.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
         self._nan.clear(np.ones(self._nan.B, dtype=bool))
         if self._coupler is not None:
-            self._coupler.coupler.clear_through()
+            self._coupler.reset()
 
     def _reset_envs(self, state, envs_idx):
         if self.n_envs == 0:
@@ -387,7 +387,7 @@ class Scene:
         if self._rigid is not None:
             self._rigid.clear_applied(mask)
         if self._coupler is not None:
-            self._coupler.coupler.clear_through()
+            self._coupler.reset()
 
     def set_gravity(self, gravity, envs_idx=None):
         """Gravity (m/s^2, world frame) of every solver; differentiable."""

@@ -10,6 +10,8 @@ import weakref
 
 import numpy as np
 
+from ..errors import GenesisException
+
 logger = logging.getLogger("genesis_lite")
 
 
@@ -57,6 +59,10 @@ class CouplerBridge:
         """The coupling stage of substep i (see solvers/coupling.py)."""
         self.coupler.couple(i, grad, replay)
 
+    def reset(self):
+        """A new rollout, or some envs restored: the floor watch starts again (CouplerBridge.check)."""
+        self.coupler.clear_through()
+
     def check(self, step, batched):
         """After a step: raise when a coupled body went below the MPM domain's floor within its footprint.
         The domain's walls stop particles only; a body the material cannot bear (or no floor at all) would
@@ -68,8 +74,6 @@ class CouplerBridge:
         self.coupler.clear_through()
         names = sorted({self.names[int(g)] for g in geoms})
         env_txt = f" in env{'s' if len(set(envs.tolist())) > 1 else ''} {sorted(set(envs.tolist()))[:8]}" if batched else ""
-        from ..errors import GenesisException
-
         raise GenesisException(
             f"rigid entit{'ies' if len(names) > 1 else 'y'} {', '.join(repr(n) for n in names)} went through the floor of the "
             f"MPM domain (z = {self.floor:g} m) at step {step}{env_txt}: the domain's walls stop particles, not rigid "
