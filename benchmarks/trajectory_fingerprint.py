@@ -118,9 +118,13 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=None, help="also write the lines to this file")
     ap.add_argument("--scenes", default="contact,anymal,coupling", help="comma-separated subset")
+    ap.add_argument("--npz", default=None, help="also save the tensors to this .npz file; --compare the npz of "
+                    "another tree prints how far each tensor moved (for a change that moves rounding only)")
+    ap.add_argument("--compare", default=None, help="an .npz written by --npz: print each tensor's largest "
+                    "difference from it, relative to the tensor's largest magnitude")
     args = ap.parse_args()
     gs.init(backend=gs.cpu, precision="64", logging_level="warning")
-    lines = []
+    lines, arrays = [], {}
     for name in args.scenes.split(","):
         tensors = {"contact": contact_scene, "anymal": anymal_scene, "coupling": coupling_scene}[name]()
         hashes = []
@@ -128,11 +132,20 @@ def main():
             h = _digest(v)
             hashes.append(h)
             lines.append(f"  {name}.{k} {tuple(v.shape)} {h}")
+            arrays[f"{name}.{k}"] = np.asarray(v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
         lines.append(f"{name} {hashlib.sha256(''.join(hashes).encode()).hexdigest()}")
         print("\n".join(lines[-len(hashes) - 1:]), flush=True)
     if args.out:
         with open(args.out, "w") as f:
             f.write("\n".join(lines) + "\n")
+    if args.npz:
+        np.savez(args.npz, **arrays)
+    if args.compare:
+        ref = np.load(args.compare)
+        for k, a in arrays.items():
+            b = ref[k]
+            rel = np.abs(a - b).max() / max(np.abs(b).max(), 1e-300)
+            print(f"  {k}: largest difference {rel:.2e} of its largest magnitude")
 
 
 if __name__ == "__main__":

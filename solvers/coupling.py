@@ -35,6 +35,7 @@ from .mpm.grid import func_grid_velocity, func_walls
 from .taichi_compat.adstack import require as require_ad_stack
 from .rigid.collision import func_sdf_any, geom_rotations
 from .rigid.contact.law import HEAVY_MASS
+from .rigid.math3d import func_mm, func_mtv, func_mv
 
 TINY = 1e-30
 # Material inside a body (grid nodes with phi < 0) is sent out along the normal at this fraction of its
@@ -166,15 +167,15 @@ class RigidMPMCoupler:
         """World rotation and origin of geom g, and its link."""
         l = self.geom_link[g]
         Rl = self.rigid.link_R[i_b, l]
-        return Rl @ self.geom_R[g], self.rigid.link_pos[i_b, l] + Rl @ self.geom_pos[g], l
+        return func_mm(Rl, self.geom_R[g]), self.rigid.link_pos[i_b, l] + func_mv(Rl, self.geom_pos[g]), l
 
     @ti.func
     def func_sdf_world(self, i_b, g, x):
         """Signed distance of the world point x to geom g and the outward unit normal there (world)."""
         R, p, l = self.func_geom_frame(i_b, g)
-        q = R.transpose() @ (x - p)
+        q = func_mtv(R, x - p)
         phi, n = func_sdf_any(self, 0, self.geom_type[g], g, q, ti.Vector([0.0, 0.0, 1.0]), 0.0)
-        return phi, R @ n, l
+        return phi, func_mv(R, n), l
 
     @ti.kernel
     def kernel_select(self, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32, n2: ti.i32):

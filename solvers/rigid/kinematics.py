@@ -9,7 +9,7 @@ the world slot (func_parent_slot), not to a link this stage writes later.
 """
 import taichi as ti
 
-from .math3d import (func_axis_angle_quat, func_cross_motion, func_quat_mul, func_quat_rotate, func_quat_to_R,
+from .math3d import (func_axis_angle_quat, func_cross_motion, func_mv, func_quat_mul, func_quat_rotate, func_quat_to_R,
                      func_rotate_inertia)
 
 JOINT_FIXED, JOINT_FREE, JOINT_REVOLUTE, JOINT_PRISMATIC = 0, 1, 2, 3
@@ -117,7 +117,7 @@ def func_world_inertia(s: ti.template(), i_b, e, src, h):
     stage reads."""
     for i_l in range(s.n_links):
         R = s.link_R[i_b, i_l]
-        c = s.link_pos[i_b, i_l] + R @ s.link_com[i_b, i_l]
+        c = s.link_pos[i_b, i_l] + func_mv(R, s.link_com[i_b, i_l])
         m = s.link_mass[i_b, i_l]
         mc = m * c
         J = func_rotate_inertia(R, s.link_inertia[i_b, i_l]) + m * (c.dot(c) * ti.Matrix.identity(s.dtype, 3) - c.outer_product(c))
@@ -139,7 +139,7 @@ def func_dof_subspace(s: ti.template(), i_b, e, src, h):
         jt = s.link_jtype[i_l]
         k = i_d - s.link_dof_start[i_l]
         pos = s.link_pos[i_b, i_l]
-        axis = s.link_R[i_b, i_l] @ s.link_jaxis[i_l]
+        axis = func_mv(s.link_R[i_b, i_l], s.link_jaxis[i_l])
         a = k % 3
         unit = ti.Vector([a == 0, a == 1, a == 2], dt=s.dtype)
         rev = ti.cast(jt == JOINT_REVOLUTE, s.dtype)

@@ -4,6 +4,7 @@ contact slot (its point, normal and depth), in the single-assignment form of the
 import taichi as ti
 
 from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG
+from ..math3d import func_mm, func_mtv, func_mv
 from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_round, func_segment_closest, func_sgn3
 
 @ti.func
@@ -13,8 +14,8 @@ def func_geom_pose(s: ti.template(), i_b, e, src, h):
     for g in range(c.n_geoms):
         l = c.geom_link[g]
         R = s.link_R[i_b, l]
-        c.geom_xpos[i_b, g] = s.link_pos[i_b, l] + R @ c.geom_pos[g]
-        c.geom_xR[i_b, g] = R @ c.geom_R[g]
+        c.geom_xpos[i_b, g] = s.link_pos[i_b, l] + func_mv(R, c.geom_pos[g])
+        c.geom_xR[i_b, g] = func_mm(R, c.geom_R[g])
 
 
 @ti.func
@@ -24,7 +25,7 @@ def func_plane_extent(c: ti.template(), g, R, n, branch: ti.template()):
     only the geom's own type is evaluated; else every type's, selected (single-assignment form)."""
     t = c.geom_type[g]
     sz = c.geom_size[g]
-    a = R.transpose() @ n  # n in the geom frame
+    a = func_mtv(R, n)  # n in the geom frame
     r = c.geom_rbound[g]
     if ti.static(branch):
         if t == GEOM_BOX:
@@ -60,8 +61,8 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         lb = c.geom_link[gb]
         Ra = c.geom_xR[i_b, ga]
         Rb = c.geom_xR[i_b, gb]
-        ca = c.geom_xpos[i_b, ga] + Ra @ c.geom_center[ga]
-        cb = c.geom_xpos[i_b, gb] + Rb @ c.geom_center[gb]
+        ca = c.geom_xpos[i_b, ga] + func_mv(Ra, c.geom_center[ga])
+        cb = c.geom_xpos[i_b, gb] + func_mv(Rb, c.geom_center[gb])
         is_plane = c.geom_type[gb] == GEOM_PLANE
         # closing speed bound: centre velocities, plus rotation of the geoms' extents (a plane does not
         # move: candidate_pairs rejects moving planes); either body may also turn towards the other
@@ -113,12 +114,12 @@ def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb, h):
 def func_slot_point(c: ti.template(), i_s, kind, ga, xa, Ra, zb):
     """The point-side point of a slot: a fixed sample point, or the deepest rim point of a cylinder cap
     towards a plane (normal zb)."""
-    p_fixed = xa + Ra @ c.slot_p[i_s]
+    p_fixed = xa + func_mv(Ra, c.slot_p[i_s])
     if ti.static(c.has_rim):
-        nl = Ra.transpose() @ zb
+        nl = func_mtv(Ra, zb)
         rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + 1e-12)
         r_cyl = c.geom_size[ga][0]
-        p_rim = xa + Ra @ ti.Vector([-r_cyl * nl[0] / rho, -r_cyl * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]])
+        p_rim = xa + func_mv(Ra, ti.Vector([-r_cyl * nl[0] / rho, -r_cyl * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]]))
         return ti.select(kind == SLOT_CYL_RIM, p_rim, p_fixed)
     else:
         return p_fixed
@@ -199,18 +200,18 @@ def func_box_edge_contact(c: ti.template(), ga, gb, xa, Ra, xb, Rb, tol):
     sep_f = func_face_sep(T, Ra, ha, Rb, hb)
     sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
     # the supporting edge of a (towards b) runs along a_i; that of b (towards a) along b_j
-    sa = func_sgn3(Ra.transpose() @ L)
-    sb = func_sgn3(Rb.transpose() @ L)
+    sa = func_sgn3(func_mtv(Ra, L))
+    sb = func_sgn3(func_mtv(Rb, L))
     ea = ti.Vector([ti.select(i == 0, 0.0, sa[0] * ha[0]), ti.select(i == 1, 0.0, sa[1] * ha[1]),
                     ti.select(i == 2, 0.0, sa[2] * ha[2])])
     eb = ti.Vector([ti.select(j == 0, 0.0, sb[0] * hb[0]), ti.select(j == 1, 0.0, sb[1] * hb[1]),
                     ti.select(j == 2, 0.0, sb[2] * hb[2])])
     ua = ti.Vector([ti.select(i == 0, ha[0], 0.0), ti.select(i == 1, ha[1], 0.0), ti.select(i == 2, ha[2], 0.0)])
     ub = ti.Vector([ti.select(j == 0, hb[0], 0.0), ti.select(j == 1, hb[1], 0.0), ti.select(j == 2, hb[2], 0.0)])
-    ca = xa + Ra @ ea
-    cb = xb - Rb @ eb
-    da = Ra @ ua
-    db = Rb @ ub
+    ca = xa + func_mv(Ra, ea)
+    cb = xb - func_mv(Rb, eb)
+    da = func_mv(Ra, ua)
+    db = func_mv(Rb, ub)
     pa, pb = func_segment_closest(ca - da, ca + da, cb - db, cb + db)
     # inside both edges: the closest points are not end points (parameters strictly inside (0, 1))
     ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), ti.static(_div_floor()))
@@ -247,12 +248,12 @@ def func_slot_geometry(s: ti.template(), i_b, i_s):
     za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
     zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
     p = func_slot_point(c, i_s, kind, ga, xa, Ra, zb)
-    q = Rb.transpose() @ (p - xb)
+    q = func_mtv(Rb, p - xb)
     # unit direction from the SDF geom's centre to the point geom's centre, in the SDF frame
-    cl = Rb.transpose() @ (xa + Ra @ c.geom_center[ga] - xb) - c.geom_center[gb]
+    cl = func_mtv(Rb, xa + func_mv(Ra, c.geom_center[ga]) - xb) - c.geom_center[gb]
     chat = cl / ti.sqrt(cl.dot(cl) + 1e-24)
     phi_sdf, n_loc = func_sdf_any(c, 0, c.geom_type[gb], gb, q, chat, c.geom_beta[gb])
-    pt, phi, n = func_with_segseg(c, kind, ga, gb, xa, za, xb, zb, p, phi_sdf, Rb @ n_loc)
+    pt, phi, n = func_with_segseg(c, kind, ga, gb, xa, za, xb, zb, p, phi_sdf, func_mv(Rb, n_loc))
     depth = ra - phi
     # the contact point: on the point side's surface against a static geom (where that side's velocity
     # and Jacobian belong: a speculative contact's gap can be centimetres, and a fast-turning link's

@@ -5,6 +5,7 @@ coupling outside the tree sparsity, see the package docstring)."""
 import taichi as ti
 
 from ..layout import FieldTree
+from ..math3d import func_mm, func_mtv, func_mv
 
 
 @ti.func
@@ -85,9 +86,11 @@ def func_bank_add(s: ti.template(), b: ti.template(), i_b, i_s, pos, F, W):
     c = s.contact
     la = c.geom_link[c.slot_ga[i_s]]
     lb = c.geom_link[c.slot_gb[i_s]]
-    P = func_skew(pos)
-    PW = P @ W
-    Sww = -(PW @ P)
+    PW, Sww = W, W
+    if ti.static(b.matrices):
+        P = func_skew(pos)
+        PW = func_mm(P, W)
+        Sww = -func_mm(PW, P)
     tq = pos.cross(F)
     if c.link_dyn[la] == 1:
         b.link_touch[i_b, la] = 1
@@ -144,13 +147,13 @@ def func_bank_dof(s: ti.template(), b: ti.template(), i_b):
         Swv = b.link_Swv[i_b, i_l]
         if ti.static(s.requires_grad):
             zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
-            b.dof_Sw[i_b, i] = ti.select(touch, b.link_Sww[i_b, i_l] @ wi + Swv @ vi, zero)
-            b.dof_Sv[i_b, i] = ti.select(touch, Swv.transpose() @ wi + b.link_Svv[i_b, i_l] @ vi, zero)
+            b.dof_Sw[i_b, i] = ti.select(touch, func_mv(b.link_Sww[i_b, i_l], wi) + func_mv(Swv, vi), zero)
+            b.dof_Sv[i_b, i] = ti.select(touch, func_mtv(Swv, wi) + func_mv(b.link_Svv[i_b, i_l], vi), zero)
         if touch:
             func_acc(s, s.force, i_b, i, wi.dot(b.link_fn[i_b, i_l]) + vi.dot(b.link_ff[i_b, i_l]))
             if ti.static(not s.requires_grad):
-                Sw = b.link_Sww[i_b, i_l] @ wi + Swv @ vi
-                Sv = Swv.transpose() @ wi + b.link_Svv[i_b, i_l] @ vi
+                Sw = func_mv(b.link_Sww[i_b, i_l], wi) + func_mv(Swv, vi)
+                Sv = func_mtv(Swv, wi) + func_mv(b.link_Svv[i_b, i_l], vi)
                 j = i
                 while j >= 0:
                     func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(Sw) + s.cdof_v[i_b, j].dot(Sv))
@@ -185,5 +188,5 @@ def func_bank_cross(s: ti.template(), b: ti.template(), i_b):
         vi = s.cdof_v[i_b, i]
         wj = s.cdof_w[i_b, j]
         vj = s.cdof_v[i_b, j]
-        m = wj.dot(b.lp_Sww[i_b, lp] @ wi + Swv @ vi) + vj.dot(Swv.transpose() @ wi + b.lp_Svv[i_b, lp] @ vi)
+        m = wj.dot(func_mv(b.lp_Sww[i_b, lp], wi) + func_mv(Swv, vi)) + vj.dot(func_mtv(Swv, wi) + func_mv(b.lp_Svv[i_b, lp], vi))
         func_acc2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)
