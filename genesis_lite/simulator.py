@@ -14,7 +14,8 @@ and nowhere else, `_substep`):
     rigid.substep                rigid dynamics with that wrench, contacts, integration
 
 A solver or a coupler the scene does not have is skipped (None). A scene of rigid bodies alone steps
-without gradients through its solver's fused step (one launch per step; the same numbers).
+without gradients through its solver's fused step (one launch per step; the same numbers), unless it
+was built for gradients: then its untracked steps run the tracked steps' kernels (RigidSolver._fused).
 
 Without gradients the step is plain kernel launches and the state stays in the fields. With
 gradients the step is a `StepFunction` node (grad/functions.py) whose inputs are every bridge's

@@ -381,19 +381,37 @@ class RigidCore:
                         for stage in ti.static(INTEGRATE):
                             stage(self, i_b, kind, e, base, src, dst, h)
                 if finish:
-                    bad = 0
-                    for i_q in range(self.n_qs):
-                        x = self.qpos[self.n_slots - 1, i_b, i_q]
-                        self.qpos[0, i_b, i_q] = x
-                        bad |= ti.math.isnan(x) or ti.math.isinf(x)
-                    for i_d in range(self.n_dofs):
-                        x = self.qvel[self.n_slots - 1, i_b, i_d]
-                        self.qvel[0, i_b, i_d] = x
-                        bad |= ti.math.isnan(x) or ti.math.isinf(x)
-                    if bad:
-                        if self.nan_step[i_b] == NO_NAN:
-                            self.nan_step[i_b] = step
-                            ti.atomic_add(self.nan_count[None], 1)
+                    self.func_finish(i_b, step)
+        return self.nan_count[None]
+
+    @ti.func
+    def func_finish(self, i_b, step):
+        """The step's last slot becomes slot 0; nan_step[i_b] records `step` if that state is not finite
+        (and none is recorded yet)."""
+        bad = 0
+        for i_q in range(self.n_qs):
+            x = self.qpos[self.n_slots - 1, i_b, i_q]
+            self.qpos[0, i_b, i_q] = x
+            bad |= ti.math.isnan(x) or ti.math.isinf(x)
+        for i_d in range(self.n_dofs):
+            x = self.qvel[self.n_slots - 1, i_b, i_d]
+            self.qvel[0, i_b, i_d] = x
+            bad |= ti.math.isnan(x) or ti.math.isinf(x)
+        if bad:
+            if self.nan_step[i_b] == NO_NAN:
+                self.nan_step[i_b] = step
+                ti.atomic_add(self.nan_count[None], 1)
+
+    @ti.kernel
+    def kernel_finish(self, step: ti.i32, finish: ti.i32) -> ti.i32:
+        """kernel_step_fused's end alone (with `finish`), after a step run op by op; returns the count
+        of envs with a NaN record."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                if finish:
+                    self.func_finish(i_b, step)
         return self.nan_count[None]
 
     @ti.kernel

@@ -2,7 +2,8 @@
 
 The model is flattened (flatten.py) and loaded into a RigidCore of its capacity class, taken from the
 pool (pool.py, core.py). A step is a schedule of ops per substep (schedule.py: dynamics + factor-solve
-at a slot, integrate, copy-back). Without gradients it runs as one fused kernel. With gradients each
+at a slot, integrate, copy-back). Without gradients it runs as one fused kernel (in a scene built for
+gradients, op by op: see _fused). With gradients each
 substep runs op by op (`substep(i)`) so that the scene can record it on a `ti.ad.Tape`
 (genesis_lite/simulator.py): an evaluation (dynamics + factor-solve) is one `ti.ad.grad_replaced` call
 whose adjoint, registered with `ti.ad.grad_for`, recomputes the evaluation's scratch when a later one
@@ -246,13 +247,27 @@ class RigidSolver:
 
     # ------------------------------------------------------------------ python entry points
     def _fused(self, step, k0, k1, finish):
-        """Launch the fused step; returns the number of envs with a NaN record (see kernel_step_fused)."""
+        """Launch the fused step; returns the number of envs with a NaN record (see kernel_step_fused).
+        A scene built for gradients runs its untracked steps op by op instead, with the kernels its
+        tracked steps use (the same numbers): its fused kernel would hold the gradient path's forms of
+        every stage and take seconds to compile (~10 s for the Panda over a plane) for steps such a scene
+        rarely takes many of (finite-difference checks, evaluation rollouts)."""
+        if self.core.requires_grad:
+            return self._unfused(step, k0, k1, finish)
         if self._fused_ready or self.specialized:
             return self.step_core.kernel_step_fused(step, k0, k1, finish)
         with ForwardCompile():
             n = self.step_core.kernel_step_fused(step, k0, k1, finish)
         self._fused_ready = True
         return n
+
+    def _unfused(self, step, k0, k1, finish):
+        """Ops k0..k1-1 as the gradient path launches them (whole substeps), then kernel_finish."""
+        for i in range(self.substeps):
+            if k0 <= self.substep_first_op[i] < k1:
+                self.substep(i)
+        self._scratch = None
+        return self.core.kernel_finish(step, finish)
 
     def step(self, step: int = 0):
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
