@@ -442,6 +442,30 @@ def _inertia_base(b, e, name, rng):
     return I * 1.1 + (d + np.swapaxes(d, -1, -2)) * 1e-3
 
 
+def _moving_links(e):
+    """Local indices of the entity's links that some joint moves (a fixed base, and what is welded to it,
+    moves nothing: a force there has no effect to check)."""
+    moves = []
+    for link in e.links:
+        p = link.parent_idx_local
+        moves.append(link.joint.n_dofs > 0 or (p >= 0 and moves[p]))
+    return [i for i, m in enumerate(moves) if m]
+
+
+def _wrench_kind(method, ref, local, sd):
+    """scene.sim.rigid_solver.apply_links_external_force / _torque on every moving link of the entity, a
+    vector per step and link ((T, links, 3)); a force lasts one step (Genesis's meaning), so the rollout
+    applies it again before every step. ref and local choose what the call takes from the pose of the
+    moment (the lever, the link's axes), which autograd carries to the state and the parameters."""
+    def base(b, e, name, rng):
+        return rng.normal(0, sd, (b.T, len(_moving_links(e)), 3))
+
+    def apply(b, e, name, x, t):
+        links = [e.links[i].idx for i in _moving_links(e)]
+        getattr(b.scene.sim.rigid_solver, method)(_step(x, t, b), links, ref=ref, local=local)
+    return InputKind(3, base, apply, jitter=0.1 * sd)
+
+
 INPUTS: Dict[str, InputKind] = {
     # --- rigid initial state
     "dofs_position": InputKind(1, lambda b, e, n, rng: _one_env(e.get_dofs_position(dofs_idx_local=_dsel(b, n)), b),
@@ -480,6 +504,19 @@ INPUTS: Dict[str, InputKind] = {
                          lambda b, e, n, x, t: b.scene.set_gravity(x), jitter=0.2),
     "friction": InputKind(0, lambda b, e, n, rng: _one_env(e.get_friction(), b),
                           lambda b, e, n, x, t: e.set_friction(x), jitter=0.05),
+    # --- applied link wrenches (solvers/rigid/external.py), one value per step and moving link: Genesis's
+    # default call (a world force at the link origin: nothing taken from the pose), a force at the link's
+    # centre of mass in its own axes (lever: the pose and links_COM), one at its tree's centre of mass (every
+    # link's pose and mass), a world torque and one in the link's axes; forces ~1 N and torques ~0.1 N m
+    # on the links of ~1 kg, 0.1-0.2 m long
+    "links_force": _wrench_kind("apply_links_external_force", "link_origin", False, 1.0),
+    "links_force_com": _wrench_kind("apply_links_external_force", "link_com", True, 1.0),
+    "links_force_root": _wrench_kind("apply_links_external_force", "root_com", False, 1.0),
+    "links_torque": _wrench_kind("apply_links_external_torque", "link_origin", False, 0.1),
+    "links_torque_local": _wrench_kind("apply_links_external_torque", "link_origin", True, 0.1),
+    # the entity's fraction of gravity cancelled, within (0, 1) in every env
+    "gravity_compensation": InputKind(0, lambda b, e, n, rng: np.array(0.3 + 0.4 * rng.random()),
+                                      lambda b, e, n, x, t: e.set_gravity_compensation(x), jitter=0.05),
     # --- MPM
     # particle positions: the quadratic B-spline weights are C1 only (their second derivative jumps where a
     # particle crosses a cell's quarter points, some substep of some particle within ~1e-5 m), so small steps
@@ -569,6 +606,10 @@ def _table() -> List[Case]:
     # float32: not the mass of a body in flight, whose gradient is the difference of gravity terms ~1000x
     # larger (m g against M qacc): float32 rounds it to ~2 % (measured: -0.005035 against -0.005128)
     add("free_box", FB_SHORT[:4], BOX_OUT, V(precision="32"))
+    # the wrenches on a free body: the local axes are its tumbling orientation (quat); its centre of mass is
+    # its origin, so the three refs differ only by local
+    slow("free_box", ("box.quat", "box.dofs_velocity", "box.links_mass", "box.links_force", "box.links_force_com",
+                      "box.links_torque_local", "box.gravity_compensation"), BOX_OUT, tag="wrench")
     # ------------------------------------------------------------------ skewed arm, collision on, nothing to touch
     ARM_STATE = ("arm.dofs_position", "arm.dofs_velocity", "arm.ctrl_force", "arm.links_mass", "arm.links_inertia",
                  "arm.links_COM", "arm.dofs_damping", "arm.dofs_armature", "arm.gravity")
@@ -587,6 +628,23 @@ def _table() -> List[Case]:
     slow("arm", ARM_STATE + ARM_PD, ARM_OUT, V(precision="32"))
     slow("arm_plane", ARM_STATE, ARM_OUT)
     slow("arm_plane", ARM_PD, ARM_OUT, V(integrator="RK4"))
+    # applied link wrenches and gravity compensation on the skewed arm: the pose (dofs_position), the centres
+    # of mass (links_COM) and the masses (links_mass) set the levers and axes that ref / local take from the
+    # state of each call, and gravity the compensating force's direction. (Link 1's origin lies on its hinge's
+    # axis: a force there moves nothing, a zero block of links_force's random directions, whose other links
+    # carry the check.)
+    WRENCH = ("arm.links_force", "arm.links_force_com", "arm.links_force_root", "arm.links_torque",
+              "arm.links_torque_local", "arm.gravity_compensation")
+    WRENCH_STATE = ("arm.dofs_position", "arm.links_mass", "arm.links_COM", "arm.gravity") + WRENCH
+    add("arm", WRENCH_STATE, ARM_OUT, tag="wrench")
+    # batched: each env its own wrenches ((n_envs, links, 3) a call) and its own compensation
+    add("arm", ("arm.dofs_velocity", "arm.links_force_com", "arm.links_torque_local", "arm.gravity_compensation"),
+        ARM_OUT, V(n_envs=3), tag="wrench")
+    slow("arm", WRENCH_STATE, ARM_OUT, V(checkpoint_every=3), tag="wrench")
+    slow("arm", WRENCH_STATE, ARM_OUT, V(process="first"), tag="wrench")
+    for integ in ("Euler", "RK4"):
+        slow("arm", WRENCH_STATE, ARM_OUT, V(integrator=integ), tag="wrench")
+    slow("arm", WRENCH_STATE, ARM_OUT, V(precision="32"), tag="wrench")
     # ------------------------------------------------------------------ box sliding on a plane
     SLIDE = ("box.dofs_velocity", "box.ctrl_force", "box.friction", "box.links_mass", "box.links_COM")
     # exact contact at the start: d/dvz was ~19 % off until 3b88db4 (softplus's adjoint at depth 0)
