@@ -456,6 +456,73 @@ def test_friction_parameter():
 # ------------------------------------------------------------------------------------------------
 # long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
 @pytest.mark.slow
+def _skew_arm_rollout(assets_dir, plane: bool):
+    """The skew arm (offset COMs, rotated inertias, skewed axes) 1 m above the ground under PD for 8 steps
+    with gradients, over a plane or alone: (link positions, d loss / d start angles, the contact solver)."""
+    scene = _scene(requires_grad=True)
+    if plane:
+        scene.add_entity(gs.morphs.Plane())
+    arm = scene.add_entity(gs.morphs.URDF(file=str(assets_dir / "urdf" / "skew_arm.urdf"), fixed=True, pos=(0.0, 0.0, 1.0)))
+    scene.build()
+    arm.set_dofs_kp(_t([12.0, 8.0, 4.0]))
+    arm.set_dofs_kv(_t([0.6, 0.4, 0.2]))
+    q0 = _t([0.3, -0.5, 0.8]).requires_grad_(True)
+    arm.set_dofs_position(q0)
+    arm.control_dofs_position(_t([0.0, 0.2, -0.3]))
+    traj = []
+    for _ in range(8):
+        scene.step()
+        traj.append(arm.get_links_pos())
+    traj = torch.stack(traj)
+    w = torch.as_tensor(np.random.default_rng(5).normal(size=tuple(traj.shape)), dtype=F64)
+    (w * traj).sum().backward()
+    return traj.detach(), q0.grad, scene.sim.rigid_solver.contact
+
+
+def test_an_arm_over_a_plane_it_never_reaches_runs_no_contact_kernel_and_gives_the_arm_alone_s_numbers(assets_dir):
+    """Contacts only when some pair can touch (RigidSolver._evaluation_unit): over a plane it never comes
+    near, the arm's evaluations run the kernels of the arm alone (no contact report ever ran: its evaluation
+    count stays 0), and its trajectory and gradient are those of the arm without the plane, bit for bit."""
+    q_plane, g_plane, contact = _skew_arm_rollout(assets_dir, True)
+    q_alone, g_alone, none = _skew_arm_rollout(assets_dir, False)
+    assert none is None and contact is not None
+    assert int(contact.eval_count.to_numpy().sum()) == 0
+    assert torch.equal(q_plane, q_alone) and torch.equal(g_plane, g_alone)
+    assert g_alone.abs().min() > 1e-3  # (every start angle moves the links)
+
+
+def test_grad_of_a_ball_that_starts_out_of_reach_and_lands():
+    """A ball 5 cm above the ground, thrown down and sideways with spin: its first evaluations find no pair
+    that can touch and run without the contact kernels, its last ones land, roll and slide with them. The
+    gradient of where it ends up with respect to its start velocity, through that switch, against
+    float64 central finite differences."""
+    scene = _scene(requires_grad=True)
+    scene.add_entity(gs.morphs.Plane())
+    ball = scene.add_entity(gs.morphs.Sphere(radius=0.05, pos=(0.0, 0.0, 0.1)))
+    scene.build()
+    contact = scene.sim.rigid_solver.contact
+    T = 14
+    evals = []
+
+    def where(v):
+        scene.reset()
+        contact.eval_count.fill(0)
+        ball.set_dofs_velocity(v)
+        for _ in range(T):
+            scene.step()
+        evals.append(int(contact.eval_count.to_numpy()[0]))
+        p = ball.get_pos()
+        return p[0] + 2.0 * p[2]
+
+    rep = gs.grad.check(where, {"v": _t([0.8, 0.3, -0.2, 1.0, -2.0, 0.5])}, tol=1e-6)
+    assert rep.ok, str(rep)
+    # the contact kernels ran in some evaluations of the rollout, not in all: it switched on the way down
+    assert 0 < evals[0] < T, evals
+    g = rep.autograd[0]
+    # in free flight d/dvx = T dt and d/dvz = 2 T dt: friction after landing and the ground changed them
+    assert float(g[0]) < 0.95 * T * DT and float(g[2]) < 0.5 * 2 * T * DT, g
+
+
 def test_grad_stopping_distance_wrt_mu_and_v():
     """Exact against finite differences; within 3 % of d/dmu, d/dv of v^2 / (2 mu g) (the model's
     friction is smoothed below 1 mm/s and integrated at dt = 0.01 s)."""

@@ -305,29 +305,57 @@ class RigidSolver:
         compiles an adjoint in time superlinear in its size (the Panda's 13 stages: 9 s as separate
         kernels, 24 s as one). The generalised force shares the kernel of the stage before it: its
         adjoint alone left ~1e-250 (not 0) in the gradient of an env outside the loss
-        (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient)."""
-        step_core = self.step_core
-        bounds = [k for k, f in enumerate(step_core.dynamics_stages) if f is not func_generalized_force or k == 0]
-        bounds.append(len(step_core.dynamics_stages))
-        parts = [(k0, k1, all(f in PLAIN_ADJOINT for f in step_core.dynamics_stages[k0:k1]))
-                 for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))]
+        (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient).
+
+        Contacts only when some pair can touch: in a scene whose contact solver is its only addition to
+        the core (no external or applied wrenches) and couples no two moving bodies (not dense), an
+        evaluation at a state where the broad phase finds no pair active in any env runs the core's own
+        kernels (those of the same robot without collision pairs), forward and backward. Its contact stages
+        and passes would add exact zeros to the force and M, and the final solve is the core's, so the
+        numbers are the same bit for bit (tests/test_contact.py: an arm over a plane it never reaches
+        against the arm alone), while the contact kernels and their adjoints (the larger part of a contact
+        scene's compile: ~20 s of the Panda over a plane's cold 40 s) compile only when a contact can
+        happen. The check is one small kernel and a returned integer per evaluation."""
+        step_core, core, contact = self.step_core, self.core, self.contact
+        lazy = (contact is not None and not contact.dense and step_core.external is None
+                and getattr(step_core, "applied", None) is None)
+
+        def parts_of(stages):
+            bounds = [k for k, f in enumerate(stages) if f is not func_generalized_force or k == 0]
+            bounds.append(len(stages))
+            return [(k0, k1, all(f in PLAIN_ADJOINT for f in stages[k0:k1]))
+                    for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))]
+
+        runs = {True: (step_core, parts_of(step_core.dynamics_stages)), False: (core, parts_of(core.dynamics_stages))}
+        used = {}  # (e, src, h) -> whether its last forward ran the contact kernels
+
+        def with_contact(e, src, h):
+            if not lazy:
+                return True
+            with ForwardCompile():
+                use = contact.kernel_active_pairs(step_core, src, h) > 0
+            used[(e, src, h)] = use
+            return use
+
+        def forward(target, e, src, h):
+            target.kernel_dynamics(e, src, h)
+            target.kernel_factor_solve(e)
+            self._scratch = (e, src, h, target)
 
         @ti.ad.grad_replaced
         def evaluate(e, src, h):
-            step_core.kernel_dynamics(e, src, h)
-            step_core.kernel_factor_solve(e)
-            self._scratch = (e, src, h)
+            forward(runs[with_contact(e, src, h)][0], e, src, h)
 
         @ti.ad.grad_for(evaluate)
         def evaluate_grad(e, src, h):
-            if self._scratch != (e, src, h):
-                step_core.kernel_dynamics(e, src, h)
-                step_core.kernel_factor_solve(e)
-                self._scratch = (e, src, h)
-            step_core.kernel_solve_grad(e)
+            use = used[(e, src, h)] if (e, src, h) in used else with_contact(e, src, h)
+            target, parts = runs[use]
+            if self._scratch != (e, src, h, target):
+                forward(target, e, src, h)
+            target.kernel_solve_grad(e)
             for k0, k1, plain in parts:
                 with AdjointCompile(plain):
-                    step_core.kernel_dynamics_part.grad(k0, k1, e, src, h)
+                    target.kernel_dynamics_part.grad(k0, k1, e, src, h)
 
         return evaluate
 

@@ -6,7 +6,8 @@ import numpy as np
 import taichi as ti
 
 from ... import taichi_compat
-from ..collision import N_KDOP, geom_rotations
+from ..collision import N_KDOP, func_broad_phase, func_geom_pose, geom_rotations
+from ..kinematics import LINK_STATE
 from ..layout import FieldTree
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
@@ -298,6 +299,23 @@ class ContactSolver:
 
     # Env loops over the core's env capacity with a guard, as core.RigidCore explains (a loop bound
     # read from a field in a kernel of several loops broke Taichi's adjoint).
+    @ti.kernel
+    def kernel_active_pairs(self, s: ti.template(), src: ti.i32, h: float) -> ti.i32:
+        """How many (env, pair) the broad phase finds active at the state in slot src for a (sub)step h:
+        the link state, geom poses and broad phase of the evaluation, alone (forward only: one loop over
+        envs, each env's stages in turn). 0 means that the evaluation's contact stages and passes would
+        add exact zeros (see RigidSolver._evaluation_unit)."""
+        n = 0
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                for stage in ti.static(LINK_STATE + (func_geom_pose, func_broad_phase)):
+                    stage(s, i_b, 0, src, h)
+                for i_p in range(self.n_pairs):
+                    n += self.pair_active[i_b, i_p]
+        return n
+
     @ti.kernel
     def kernel_report(self, s: ti.template(), e: ti.i32):
         if ti.static(s.serial):
