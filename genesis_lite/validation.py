@@ -5,7 +5,7 @@ The rules (SI units): an inertia tensor about the COM is symmetric positive semi
 principal moments satisfying the triangle inequalities I1 + I2 >= I3 (those of some rigid body), and
 positive definite for a free body; a free body has a positive mass; a link on a revolute or prismatic
 joint has a positive mass, or (a massless intermediate link, as MuJoCo allows) massive links below it;
-a fixed root link may be massless; joint damping, armature and dry friction are >= 0; joint limits
+a fixed root link may be massless; joint damping, armature, dry friction and spring stiffness are >= 0; joint limits
 have lower <= upper; actuator efforts are >= 0. (A hinge link may be a point mass, inertia 0 about its
 COM, as textbook pendulums in URDF are; a free body may not.) Every check reads plain numbers (numpy, or a detached copy of a torch tensor), so a
 value that requires grad keeps its autograd history.
@@ -84,11 +84,14 @@ def validate_model(model) -> None:
         bad = inertia_problems(l.inertia, strict=need == "free")
         if bad:
             raise GenesisException(f"{where}: inertia {_fmt(l.inertia)} {bad[0][1]}. {INERTIA_HINT}")
-        for name in ("damping", "armature", "frictionloss"):
+        for name in ("damping", "armature", "frictionloss", "stiffness"):
             v = getattr(l, name)
             if not (np.isfinite(v) and v >= 0):
                 raise GenesisException(f"{where}: joint '{l.joint_name}' has {name} {v}; it must be finite and "
                                        ">= 0. Fix the value in the model file.")
+        if not np.isfinite(l.springref):
+            raise GenesisException(f"{where}: joint '{l.joint_name}' has springref {l.springref}; it must be finite. "
+                                   "Fix the value in the model file.")
         lo, hi = l.limit
         if np.isnan(lo) or np.isnan(hi) or lo > hi:
             raise GenesisException(f"{where}: joint '{l.joint_name}' has limits lower {lo} > upper {hi}; give "

@@ -418,14 +418,20 @@ def test_free_body_pose_round_trip(kind, free, arm, fresh):
     assert np.allclose(_np(box.get_pos()), pos, rtol=0, atol=1e-15)
     assert np.allclose(_np(box.get_quat()), quat, rtol=0, atol=1e-15)
     assert np.allclose(_np(box.get_qpos()), np.concatenate([pos, quat]), rtol=0, atol=1e-15)
-    # dof positions of a free joint: xyz and the rotation vector
+    # dof positions of a free joint, as Genesis's: xyz and intrinsic x-y-z Euler angles (R = Rx(a) Ry(b) Rz(c),
+    # the quaternion qx(a) qy(b) qz(c))
+    def euler_quat(e):
+        x, y, z = (_rotvec_quat(e[k] * np.eye(3)[k]) for k in range(3))
+        return _quat_mul(_quat_mul(x, y), z)
+
     dp = _np(box.get_dofs_position())
     assert np.allclose(dp[:3], pos, atol=1e-15)
-    assert _same_rotation(_rotvec_quat(dp[3:]), quat, 1e-12)
-    rv = np.array([0.4, -1.1, 0.7])
-    box.set_dofs_position(conv(np.concatenate([pos + 1.0, rv])))
-    assert np.allclose(_np(box.get_dofs_position()), np.concatenate([pos + 1.0, rv]), atol=1e-12)
-    assert _same_rotation(_np(box.get_quat()), _rotvec_quat(rv), 1e-12)
+    assert _same_rotation(euler_quat(dp[3:]), quat, 1e-12)
+    assert abs(dp[4]) <= np.pi / 2
+    e = np.array([0.4, -1.1, 0.7])
+    box.set_dofs_position(conv(np.concatenate([pos + 1.0, e])))
+    assert np.allclose(_np(box.get_dofs_position()), np.concatenate([pos + 1.0, e]), atol=1e-12)
+    assert _same_rotation(_np(box.get_quat()), euler_quat(e), 1e-12)
     vel = np.array([1.0, -2.0, 0.5, 0.3, 0.2, -0.1])
     box.set_dofs_velocity(conv(vel))
     assert np.allclose(_np(box.get_dofs_velocity()), vel, rtol=0, atol=0)

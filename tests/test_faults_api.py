@@ -289,7 +289,7 @@ def test_impossible_masses_gains_and_damping_are_refused(arm_box):
     m = arm.get_links_mass(links_idx_local=[n - 2]).clone()
     arm.set_links_mass([0.0], links_idx_local=[n - 2])  # a massless intermediate link is allowed (as at load)
     arm.set_links_mass(m, links_idx_local=[n - 2])
-    for setter in ("damping", "armature", "kp", "kv", "frictionloss"):
+    for setter in ("damping", "armature", "kp", "kv", "frictionloss", "stiffness"):
         with pytest.raises(GenesisException, match=rf"'arm': {setter} must be >= 0, got -0.5 for dof 2 "
                                                    r"\(joint '\w+'\) in env 0"):
             getattr(arm, f"set_dofs_{setter}")([0.1, 0.1, -0.5, 0.1])

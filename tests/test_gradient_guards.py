@@ -78,6 +78,7 @@ RIGID_SETTERS = {
     "set_dofs_armature": (lambda s, a, b, x: a.set_dofs_armature(x), lambda a, b: (a.n_dofs,), "arm", "armature"),
     "set_dofs_frictionloss": (lambda s, a, b, x: a.set_dofs_frictionloss(x), lambda a, b: (a.n_dofs,), "arm",
                               "frictionloss"),
+    "set_dofs_stiffness": (lambda s, a, b, x: a.set_dofs_stiffness(x), lambda a, b: (a.n_dofs,), "arm", "stiffness"),
     "set_links_mass": (lambda s, a, b, x: a.set_links_mass(x), lambda a, b: (a.n_links,), "arm", "mass"),
     "set_links_inertia": (lambda s, a, b, x: a.set_links_inertia(x), lambda a, b: (a.n_links, 3, 3), "arm",
                           "inertia"),

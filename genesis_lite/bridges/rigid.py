@@ -37,6 +37,7 @@ PARAMS = {
     "frictionloss": ("dof_frictionloss", (), "dof"),
     "kp": ("dof_kp", (), "dof"),
     "kv": ("dof_kv", (), "dof"),
+    "stiffness": ("dof_stiffness", (), "dof"),
     "gravity": ("gravity", (3,), "env"),
     "friction": ("contact.geom_friction", (), "geom"),  # only when the scene has contacts
     "gravity_compensation": ("applied_gcomp", (), "link"),  # only when the solver has applied wrenches

@@ -15,10 +15,11 @@ import torch
 
 from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 
-from ..errors import GenesisException, ZeroGainWarning
+from ..errors import GenesisException, GenesisWarning, ZeroGainWarning
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
 from ..utils.geom import _unit_quat_to_R as _quat_to_R
+from ..utils.geom import quat_to_xyz, xyz_to_quat
 from .contact_api import ContactMixin
 from .external_api import GravityCompensationMixin
 from .kinematics_api import KinematicsMixin
@@ -128,25 +129,6 @@ class RigidJoint:
     @property
     def q_idx_local(self):
         return self._one_or_list(self.qs_idx_local)
-
-
-def _quat_to_rotvec(q):
-    q = q / q.norm(dim=-1, keepdim=True)
-    q = torch.where(q[..., :1] < 0, -q, q)
-    s = q[..., 1:].norm(dim=-1, keepdim=True)
-    angle = 2 * torch.atan2(s, q[..., :1])
-    # angle / sin(angle/2) -> 2 as s -> 0, kept smooth for gradients
-    scale = torch.where(s > 1e-8, angle / s.clamp_min(1e-8), 2.0 + s * s / 3.0)
-    return q[..., 1:] * scale
-
-
-def _rotvec_to_quat(r):
-    a2 = (r * r).sum(-1, keepdim=True)
-    a = torch.sqrt(a2.clamp_min(1e-24))
-    small = a2 < 1e-12
-    sinc = torch.where(small, 0.5 - a2 / 48.0, torch.sin(a / 2) / a)
-    cos = torch.where(small, 1 - a2 / 8.0, torch.cos(a / 2))
-    return torch.cat([cos, r * sinc], -1)
 
 
 def _raise_if_not_finite(t, who, what, batched):
@@ -426,7 +408,9 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         return self._out(v[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
 
     def _dof_positions(self, q):
-        """Per-dof positions: joint coordinates; for a free joint its xyz and rotation vector."""
+        """Per-dof positions: joint coordinates; for a free joint, as Genesis, its xyz and its intrinsic x-y-z
+        Euler angles (gs.utils.geom.quat_to_xyz: R = Rx Ry Rz, pitch in [-pi/2, pi/2]; differentiable away
+        from gimbal lock)."""
         cols = []
         for j in self.joints:
             qs = self._q_start + j.q_start_local
@@ -434,11 +418,12 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
                 cols.append(q[:, qs:qs + 1])
             elif j.n_dofs == 6:
                 cols.append(q[:, qs:qs + 3])
-                cols.append(_quat_to_rotvec(q[:, qs + 3:qs + 7]))
+                cols.append(quat_to_xyz(q[:, qs + 3:qs + 7]))
         return torch.cat(cols, -1) if cols else q[:, :0]
 
     def get_dofs_position(self, dofs_idx_local=None, envs_idx=None):
-        """Dof positions (m, rad); a free joint's six are its xyz and its rotation vector."""
+        """Dof positions (m, rad); a free joint's six are its xyz and its intrinsic x-y-z Euler angles (roll,
+        pitch, yaw; R = Rx Ry Rz), Genesis's."""
         q, _ = self._sim.get_state()
         local = self._dofs(dofs_idx_local) - self._dof_start
         return self._out(self._dof_positions(q[self._envs(envs_idx)])[:, local])
@@ -604,7 +589,9 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         self._set_state(q, v)
 
     def set_dofs_position(self, position, dofs_idx_local=None, envs_idx=None, zero_velocity=True):
-        """Set dof positions (m, rad; a free joint's six are xyz and a rotation vector)."""
+        """Set dof positions (m, rad; a free joint's six are xyz and intrinsic x-y-z Euler angles, as
+        get_dofs_position returns them). Setting some of a free joint's three angles keeps the others' values
+        in the current pose's Euler decomposition, as Genesis does."""
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
         vals = self._values(position, envs, len(d), "position")
 
@@ -620,7 +607,7 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
                 cols.append((qs, full[:, ds:ds + 1]))
             elif j.n_dofs == 6:
                 touched = bool(((d - self._dof_start >= ds + 3) & (d - self._dof_start < ds + 6)).any())
-                quat = _rotvec_to_quat(full[:, ds + 3:ds + 6]) if touched else q0[envs][:, qs + 3:qs + 7]
+                quat = xyz_to_quat(full[:, ds + 3:ds + 6]) if touched else q0[envs][:, qs + 3:qs + 7]
                 cols.append((qs, torch.cat([full[:, ds:ds + 3], quat], -1)))
         parts, idx = [], []
         for qs, val in cols:
@@ -670,11 +657,13 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         self._sim.set_ctrl("force", self._values(force, envs, len(d), "force"), envs, d, 0)
 
     def control_dofs_position(self, position, dofs_idx_local=None, envs_idx=None):
-        """PD position targets (m, rad): force = kp (target - q) - kv v, clipped to the force range."""
+        """PD position targets (m, rad): force = kp (target - q) - kv v, clipped to the force range.
+        A free joint's dofs take targets in get_dofs_position's coordinates, as in Genesis: world xyz, and
+        Euler angles whose error is the rotation vector of q_target q^-1 (world axes, the angular dofs'
+        frame), not a difference of angles: Genesis's torque when the three rotational gains are equal
+        (solvers/rigid/actuation.py says where they differ). Its gains default to 0, as in Genesis: set
+        them with set_dofs_kp / set_dofs_kv."""
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
-        if (torch.as_tensor(self._dof_q_local)[(d - self._dof_start).cpu()] < 0).any():
-            raise GenesisException(f"entity '{self.name}': position control of free-joint dofs is not supported; "
-                                   "control them with control_dofs_force or control_dofs_velocity")
         self._sim.set_ctrl("pos", self._values(position, envs, len(d), "position target"), envs, d, 1)
         self._sim.set_ctrl("vel", torch.zeros(len(envs), len(d), device=self._device), envs, d, None)
         self._warn_if_zero_gain("kp", envs, d)
@@ -724,13 +713,13 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
             "these dofs with control_dofs_force.", ZeroGainWarning, stacklevel=3)
 
     # ---------------------------------------------------------------- parameters
-    def _set_dof_param(self, name, values, dofs_idx_local, envs_idx, nonneg=True):
+    def _set_dof_param(self, name, values, dofs_idx_local, envs_idx, nonneg=True, hint=None):
         envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
         vals = self._values(values, envs, len(d), name)
         if nonneg:
             labels = [self._dof_label(int(i)) for i in (d - self._dof_start).cpu()]
             self._check_sign(name, vals, envs, labels, [False] * len(d),
-                             f"A negative {name} feeds energy into the system; pass values >= 0.")
+                             hint or f"A negative {name} feeds energy into the system; pass values >= 0.")
         self._sim.set_param(name, vals, envs, d)
 
     def set_dofs_kp(self, kp, dofs_idx_local=None, envs_idx=None):
@@ -748,6 +737,24 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
     def set_dofs_armature(self, armature, dofs_idx_local=None, envs_idx=None):
         """Rotor inertia added to the mass matrix diagonal (kg, kg m^2)."""
         self._set_dof_param("armature", armature, dofs_idx_local, envs_idx)
+
+    def set_dofs_stiffness(self, stiffness, dofs_idx_local=None, envs_idx=None):
+        """Joint spring stiffness (N/m, N m/rad): the passive force -stiffness (q - q_rest) on hinge and slide
+        joints, Genesis's law (its -stiffness (qpos - qpos0)), q_rest being the joint's zero (the file's pose)
+        or an MJCF joint's springref, as MuJoCo. Explicit, as in Genesis and MuJoCo. Differentiable. A free
+        joint's dofs take none: Genesis keeps their value and ignores it, and so does this, with a warning."""
+        self._set_dof_param("stiffness", stiffness, dofs_idx_local, envs_idx,
+                            hint="A negative stiffness pushes the joint away from its rest position; pass values >= 0.")
+        envs, d = self._envs(envs_idx), self._dofs(dofs_idx_local)
+        local = (d - self._dof_start).cpu().numpy()
+        free = torch.as_tensor(np.array([self._dof_q_local[i] < 0 for i in local], dtype=bool), device=d.device)
+        if bool(free.any()) and bool((self._sim.params["stiffness"].detach()[envs][:, d[free]] != 0).any()):
+            dofs = [int(i) for i in local[free.cpu().numpy()]]
+            if ("stiffness", tuple(dofs)) not in self._zero_gain_warned:
+                self._zero_gain_warned.add(("stiffness", tuple(dofs)))
+                warnings.warn(f"entity '{self.name}': set_dofs_stiffness on the free joint's dofs {dofs}: a free "
+                              "joint has no spring (Genesis ignores its stiffness too), so these values have no "
+                              "effect.", GenesisWarning, stacklevel=2)
 
     def set_dofs_frictionloss(self, frictionloss, dofs_idx_local=None, envs_idx=None):
         """Dry joint friction (N, N m), smoothed over 0.01 rad/s."""
@@ -780,6 +787,9 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
 
     def get_dofs_armature(self, dofs_idx_local=None, envs_idx=None):
         return self._get_param("armature", self._dofs(dofs_idx_local), envs_idx)
+
+    def get_dofs_stiffness(self, dofs_idx_local=None, envs_idx=None):
+        return self._get_param("stiffness", self._dofs(dofs_idx_local), envs_idx)
 
     def get_dofs_force_range(self, dofs_idx_local=None, envs_idx=None):
         sim, d, e = self._sim, self._dofs(dofs_idx_local), self._envs(envs_idx)

@@ -24,8 +24,10 @@ Mapping (solvers/rigid/model.py has the conventions the result follows):
 
 Not supported (a ValueError names the file, body and joint): ball joints, a free joint below the worldbody
 or next to other joints, hinge/slide joints with a nonzero `ref`, colliding height fields and SDF geoms.
-One warning lists what is not simulated as MuJoCo would: joint stiffness (springs), other equality
-constraints and tendons are ignored, ellipsoids collide as convex polytopes. Ignored silently, as they
+One warning lists what is not simulated as MuJoCo would: a free joint's stiffness, other equality
+constraints and tendons are ignored, ellipsoids collide as convex polytopes. A hinge or slide joint's
+`stiffness` is its spring, -stiffness (q - springref) as MuJoCo's (jnt_stiffness, qpos_spring), explicit
+as in MuJoCo. Ignored silently, as they
 shape contacts or actuation rather than the model: contype/conaffinity bit filtering beyond "visual
 only", <contact> pairs and excludes, solver parameters (solref, solimp, margin), actuator dynamics.
 
@@ -87,7 +89,7 @@ def _trans(p):
 def load_mjcf(morph, material, name) -> EntityModel:
     """gs.morphs.MJCF -> EntityModel: the file is compiled by MuJoCo (`MjModel.from_xml_path`) and its
     bodies, joints, inertias (kg, m, kg m^2), geoms and joint parameters (limits in rad or m, damping,
-    armature, friction loss, actuator force ranges as effort in N or N m) are mapped onto links; bodies
+    armature, friction loss, springs, actuator force ranges as effort in N or N m) are mapped onto links; bodies
     without joints are merged into their parent. `material` is not used for mass (MuJoCo's compiled
     inertias are), nor for friction (each geom keeps MuJoCo's sliding friction)."""
     path = os.path.abspath(os.fspath(morph.file))
@@ -145,6 +147,8 @@ def load_mjcf(morph, material, name) -> EntityModel:
             if p != 0:
                 raise _err(path, f"body '{bn}', joint '{joint_name[jadr] or f'#{jadr}'}' is a free joint below body "
                                  f"'{body_name[p]}'; genesis_lite allows a free joint only on a body of the worldbody")
+            if m.jnt_stiffness[jadr] != 0.0:
+                ignored.add("free-joint stiffness (ignored, as Genesis ignores it)")
             T = T_morph @ T_rel
             link_of[b] = new_link(LinkDesc(name=bn, parent=-1, joint_name=joint_name[jadr] or ROOT_JOINT_NAME,
                                            joint_type="fixed" if fixed is True else "free",
@@ -168,8 +172,6 @@ def load_mjcf(morph, material, name) -> EntityModel:
                     raise _err(path, f"{where} has ref={m.qpos0[qa]}; genesis_lite measures joint positions from the "
                                      "body pose given in the file, so only ref=0 is supported: rotate/move the body "
                                      "to its ref pose and drop ref")
-                if m.jnt_stiffness[j] != 0.0:
-                    ignored.add("joint stiffness (springs ignored)")
                 anchor = np.asarray(m.jnt_pos[j], dtype=float) * s
                 T = T_prev @ _trans(anchor)  # link (joint) frame in the parent link frame
                 lin = s if jt == _SLIDE else 1.0
@@ -186,6 +188,7 @@ def load_mjcf(morph, material, name) -> EntityModel:
                     joint_axis=np.asarray(m.jnt_axis[j], dtype=float) / np.linalg.norm(m.jnt_axis[j]),
                     limit=lim, effort=effort[j], damping=float(m.dof_damping[d]),
                     frictionloss=float(m.dof_frictionloss[d]), armature=float(m.dof_armature[d]),
+                    stiffness=float(m.jnt_stiffness[j]), springref=float(m.qpos_spring[qa]) * lin,
                     kp=kp[j], kv=kv[j]))
                 joint_desc[j] = descs[-1]
                 T_prev = _trans(-anchor)

@@ -142,6 +142,7 @@ class RigidCore:
         self.anc_i, self.anc_j = I(N * N), I(N * N)
         self.dof_limit_lo, self.dof_limit_hi = F(N, False), F(N, False)
         self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
+        self.dof_springref = F(N, False)  # rest position of the joint spring (MJCF springref; else 0)
         # per-env fields: declared without a shape and placed env-major (_place_env_major)
         s3 = lambda grad=g: ti.field(f, needs_grad=grad)  # noqa: E731
         v3 = lambda: ti.Vector.field(3, f, needs_grad=g)  # noqa: E731
@@ -149,7 +150,7 @@ class RigidCore:
         # parameters
         self.link_mass, self.link_com, self.link_inertia = s3(), v3(), m3()
         self.dof_damping, self.dof_armature, self.dof_frictionloss = s3(), s3(), s3()
-        self.dof_kp, self.dof_kv = s3(), s3()
+        self.dof_kp, self.dof_kv, self.dof_stiffness = s3(), s3(), s3()
         self.dof_force_lo, self.dof_force_hi = s3(False), s3(False)
         self.gravity = v3()
         # controls
@@ -171,11 +172,12 @@ class RigidCore:
         self.dof_tau = s3(False)
         self.solve_tmp = s3(False)
         elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
-                self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_force_lo, self.dof_force_hi, self.ctrl_force,
-                self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos, self.link_quat, self.link_R,
-                self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v,
-                self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n,
-                self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force, self.dof_tau]
+                self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.dof_force_lo,
+                self.dof_force_hi, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos,
+                self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
+                self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m,
+                self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force,
+                self.dof_tau]
         mats, ones = [self.mass_mat, self.mass_fac], [self.gravity]
         slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.qvel_move]), (1, [self.solve_tmp])]
         _place_env_major(B, N, elem, mats, ones, slots)
@@ -194,8 +196,8 @@ class RigidCore:
         # per-env fields by position of their env axis (zeroed at load), and the differentiable ones
         state = [self.qpos, self.qvel, self.qacc, self.qvel_move]
         params = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
-                  self.dof_frictionloss, self.dof_kp, self.dof_kv, self.gravity, self.ctrl_force, self.ctrl_pos,
-                  self.ctrl_vel]
+                  self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.gravity, self.ctrl_force,
+                  self.ctrl_pos, self.ctrl_vel]
         scratch = [self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J,
                    self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w,
                    self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f,
@@ -242,6 +244,7 @@ class RigidCore:
             self.dof_limit_hi[i] = dof_f[i, 1]
             self.dof_mimic_mult[i] = dof_f[i, 2]
             self.dof_mimic_off[i] = dof_f[i, 3]
+            self.dof_springref[i] = dof_f[i, 4]
         for i, j in ti.ndrange(anc.shape[0], anc.shape[1]):
             self.dof_anc[i, j] = anc[i, j]
         for t in range(anc_pairs.shape[0]):

@@ -25,7 +25,7 @@ class FlatModel:
     def __init__(self, models: List[EntityModel], use_mimic: bool):
         parent, jtype, qstart, dstart, ndof, jpos, jquat, jaxis, ent = [], [], [], [], [], [], [], [], []
         self.entity_link_start, self.entity_q_start, self.entity_dof_start = [], [], []
-        q0, lo, hi, eff, damp, fl, arm = [], [], [], [], [], [], []
+        q0, lo, hi, eff, damp, fl, arm, stiff, sref = [], [], [], [], [], [], [], [], []
         mass, com, inertia = [], [], []
         dof_link, dof_q = [], []
         nl = nq = nd = 0
@@ -52,7 +52,7 @@ class FlatModel:
                         dof_link.append(len(parent) - 1)
                         dof_q.append(-1)
                         lo.append(-np.inf); hi.append(np.inf); eff.append(np.inf)
-                        damp.append(0.0); fl.append(0.0); arm.append(0.0)
+                        damp.append(0.0); fl.append(0.0); arm.append(0.0); stiff.append(0.0); sref.append(0.0)
                 elif l.joint_type in ("revolute", "prismatic"):
                     q0.append(0.0)
                     dof_link.append(len(parent) - 1)
@@ -61,6 +61,7 @@ class FlatModel:
                     # URDFs write effort="0" for 'unspecified': no limit
                     eff.append(l.effort if l.effort > 0 else np.inf)
                     damp.append(l.damping); fl.append(l.frictionloss); arm.append(l.armature)
+                    stiff.append(l.stiffness); sref.append(l.springref)
                 nq += JOINT_NQ[l.joint_type]
                 nd += JOINT_NV[l.joint_type]
             nl += m.n_links
@@ -86,6 +87,8 @@ class FlatModel:
         self.np_dof_damping = np.array(damp, dtype=float).reshape(nd)
         self.np_dof_frictionloss = np.array(fl, dtype=float).reshape(nd)
         self.np_dof_armature = np.array(arm, dtype=float).reshape(nd)
+        self.np_dof_stiffness = np.array(stiff, dtype=float).reshape(nd)
+        self.np_dof_springref = np.array(sref, dtype=float).reshape(nd)
         # dof tree: a dof's parent is the previous dof of its link, else the last dof of the
         # nearest ancestor link that has dofs
         dof_parent = np.full(nd, -1, dtype=np.int32)

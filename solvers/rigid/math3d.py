@@ -55,6 +55,35 @@ def func_rotvec_quat(w, dt):
 
 
 @ti.func
+def func_euler_xyz_quat(a, b, c):
+    """Quaternion of intrinsic x-y-z Euler angles (roll a, pitch b, yaw c), R = Rx(a) Ry(b) Rz(c): the
+    product qx(a) qy(b) qz(c) written out. Genesis's convention for a free joint's rotational dof
+    positions (its gu.qd_xyz_to_quat)."""
+    ca, sa = ti.cos(0.5 * a), ti.sin(0.5 * a)
+    cb, sb = ti.cos(0.5 * b), ti.sin(0.5 * b)
+    cc, sc = ti.cos(0.5 * c), ti.sin(0.5 * c)
+    return ti.Vector([ca * cb * cc - sa * sb * sc, sa * cb * cc + ca * sb * sc,
+                      ca * sb * cc - sa * cb * sc, ca * cb * sc + sa * sb * cc])
+
+
+@ti.func
+def func_quat_log(q):
+    """Rotation vector (axis times angle, |angle| <= pi) of the quaternion q, which need not be unit (the
+    result depends on its direction only). Smooth at the identity, where a PD error converges: below a
+    tiny sine the series 2 atan(x) / x = 2 (1 - x^2 / 3), x = |v| / |w|, is used, and neither branch
+    divides by 0, so an unselected branch puts no NaN into the gradient. Discontinuous at half a turn
+    (w = 0), where the short way flips."""
+    v = ti.Vector([q[1], q[2], q[3]])
+    s2 = v.dot(v)
+    sgn = ti.select(q[0] < 0.0, -1.0, 1.0)
+    w = ti.max(ti.abs(q[0]), 1e-6)
+    s = ti.sqrt(ti.max(s2, 1e-20))
+    small = s2 < 1e-10 * w * w
+    k = ti.select(small, 2.0 / w * (1.0 - s2 / (3.0 * w * w)), 2.0 * ti.atan2(s, w) / s)
+    return sgn * k * v
+
+
+@ti.func
 def func_rotate_inertia(R, I):
     """R I R^T, as (R I) R^T entry by entry, summed in the order of Taichi's `R @ I @ R.transpose()` (the
     same numbers). Taichi's matmul accumulates into a local matrix entry by entry (each entry stored

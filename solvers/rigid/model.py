@@ -102,6 +102,9 @@ class LinkDesc:
     damping: float = 0.0
     frictionloss: float = 0.0
     armature: float = 0.0
+    # joint spring of a 1-dof joint: force -stiffness (q - springref) (N/m or N m/rad; MJCF stiffness, springref)
+    stiffness: float = 0.0
+    springref: float = 0.0
     mimic: Optional[MimicDesc] = None
     kp: Optional[float] = None  # PD gains of a 1-dof joint as the file gives them; None: the scene's default
     kv: Optional[float] = None

@@ -195,7 +195,8 @@ class RigidSolver:
         """[(name, width per env)] of the packed parameter tensor of kernel_set_params, in order."""
         L, D = self.n_links, self.n_dofs
         return [("mass", L), ("com", 3 * L), ("inertia", 9 * L), ("damping", D), ("armature", D),
-                ("frictionloss", D), ("kp", D), ("kv", D), ("gravity", 3), ("force_lo", D), ("force_hi", D)]
+                ("frictionloss", D), ("kp", D), ("kv", D), ("stiffness", D), ("gravity", 3), ("force_lo", D),
+                ("force_hi", D)]
 
     def initial_params(self, gravity):
         """numpy (n_envs, ...) arrays of every parameter of param_layout as built from the models."""
@@ -208,6 +209,7 @@ class RigidSolver:
         return {"mass": tile(m.np_link_mass), "com": tile(m.np_link_com), "inertia": tile(m.np_link_inertia),
                 "damping": tile(m.np_dof_damping), "armature": tile(m.np_dof_armature),
                 "frictionloss": tile(m.np_dof_frictionloss), "kp": tile(zeros), "kv": tile(zeros),
+                "stiffness": tile(m.np_dof_stiffness),
                 "gravity": tile(np.asarray(gravity, dtype=float)), "force_lo": tile(-eff), "force_hi": tile(eff)}
 
     def _fill_info(self, gravity):
@@ -225,7 +227,7 @@ class RigidSolver:
         lim = np.clip(pad(m.np_dof_limit, D), -1e30, 1e30)
         dof_i = np.stack([pad(m.np_dof_link, D), pad(m.np_dof_q, D), pad(m.np_dof_parent, D),
                           m.np_mimic[:, 0].astype(np.int32)], -1).astype(np.int32)
-        dof_f = np.concatenate([lim, m.np_mimic[:, 1:]], -1).astype(self.np_dtype)
+        dof_f = np.concatenate([lim, m.np_mimic[:, 1:], pad(m.np_dof_springref, D)[:, None]], -1).astype(self.np_dtype)
         sched = np.ascontiguousarray(np.array([op[:6] for op in self.ops], dtype=np.int32))
         sched_h = np.array([op[6] for op in self.ops], dtype=self.np_dtype)
         self.core.kernel_load(cfg_i, cfg_f, np.ascontiguousarray(link_i), np.ascontiguousarray(link_f),
