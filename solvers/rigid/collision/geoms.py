@@ -275,8 +275,8 @@ def build_slots(geoms: GeomTable, pairs):
             if ta == GEOM_BOX and tb == GEOM_BOX:
                 tol = BOXEDGE_TOL * float(min(geoms.size[a].min(), geoms.size[b].min()))
                 slots.append((i_p, SLOT_BOXEDGE, a, b, np.zeros(3), 0.0, tol))
-                # face on face: which box holds the reference face is decided at run time, so the
-                # slots are a's against b's for the record only
+                # face on face: which box holds the reference face is decided at run time; (a, b) only
+                # fixes the convention of the slot's normal (from b towards a) and force (on a)
                 for code in range(N_BOXFACE):
                     slots.append((i_p, SLOT_BOXFACE, a, b, np.zeros(3), 0.0, float(code)))
         for pa, pb, plane in jobs:
