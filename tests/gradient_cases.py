@@ -190,6 +190,23 @@ def build_stack(v):
                  defaults={"hi.dofs_velocity": np.array([0.4, -0.2, -0.1, 0.0, 0.0, 1.0])})
 
 
+
+def build_plank_stack(v):
+    """Two planks (1.0 x 0.1 x 0.05 m) crossed at right angles, 0.25 m from the lower one's middle: the
+    lower one lies on the plane, the upper one starts 0.5 mm above it, tilted a little, falling at 0.2 m/s and
+    sliding and turning a little: it lands on one side of the square where the two overlap and rocks onto
+    the other. They touch only where the edges of one face cross the other's rim (the box-box face slots: no
+    corner or edge midpoint of either lies in the overlap, measured: only face slots carry force)."""
+    scene = _scene(v, dt=5e-3)
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.3))
+    size = (1.0, 0.1, 0.05)
+    lo = scene.add_entity(gs.morphs.Box(size=size, pos=(0.0, 0.0, 0.025)), material=gs.materials.Rigid(friction=0.4))
+    hi = scene.add_entity(gs.morphs.Box(size=size, pos=(0.25, 0.003, 0.0755), quat=_unit([1.0, 0.002, -0.001, 1.0])),
+                          material=gs.materials.Rigid(friction=0.6))
+    scene.build(n_envs=v.n_envs)
+    return Built(scene, {"lo": lo, "hi": hi}, T=8, fd_h=CONTACT_POSE_H, f32_tol=F32_TOL_CONTACT,
+                 defaults={"hi.dofs_velocity": np.array([0.1, -0.05, -0.2, 0.0, 0.0, 0.3])})
+
 def build_arm(v, plane=False):
     """assets/urdf/skew_arm.urdf fixed 1 m up: offset centres of mass, rotated non-diagonal inertia, skewed
     joint axes, collision shapes (collision on) with nothing to touch; plane=True adds a ground plane it
@@ -359,6 +376,7 @@ SCENES: Dict[str, Callable[[Variation], Built]] = {
     "slide_land": build_slide_land,
     "heavy_land": build_heavy_land,
     "stack": build_stack,
+    "plank_stack": build_plank_stack,
     "arm": build_arm,
     "arm_plane": lambda v: build_arm(v, plane=True),
     "go2": build_go2,
@@ -687,6 +705,11 @@ def _table() -> List[Case]:
     slow("stack", STACK, STACK_OUT, V(n_envs=3))
     slow("stack", STACK, STACK_OUT, V(integrator="Euler"))
     slow("stack", STACK, STACK_OUT, V(checkpoint_every=3))
+    # ------------------------------------------------------------------ crossed planks (box-box face on face)
+    # the face slots' gradients (collision/narrow.func_box_face_contact). Slow: ~33 s alone with the kernel
+    # cache warm, nearly all of it loading the box-box contact class (2 s after a stack case); cold ~110-165 s
+    PLANKS = ("hi.pos", "hi.quat", "hi.dofs_velocity", "lo.links_mass", "hi.friction")
+    slow("plank_stack", PLANKS, STACK_OUT)
     # ------------------------------------------------------------------ quadruped standing on the ground
     slow("go2", ("go2.dofs_position", "go2.ctrl_position", "go2.dofs_kp"), ("go2.pos", "go2.quat", "go2.links_pos"))
     slow("go2", ("go2.qpos", "go2.dofs_kv", "go2.dofs_velocity"), ("go2.vel", "go2.ang", "go2.dofs_velocity"))

@@ -974,6 +974,88 @@ def test_stack_of_boxes_turned_45_degrees_rests():
     assert max(float(b.get_vel().abs().max()) for b in boxes) < 1e-3
 
 
+
+PLANK = (1.0, 0.1, 0.05)  # length, width, thickness (m)
+
+
+def _yaw(deg, pitch_deg=0.0):
+    """Quaternion of a pitch about the box's own y axis (its width, for a plank) followed by a yaw about z
+    (degrees)."""
+    a, b = np.deg2rad(deg) / 2, np.deg2rad(pitch_deg) / 2
+    # (cos a, 0, 0, sin a) * (cos b, 0, sin b, 0)
+    return (np.cos(a) * np.cos(b), -np.sin(a) * np.sin(b), np.cos(a) * np.sin(b), np.sin(a) * np.cos(b))
+
+
+def _tilt(b):
+    """Angle (rad) between the box's z axis and the vertical."""
+    return float(np.arccos(np.clip(_rot(_np(b.get_quat()))[2, 2], -1.0, 1.0)))
+
+
+def test_plank_across_two_planks_rests():
+    """A plank (1.0 x 0.1 x 0.05 m) dropped 3 mm across two others lying on the ground 0.8 m apart, at right
+    angles and 0.3 m from their middles: it rests on the two 0.1 x 0.1 m squares where it overlaps them, flat,
+    at the height stacking gives (0.075 m). No corner and no edge midpoint of any plank lies in those squares;
+    their vertices are where the edges of one plank's face cross the rim of the other's (the box-box face
+    slots, collision/narrow.func_box_face_contact). Before them the plank fell through both onto the ground."""
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    L, W, H = PLANK
+    left = scene.add_entity(gs.morphs.Box(size=PLANK, pos=(-0.4, 0.3, H / 2), quat=_yaw(90.0)))
+    right = scene.add_entity(gs.morphs.Box(size=PLANK, pos=(0.4, 0.3, H / 2), quat=_yaw(90.0)))
+    top = scene.add_entity(gs.morphs.Box(size=PLANK, pos=(0.0, 0.0, 1.5 * H + 3e-3)))
+    scene.build()
+    worst = _run_boxes(scene, [left, top, right], 100)  # overlaps of left-top, top-right and with the ground
+    assert worst < 2e-3, worst
+    assert abs(float(top.get_pos()[2]) - 1.5 * H) < 2e-3, float(top.get_pos()[2])
+    assert max(_tilt(b) for b in (left, right, top)) < 2e-3
+    assert max(float(b.get_vel().abs().max()) for b in (left, right, top)) < 1e-2
+
+
+def test_crossed_planks_tilted_settle_flat():
+    """Two planks crossed at right angles, the upper one 0.25 m from the lower one's middle and pitched 1 degree
+    along its length, its low side touching: it rocks on the square where they overlap (a seesaw: the plank's
+    inertia keeps most of its turn at each landing) and settles on it, flat, at the height stacking gives
+    (0.075 m), overlapping the lower plank by less than 2 mm throughout. The square's vertices are face-slot
+    crossings (see above); before them the plank touched only at its two long-edge midpoints, on a line
+    through its centre, and tipped about it (2.5 mm deep, 3 degrees)."""
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    L, W, H = PLANK
+    lower = scene.add_entity(gs.morphs.Box(size=PLANK, pos=(0.0, 0.0, H / 2)))
+    z = 1.5 * H + W / 2 * np.sin(np.deg2rad(1.0))  # the low long edge on the lower plank's face
+    upper = scene.add_entity(gs.morphs.Box(size=PLANK, pos=(0.25, 0.0, z), quat=_yaw(90.0, 1.0)))
+    scene.build()
+    worst = _run_boxes(scene, [lower, upper], 100)
+    assert worst < 2e-3, worst
+    assert abs(float(upper.get_pos()[2]) - 1.5 * H) < 2e-3, float(upper.get_pos()[2])
+    assert abs(float(lower.get_pos()[2]) - 0.5 * H) < 1e-3
+    assert _tilt(upper) < 2e-3 and _tilt(lower) < 2e-3, (_tilt(upper), _tilt(lower))
+    assert max(float(b.get_vel().abs().max()) for b in (lower, upper)) < 1e-2
+
+
+def test_crossed_plank_tower_stands():
+    """A log-cabin tower as Genesis's tower example builds it (its 100 boxes fell through each other here):
+    two planks on the ground at x = -+0.4 m along y, two across them at y = -+0.4 m along x, one on those along
+    y at x = 0.1 m, each course dropped 2 mm: every crossing is off both planks' middles, so only the face
+    slots carry them. They stand, at the heights stacking gives, flat and at rest after 1 s."""
+    scene = _scene()
+    scene.add_entity(gs.morphs.Plane())
+    L, W, H = PLANK
+    layout = [(-0.4, 0.0, 90.0), (0.4, 0.0, 90.0), (0.0, -0.4, 0.0), (0.0, 0.4, 0.0), (0.1, 0.0, 90.0)]
+    course = [0, 0, 1, 1, 2]
+    planks = [scene.add_entity(gs.morphs.Box(size=PLANK, pos=(x, y, (k + 0.5) * H + k * 2e-3), quat=_yaw(yaw)))
+              for (x, y, yaw), k in zip(layout, course)]
+    scene.build()
+    for _ in range(100):
+        scene.step()
+    z = np.array([float(p.get_pos()[2]) for p in planks])
+    np.testing.assert_allclose(z, (np.array(course) + 0.5) * H, atol=2e-3)
+    xy = np.array([_np(p.get_pos())[:2] for p in planks])
+    np.testing.assert_allclose(xy, np.array(layout)[:, :2], atol=2e-3)
+    assert max(_tilt(p) for p in planks) < 2e-3
+    assert max(float(p.get_vel().abs().max()) for p in planks) < 1e-2
+
+
 # long: each contact scene compiles its own contact kernels (~10 s) and these roll out many steps
 @pytest.mark.slow
 def test_grad_crossed_edges_rest_height_wrt_mass():

@@ -14,7 +14,11 @@ function (SDF) of the other (the "SDF side"):
   box x box                   as other primitive pairs below, plus the      the other box
                               closest points of the edge pair whose axis
                               (cross product) separates the boxes best,
-                              where it beats every face axis (edge on edge)
+                              where it beats every face axis (edge on edge),
+                              and else the points where the edges of one    the face of the
+                              box's face cross the rim of the other box's   other box (its
+                              face lying on it (face on face: crossed       plane)
+                              planks touch only there)
   other primitive pairs,      corners + edge midpoints (box), rim and cap   the other geom
   mesh x primitive            samples (cylinder), axis samples (capsule),
                               hull vertices (mesh), in both directions
@@ -37,9 +41,9 @@ Modules: geoms.py (host side: geoms, candidate pairs, slots), sdf.py (the SDFs),
 stages: geom poses, broad phase, slot geometry).
 """
 from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CAPSULE, GEOM_CODE, GEOM_CYLINDER,
-                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_KDOP, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_POINT,
-                    SLOT_SEGSEG, ContactBuildError, GeomTable, build_geoms, build_slots, candidate_pairs,
-                    geom_rotations, link_is_dynamic, sample_points)
+                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE,
+                    SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG, ContactBuildError, GeomTable, build_geoms, build_slots,
+                    candidate_pairs, geom_rotations, link_is_dynamic, sample_points)
 from .narrow import func_broad_phase, func_geom_pose, func_slot_geometry
 from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_of, func_segment_closest
 

@@ -14,11 +14,17 @@ GEOM_CODE = {"plane": GEOM_PLANE, "sphere": GEOM_SPHERE, "box": GEOM_BOX, "capsu
              "cylinder": GEOM_CYLINDER, "mesh": GEOM_MESH}
 # slot kinds: a fixed sample point of the point-side geom; the deepest rim point of a cylinder cap
 # towards a plane (aux = cap side +-1); the closest points of two capsule segments; the closest points
-# of the two box edges whose cross product separates two boxes best (edge against edge)
-SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE = 0, 1, 2, 3
+# of the two box edges whose cross product separates two boxes best (edge against edge); a point where
+# an edge of one box's face crosses the rim of the other box's face lying on it (face on face, aux = the
+# slot's code: incident edge code // 2, entry or exit code % 2; see narrow.func_box_face_contact)
+SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE = 0, 1, 2, 3, 4
 # an edge-edge axis counts only where it separates two boxes better than every face axis by this
-# fraction of the smaller box's smallest half size (ties, as in face-on-face stacks, are the faces')
+# fraction of the smaller box's smallest half size (ties, as in face-on-face stacks, are the faces');
+# a face-face crossing counts only this far from the corners of both faces (where corner slots are)
 BOXEDGE_TOL = 0.02
+# face-face slots per box pair: the incident face's 4 edges, each entering and leaving the reference
+# face's rectangle at most once (it is convex), so at most 8 crossings
+N_BOXFACE = 8
 
 # k-DOP directions: 3 axes, 6 edge diagonals, 4 corner diagonals, each with both signs
 _D = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1), (0, 1, 1), (0, 1, -1),
@@ -269,6 +275,10 @@ def build_slots(geoms: GeomTable, pairs):
             if ta == GEOM_BOX and tb == GEOM_BOX:
                 tol = BOXEDGE_TOL * float(min(geoms.size[a].min(), geoms.size[b].min()))
                 slots.append((i_p, SLOT_BOXEDGE, a, b, np.zeros(3), 0.0, tol))
+                # face on face: which box holds the reference face is decided at run time; (a, b) only
+                # fixes the convention of the slot's normal (from b towards a) and force (on a)
+                for code in range(N_BOXFACE):
+                    slots.append((i_p, SLOT_BOXFACE, a, b, np.zeros(3), 0.0, float(code)))
         for pa, pb, plane in jobs:
             for kind, p, r, aux in sample_points(geoms, pa, plane):
                 slots.append((i_p, kind, pa, pb, p, r, aux))

@@ -3,7 +3,8 @@ contact slot (its point, normal and depth), in the single-assignment form of the
 """
 import taichi as ti
 
-from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG
+from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, SLOT_BOXEDGE,
+                    SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG)
 from ..math3d import func_mm, func_mtv, func_mv
 from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_round, func_segment_closest, func_sgn3
 
@@ -159,14 +160,26 @@ def func_col(R, i: ti.template()):
 
 
 @ti.func
-def func_face_sep(T, Ra, ha, Rb, hb):
-    """Largest separation of two boxes over their 6 face axes."""
-    return ti.max(ti.max(ti.max(func_box_axis_sep(T, func_col(Ra, 0), Ra, ha, Rb, hb),
-                                func_box_axis_sep(T, func_col(Ra, 1), Ra, ha, Rb, hb)),
-                         ti.max(func_box_axis_sep(T, func_col(Ra, 2), Ra, ha, Rb, hb),
-                                func_box_axis_sep(T, func_col(Rb, 0), Ra, ha, Rb, hb))),
-                  ti.max(func_box_axis_sep(T, func_col(Rb, 1), Ra, ha, Rb, hb),
-                         func_box_axis_sep(T, func_col(Rb, 2), Ra, ha, Rb, hb)))
+def func_face_axis(Ra, Rb, k: ti.template()):
+    """Face axis k of two boxes: box a's axes 0..2, then box b's 3..5."""
+    if ti.static(k < 3):
+        return func_col(Ra, k)
+    else:
+        return func_col(Rb, ti.static(k - 3))
+
+
+@ti.func
+def func_face_best(T, Ra, ha, Rb, hb, k: ti.template()):
+    """Over the face axes k..5 (func_face_axis): (separation, index) of the one that separates the two
+    boxes best; ties go to the lower index (box a's faces), so a face-on-face stack whose two axes tie
+    to the last bit keeps one choice."""
+    v = func_box_axis_sep(T, func_face_axis(Ra, Rb, k), Ra, ha, Rb, hb)
+    if ti.static(k == 5):
+        return v, k
+    else:
+        bv, bk = func_face_best(T, Ra, ha, Rb, hb, k + 1)
+        take = v >= bv
+        return ti.select(take, v, bv), ti.select(take, k, bk)
 
 
 @ti.func
@@ -190,15 +203,11 @@ def func_edge_best(T, Ra, ha, Rb, hb, k: ti.template()):
 
 
 @ti.func
-def func_box_edge_contact(c: ti.template(), ga, gb, xa, Ra, xb, Rb, tol):
+def func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, sep_f, sep_e, L, i, j, tol):
     """(point midway between the two edges, normal from box b towards box a, depth) of the edge pair
-    whose axis separates boxes a and b best; depth -1 (no contact) unless that axis beats every face
-    axis by tol and the closest points lie inside both edges (else corners and faces carry the contact)."""
-    ha = c.geom_size[ga]
-    hb = c.geom_size[gb]
-    T = xb - xa
-    sep_f = func_face_sep(T, Ra, ha, Rb, hb)
-    sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
+    whose axis (func_edge_best: separation sep_e, unit axis L from a to b, edge axes a_i, b_j) separates
+    boxes a and b best; depth -1 (no contact) unless that axis beats every face axis (best separation
+    sep_f) by tol and the closest points lie inside both edges (else corners and faces carry the contact)."""
     # the supporting edge of a (towards b) runs along a_i; that of b (towards a) along b_j
     sa = func_sgn3(func_mtv(Ra, L))
     sb = func_sgn3(func_mtv(Rb, L))
@@ -222,12 +231,126 @@ def func_box_edge_contact(c: ti.template(), ga, gb, xa, Ra, xb, Rb, tol):
 
 
 @ti.func
+def func_pick(q, i):
+    """Component i (a run-time 0, 1 or 2) of the 3-vector q, by selection: no dynamic index into a
+    local vector (single-assignment form, and an adjoint that is a select too)."""
+    return ti.select(i == 0, q[0], ti.select(i == 1, q[1], q[2]))
+
+
+@ti.func
+def func_axis_vec(i, v):
+    """The 3-vector v e_i (i a run-time 0, 1 or 2)."""
+    return ti.Vector([ti.select(i == 0, v, 0.0), ti.select(i == 1, v, 0.0), ti.select(i == 2, v, 0.0)])
+
+
+@ti.func
+def func_slab(a0, da, hw):
+    """Interval (lo, hi) of s over which the line a0 + s da stays within |a| <= hw (empty: lo > hi),
+    clipped to [-2, 2] (the callers want s within [-1, 1]). A line parallel to the slab is inside for
+    every s or for none: the divisor is then replaced by 1 (finite in the discarded branch's adjoint)."""
+    par = ti.abs(da) <= 1e-9 * hw
+    inv = 1.0 / ti.select(par, 1.0, da)
+    t1 = (-hw - a0) * inv
+    t2 = (hw - a0) * inv
+    inside = ti.abs(a0) <= hw
+    lo = ti.select(par, ti.select(inside, -2.0, 2.0), ti.min(ti.max(ti.min(t1, t2), -2.0), 2.0))
+    hi = ti.select(par, ti.select(inside, 2.0, -2.0), ti.min(ti.max(ti.max(t1, t2), -2.0), 2.0))
+    return lo, hi
+
+
+@ti.func
+def func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, on, tol):
+    """(point, normal from box b towards box a, depth) of face-face slot `code` of two boxes: where an
+    edge of one box's face (the incident face) crosses the rim of the other box's face (the reference
+    face), in the reference face's plane. Two boxes lying face on face touch over the overlap of the two
+    faces, a polygon whose vertices are corners of either face (the corner slots' points) and such
+    crossings: crossed planks touch only at crossings (no corner, no edge midpoint of either lies in the
+    square where they overlap), and without these slots they fell through each other.
+
+    The reference face is the face of best-separating face axis f (func_face_best: 0..2 box a's, 3..5 box
+    b's) that looks at the other box; the incident face is the other box's face most anti-parallel to it.
+    Its edge code // 2 (two along each of the face's axes, at -/+ the other half size), as s runs over
+    [-1, 1], enters the reference rectangle at s_in and leaves it at s_out (the rectangle is convex: at
+    most once each); the slot takes the entry (code even) or the exit (odd). It is a contact where the
+    crossing lies inside the incident edge and on a reference edge, both at least tol from their ends
+    (nearer, the corners' own slots stand for it: no double count where the two faces' corners meet, as
+    in a stack of equal boxes), and `on` (no edge axis separates better: then the edge slot has it).
+    The point is midway between the incident edge and the reference face's plane, the normal the
+    reference face's (turned to point from b to a), the depth how far the edge lies below that plane.
+    Depth -1 where there is no contact."""
+    rb = f >= 3
+    ax = f - ti.select(rb, 3, 0)
+    xr = ti.select(rb, xb, xa)
+    Rr = ti.select(rb, Rb, Ra)
+    hr = ti.select(rb, hb, ha)
+    xe = ti.select(rb, xa, xb)
+    Re = ti.select(rb, Ra, Rb)
+    he = ti.select(rb, ha, hb)
+    # the reference face's outward normal, towards the incident box
+    ar = ti.select(ax == 0, func_col(Rr, 0), ti.select(ax == 1, func_col(Rr, 1), func_col(Rr, 2)))
+    sr = ti.select((xe - xr).dot(ar) >= 0, 1.0, -1.0)
+    nr = sr * ar
+    # the incident face: axis j of box e, on the side facing the reference face
+    d = func_mtv(Re, nr)
+    ad = ti.abs(d)
+    j = ti.select((ad[0] >= ad[1]) & (ad[0] >= ad[2]), 0, ti.select(ad[1] >= ad[2], 1, 2))
+    se = ti.select(func_pick(d, j) >= 0, -1.0, 1.0)
+    # its edge k: along the face's axis u (k = 0, 1) or w (k = 2, 3), at -/+ the other half size
+    k = code // 2
+    u = (j + 1) % 3
+    w = (j + 2) % 3
+    along = ti.select(k < 2, u, w)
+    across = ti.select(k < 2, w, u)
+    lh = func_pick(he, along)
+    side = ti.select(k % 2 == 0, -1.0, 1.0)
+    mid_e = func_axis_vec(j, se * func_pick(he, j)) + func_axis_vec(across, side * func_pick(he, across))
+    pm = xe + func_mv(Re, mid_e)
+    dv = func_mv(Re, func_axis_vec(along, lh))
+    # the edge pm + s dv (s in [-1, 1]) in the reference box's frame, clipped to the reference face's
+    # rectangle (axes ur, wr of that box)
+    qm = func_mtv(Rr, pm - xr)
+    qd = func_mtv(Rr, dv)
+    ur = (ax + 1) % 3
+    wr = (ax + 2) % 3
+    hu = func_pick(hr, ur)
+    hw = func_pick(hr, wr)
+    lo_u, hi_u = func_slab(func_pick(qm, ur), func_pick(qd, ur), hu)
+    lo_w, hi_w = func_slab(func_pick(qm, wr), func_pick(qd, wr), hw)
+    s_in = ti.max(lo_u, lo_w)
+    s_out = ti.min(hi_u, hi_w)
+    s = ti.select(code % 2 == 0, s_in, s_out)
+    q = qm + s * qd
+    inner_e = (s_in < s_out) & (ti.abs(s) * lh < lh - tol)
+    inner_r = ti.max(hu - ti.abs(func_pick(q, ur)), hw - ti.abs(func_pick(q, wr))) > tol
+    depth = func_pick(hr, ax) - sr * func_pick(q, ax)
+    p = pm + s * dv
+    return p + (0.5 * depth) * nr, ti.select(rb, nr, -nr), ti.select(on & inner_e & inner_r, depth, -1.0)
+
+
+@ti.func
 def func_with_boxedge(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, n, depth):
-    """(point, normal, depth) of the slot: those given, or for box edge slots the edge-edge contact."""
+    """(point, normal, depth) of the slot: those given, or for box edge slots the edge-edge contact and
+    for box face slots the face-face crossing (both from one separating-axis test of the two boxes)."""
     if ti.static(c.has_boxedge):
-        pe, ne, de = func_box_edge_contact(c, ga, gb, xa, Ra, xb, Rb, c.slot_aux[i_s])
+        ha = c.geom_size[ga]
+        hb = c.geom_size[gb]
+        T = xb - xa
+        sep_f, f = func_face_best(T, Ra, ha, Rb, hb, 0)
+        sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
+        pe, ne, de = func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, sep_f, sep_e, L, i, j, c.slot_aux[i_s])
         be = kind == SLOT_BOXEDGE
-        return ti.select(be, pe, pos), ti.select(be, ne, n), ti.select(be, de, depth)
+        pos_e = ti.select(be, pe, pos)
+        n_e = ti.select(be, ne, n)
+        depth_e = ti.select(be, de, depth)
+        if ti.static(c.has_boxface):
+            # the edge slot's tol (build_slots), computed here: a face slot's aux is its code
+            tol = BOXEDGE_TOL * ti.min(ha.min(), hb.min())
+            code = ti.cast(c.slot_aux[i_s], ti.i32)
+            pf, nf, df = func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, sep_e <= sep_f + tol, tol)
+            bf = kind == SLOT_BOXFACE
+            return ti.select(bf, pf, pos_e), ti.select(bf, nf, n_e), ti.select(bf, df, depth_e)
+        else:
+            return pos_e, n_e, depth_e
     else:
         return pos, n, depth
 

@@ -2,7 +2,7 @@
 flags its kernels are specialised on and the capacities its fields need."""
 import numpy as np
 
-from ..collision import SLOT_BOXEDGE, SLOT_CYL_RIM, SLOT_SEGSEG, build_geoms, build_slots, candidate_pairs, link_is_dynamic
+from ..collision import SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG, build_geoms, build_slots, candidate_pairs, link_is_dynamic
 from .law import MARGIN_WIDTHS
 
 # run-time sizes of the contact model (indices into ContactSolver.cfg_i): the contact kernels read them
@@ -50,6 +50,8 @@ class ContactPlan:
         self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
         self.has_segseg = any(x[1] == SLOT_SEGSEG for x in slots)
         self.has_boxedge = any(x[1] == SLOT_BOXEDGE for x in slots)
+        # (box-box pairs have both; the face slots need the edge slots' separating-axis test)
+        self.has_boxface = any(x[1] == SLOT_BOXFACE for x in slots)
         self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)
         self.entity_geom_count = list(geoms.entity_count)
@@ -95,7 +97,7 @@ class ContactPlan:
         else:
             self.caps = (_cap(self.n_geoms, 16), _cap(self.n_pairs, 16), _cap(self.n_slots, 64),
                          _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
-        self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.sdf_types,
+        self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types,
                       (self.k, self.d, self.delta, self.eps), self.static)
 
 

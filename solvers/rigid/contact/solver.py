@@ -50,7 +50,8 @@ class ContactSolver:
     def __init__(self, core, plan: ContactPlan):
         self.plan = plan
         self.caps, self.flags = plan.caps, plan.flags
-        self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.sdf_types, consts, self.static_sizes = plan.flags
+        (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types, consts,
+         self.static_sizes) = plan.flags
         self.baked_sizes = tuple(plan.cfg_i)
         self.k, self.d, self.delta, self.eps = consts
         self.margin = MARGIN_WIDTHS * self.delta
