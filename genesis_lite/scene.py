@@ -272,6 +272,7 @@ class Scene:
         ent = MPMEntity(self, len(self.entities), None, material, name, np.tile(np.asarray(NOWHERE), (n, 1)),
                         float(self.mpm_options.particle_size) ** 3)  # Genesis's particle volume: p_size^3
         ent.is_emitter = True
+        ent._vis_radius = 0.5 * float(self.mpm_options.particle_size)  # cameras (vis/drawables.py)
         ent.surface = surface
         ent._uid = UID.unique({e.uid.short() for e in self.entities})
         emitter = Emitter(self, ent, n)
@@ -450,11 +451,12 @@ class Scene:
         if not mask.any():
             return
         for em, n in zip(self._emitters, state.emitted):
-            if em.high_water > n:
+            if em.high_water != n:
                 raise GenesisException(
-                    f"scene.reset(envs_idx=...): emitter '{em.entity.name}' has emitted particles since this state "
-                    "was taken, and emission is the same in every env, so some envs cannot go back to before it. "
-                    "Call scene.reset() (all envs), or reset to a state taken after the emission.")
+                    f"scene.reset(envs_idx=...): emitter '{em.entity.name}' has {em.high_water} particles emitted now "
+                    f"and had {n} in this state; emission is the same in every env, so some envs alone cannot go "
+                    "back to another emission. Call scene.reset(state) for all envs, or reset to a state taken with "
+                    "the emission as it is now.")
         sim = self._simulator
         rows = torch.as_tensor(mask, device=envs.device)
         for b, saved in zip(sim.bridges, state.solvers):

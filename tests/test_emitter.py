@@ -330,7 +330,22 @@ def test_per_env_reset_cannot_undo_an_emission():
     em.emit(droplet_shape="circle", droplet_size=0.06, droplet_length=0.02, pos=(0.25, 0.25, 0.45))
     x = em.entity.get_particles_pos()
     assert x.shape == (2, 2000, 3) and torch.equal(x[0], x[1])  # the same droplet in every env
-    with pytest.raises(GenesisException, match="emitted particles since this state.*scene.reset\\(\\)"):
+    with pytest.raises(GenesisException, match="emitter_1' has \\d+ particles emitted now and had 0.*for all envs"):
         scene.reset(state, envs_idx=[1])
     later = scene.get_state()
     scene.reset(later, envs_idx=[1])  # a state taken after the emission is fine
+
+
+def test_a_camera_draws_only_the_emitted_particles():
+    """Unemitted particles are 'nowhere' and not drawn; emitted ones are, at the particle size."""
+    scene, _, (em,) = _scene(cube=False, particle_size=0.01)
+    cam = scene.add_camera(res=(64, 64), pos=(0.25, -0.6, 0.3), lookat=(0.25, 0.25, 0.3), fov=40)
+    scene.build()
+    seg = cam.render(rgb=False, segmentation=True)[2]
+    assert not (seg == 0).any()  # the emitter is entity 0: nothing of it in view
+    em.emit(droplet_shape="sphere", droplet_size=0.1, pos=(0.25, 0.25, 0.3), speed=0.0, droplet_length=0.01)
+    seg = cam.render(rgb=False, segmentation=True)[2]
+    rows, cols = np.nonzero(seg == 0)
+    # a 10 cm ball 0.85 m away in a 40 degree view of 64 px: about 10 px across (11 with the particles' radius)
+    assert 8 <= cols.max() - cols.min() + 1 <= 14 and 8 <= rows.max() - rows.min() + 1 <= 14
+    assert len(rows) > 0.6 * np.pi / 4 * (cols.max() - cols.min() + 1) ** 2  # a filled disc, not dots
