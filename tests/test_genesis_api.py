@@ -349,6 +349,12 @@ def test_sand_wheel_style_emitter_script():
         max_particles=4000,
         surface=gs.surfaces.Rough(color=(1.0, 0.9, 0.6, 1.0)),
     )
+    # water_wheel.py's emitter (material and surface as it writes them), left silent here
+    water = scene.add_emitter(
+        material=gs.materials.MPM.Liquid(sampler="regular"),
+        max_particles=1000,
+        surface=gs.surfaces.Glass(color=(0.7, 0.85, 1.0, 0.7), vis_mode="particle"),
+    )
     scene.build(n_envs=0)
     per_emit = round(0.03 / 0.01) * round(0.05 / 0.01) * round(8.0 * 3e-3 / 0.01)
     horizon = 40
@@ -365,3 +371,4 @@ def test_sand_wheel_style_emitter_script():
     assert -0.1 < x[:, 2].min() < floor + 0.05  # it reached the floor and stayed in the domain
     assert x[:, 1].max() > 0.02  # the nozzle swayed towards +y
     assert np.isfinite(x).all()
+    assert water.entity.get_mass() == 0.0 and water.next_particle == 0
