@@ -61,14 +61,14 @@ SILENT = textwrap.dedent("""
     for n_em in (0, 1, 2):
         scene, cube, ems = _scene(n_emitters=n_em)
         scene.build()
-        for _ in range(25):
+        for _ in range(15):
             scene.step()
         runs.append((cube.get_particles_pos().clone(), cube.get_particles_vel().clone()))
         for em in ems:
             x = em.entity.get_particles_pos()
             assert x.shape == (2000, 3) and torch.equal(x, NOWHERE.to(x).expand(2000, 3))
             assert torch.count_nonzero(em.entity.get_particles_vel()) == 0 and em.entity.get_mass() == 0.0
-    assert runs[0][0][:, 2].min() < 0.15  # it fell 5 cm: the trajectory is not trivial
+    assert runs[0][0][:, 2].min() < 0.157  # its lowest particles (at 0.16 m) fell g t^2 / 2 = 4 mm: not trivial
     for x, v in runs[1:]:
         print("bitwise", torch.equal(x, runs[0][0]) and torch.equal(v, runs[0][1]), (x - runs[0][0]).abs().max().item())
 """)
@@ -233,7 +233,7 @@ def test_an_unemitted_emitter_behind_an_emitting_one_stays_out():
     for n_em in (1, 2):
         scene, cube, ems = _scene(n_emitters=n_em, particle_size=0.01)
         scene.build()
-        for k in range(20):
+        for k in range(12):
             if k == 0:
                 ems[-1].emit(droplet_shape="square", droplet_size=0.06, droplet_length=0.06,
                              pos=(0.25, 0.25, 0.45), speed=1.0)
