@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -82,11 +82,19 @@ class MPM:
         E: float = 1e6
         nu: float = 0.2
         rho: float = 1000.0
+        # Genesis's particle sampler ('regular', 'random', 'pbs...'): accepted so its scripts run; genesis_lite
+        # always fills a regular lattice (loaders/particles.py, entities/emitter.py). Keyword-only, so the
+        # materials' own fields keep their positions.
+        sampler: str = field(default="regular", kw_only=True)
 
         code = -1  # solvers/mpm/constitutive.py MAT_* (set by each material)
 
         def __post_init__(self):
             owner = f"MPM.{type(self).__name__}"
+            if not (isinstance(self.sampler, str) and (self.sampler in ("regular", "random")
+                                                       or self.sampler.startswith("pbs"))):
+                raise ValueError(f"gs.materials.{owner}(sampler={self.sampler!r}): use 'regular', 'random' or 'pbs' "
+                                 "(genesis_lite samples a regular lattice whatever the choice)")
             _check_positive(owner, "E", self.E, "Pa")
             _check_positive(owner, "rho", self.rho, "kg/m^3")
             if not (isinstance(self.nu, (int, float, np.floating)) and -1.0 < self.nu < 0.5):

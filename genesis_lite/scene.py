@@ -31,6 +31,7 @@ class SimState:
     step: int
     qpos: Optional[torch.Tensor] = None
     qvel: Optional[torch.Tensor] = None
+    emitted: tuple = ()  # per emitter, how many of its particles had been emitted
 
     @property
     def solvers_state(self):
@@ -77,6 +78,7 @@ class Scene:
         self.entities: List = []
         self.rigid_entities: List = []
         self.mpm_entities: List = []
+        self._emitters: List = []
         self._cameras: List = []
         self._built = False
         self._rigid = None
@@ -222,6 +224,68 @@ class Scene:
         self.mpm_entities.append(ent)
         return ent
 
+    def add_emitter(self, material, max_particles=20000, surface=None, name=None):
+        """A source of MPM particles (Genesis's scene.add_emitter): `max_particles` particles of
+        `material` (a gs.materials.MPM.* material) that take no part in the simulation until
+        `emitter.emit(...)` / `emit_omni(...)` sends them out, recycled from the first once used up
+        (genesis_lite/entities/emitter.py). surface: gs.surfaces.*, default Default(color=(0.6, 0.8, 1.0,
+        1.0)) drawn as particles. Not available with SimOptions(requires_grad=True), as in Genesis."""
+        from .entities.emitter import NOWHERE, Emitter
+        from .entities.mpm_entity import MPMEntity
+        from .utils.uid import UID
+
+        if self._built:
+            raise GenesisException("scene.add_emitter() after scene.build(): add emitters before building")
+        if self.sim_options.requires_grad:
+            raise GenesisException(
+                "scene.add_emitter: emitters are not differentiable (as in Genesis, which refuses them in "
+                "differentiable mode): emission changes which particles exist between steps, outside the step's "
+                "gradient. Build this scene with SimOptions(requires_grad=False), or give the material its initial "
+                "shape with scene.add_entity(morph, material=gs.materials.MPM.*) instead.")
+        if isinstance(material, gmat._OutOfScopeMaterial):
+            material.refuse("scene.add_emitter")
+        if not isinstance(material, gmat.MPM.Base):
+            raise TypeError(f"scene.add_emitter: material must be a gs.materials.MPM.* material (Liquid, Sand, "
+                            f"Elastic, ElastoPlastic), got {type(material).__name__}")
+        if not (isinstance(max_particles, (int, np.integer)) and not isinstance(max_particles, bool)
+                and max_particles >= 1):
+            raise GenesisException(f"scene.add_emitter(max_particles={max_particles!r}): must be an integer >= 1 "
+                                   "(the most particles alive at once; they are recycled after that)")
+        if surface is None:
+            surface = gs_surfaces.Default(color=(0.6, 0.8, 1.0, 1.0))
+        if not isinstance(surface, gs_surfaces.Surface):
+            raise TypeError(f"scene.add_emitter: surface must be a gs.surfaces.* instance, got {type(surface).__name__}")
+        if surface.vis_mode is None:
+            surface.vis_mode = "particle"
+        if surface.vis_mode == "visual":
+            raise GenesisException("scene.add_emitter: surface.vis_mode='visual' is not supported for emitters (they "
+                                   "have no mesh); use 'particle'")
+        taken = set(self.entity_names)
+        if name is None:
+            k = len(self.entities)
+            while f"emitter_{k}" in taken:
+                k += 1
+            name = f"emitter_{k}"
+        elif not isinstance(name, str) or not name or name in taken:
+            raise GenesisException(f"scene.add_emitter(name={name!r}): give a new non-empty name (or None)")
+        n = int(max_particles)
+        ent = MPMEntity(self, len(self.entities), None, material, name, np.tile(np.asarray(NOWHERE), (n, 1)),
+                        float(self.mpm_options.particle_size) ** 3)  # Genesis's particle volume: p_size^3
+        ent.is_emitter = True
+        ent._vis_radius = 0.5 * float(self.mpm_options.particle_size)  # cameras (vis/drawables.py)
+        ent.surface = surface
+        ent._uid = UID.unique({e.uid.short() for e in self.entities})
+        emitter = Emitter(self, ent, n)
+        self.entities.append(ent)
+        self.mpm_entities.append(ent)
+        self._emitters.append(emitter)
+        return emitter
+
+    @property
+    def emitters(self):
+        """The scene's emitters (Genesis's scene.emitters), in the order they were added."""
+        return list(self._emitters)
+
     def add_camera(self, res=(320, 320), pos=(0.5, 2.5, 3.5), lookat=(0.5, 0.5, 0.5), up=(0.0, 0.0, 1.0), fov=30,
                    GUI=False, **kwargs):
         """A headless camera (genesis_lite.vis.Camera) for render() and start/stop_recording(), before
@@ -289,7 +353,14 @@ class Scene:
         opts = self.mpm_options
         lo, hi = domain_inside(opts)
         p = 0
+        # emitters' particles after every other entity's: until emitted they lie beyond the solver's count
+        self.mpm_entities = [e for e in self.mpm_entities if not e.is_emitter] + \
+                            [e for e in self.mpm_entities if e.is_emitter]
         for e in self.mpm_entities:
+            if e.is_emitter:
+                e._on_build(p)
+                p += e.n_particles
+                continue
             below, above = e._x0.min(0) < lo, e._x0.max(0) > hi
             if below.any() or above.any():
                 axis = "xyz"[int(np.argmax(below | above))]
@@ -336,7 +407,7 @@ class Scene:
         states = tuple(tuple(x.detach().clone() for x in b.state()) for b in sim.bridges)
         q, v = self._rigid.get_state() if self._rigid is not None else (None, None)
         q, v = (q.detach().clone(), v.detach().clone()) if q is not None else (None, None)
-        return SimState(states, sim.step_count, q, v)
+        return SimState(states, sim.step_count, q, v, tuple(em.high_water for em in self._emitters))
 
     def reset(self, state: Optional[SimState] = None, envs_idx=None):
         """Return to the state right after build() (or to `state` from get_state()). Controls and
@@ -353,6 +424,11 @@ class Scene:
         if envs_idx is not None:
             self._reset_envs(state, envs_idx)
             return
+        for em, n in zip(self._emitters, state.emitted):
+            # the particles emitted when the state was taken, as Genesis restores their `active` flags; and
+            # emission starts again from the first particle (Genesis's scene.reset calls emitter.reset())
+            self._mpm.activate(em.entity, n)
+            em.reset()
         sim.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
         self._nan.clear(np.ones(self._nan.B, dtype=bool))
         if self._coupler is not None:
@@ -374,6 +450,13 @@ class Scene:
         mask[envs.cpu().numpy()] = True
         if not mask.any():
             return
+        for em, n in zip(self._emitters, state.emitted):
+            if em.high_water != n:
+                raise GenesisException(
+                    f"scene.reset(envs_idx=...): emitter '{em.entity.name}' has {em.high_water} particles emitted now "
+                    f"and had {n} in this state; emission is the same in every env, so some envs alone cannot go "
+                    "back to another emission. Call scene.reset(state) for all envs, or reset to a state taken with "
+                    "the emission as it is now.")
         sim = self._simulator
         rows = torch.as_tensor(mask, device=envs.device)
         for b, saved in zip(sim.bridges, state.solvers):

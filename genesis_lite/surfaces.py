@@ -59,3 +59,13 @@ class Smooth(Surface):
 @dataclass
 class Metal(Surface):
     pass
+
+
+@dataclass
+class Glass(Surface):
+    """Genesis's glass surface (water_wheel.py's emitter): drawn with its colour like the others."""
+
+
+@dataclass
+class Water(Surface):
+    """Genesis's water surface: drawn with its colour like the others."""

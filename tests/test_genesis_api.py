@@ -12,7 +12,8 @@ writes them, each checked against what the name means rather than against our ow
 - RigidJoint.dofs_idx / qs_idx / dof_start / q_start (the scene's numbering) against the scene's state
   vectors, and their _local forms against the entity's own getters, on an entity that is not the first;
 - gs.tools.Timer against the wall clock;
-- gs.materials.Rigid(coup_softness=0.0), Genesis's hard boundary, in a coupled scene.
+- gs.materials.Rigid(coup_softness=0.0), Genesis's hard boundary, in a coupled scene;
+- scene.add_emitter / emitter.emit in sand_wheel's loop (tests/test_emitter.py checks emitters in full).
 """
 from __future__ import annotations
 
@@ -326,3 +327,48 @@ def test_hard_coupling_boundary_holds_a_box_on_an_elastic_block():
     x = block.get_particles_pos().numpy()
     under = (np.abs(x[:, 0] - 0.2) < 0.05) & (np.abs(x[:, 1] - 0.2) < 0.05)
     assert under.sum() > 100 and x[under, 2].max() < z - 0.025  # none inside the box
+
+
+def test_sand_wheel_style_emitter_script():
+    """Genesis's examples/coupling/sand_wheel.py as its users write it (wheels left out, domain and
+    particle size made small for the suite): a sand stream from scene.add_emitter whose nozzle sways
+    with sin(i / 10). Each emit sends round(a / p) particles per side of the 3 x 5 cm rectangle times
+    round(speed dt / p) layers (Genesis's regular lattice) at 8 m/s along the normalised direction; the
+    stream falls onto the floor and stays in the domain."""
+    scene = gs.Scene(
+        sim_options=gs.options.SimOptions(dt=3e-3, substeps=10),
+        mpm_options=gs.options.MPMOptions(lower_bound=(0.0, -0.3, -0.1), upper_bound=(0.57, 0.3, 1.0),
+                                          grid_density=32, particle_size=0.01),
+        viewer_options=gs.options.ViewerOptions(camera_pos=(4.5, 0.0, 1.42), camera_lookat=(1.0, 0.0, 1.0),
+                                                camera_fov=30, max_FPS=120),
+        vis_options=gs.options.VisOptions(visualize_mpm_boundary=True, rendered_envs_idx=[0]),
+        show_viewer=False,
+    )
+    emitter = scene.add_emitter(
+        material=gs.materials.MPM.Sand(),
+        max_particles=4000,
+        surface=gs.surfaces.Rough(color=(1.0, 0.9, 0.6, 1.0)),
+    )
+    # water_wheel.py's emitter (material and surface as it writes them), left silent here
+    water = scene.add_emitter(
+        material=gs.materials.MPM.Liquid(sampler="regular"),
+        max_particles=1000,
+        surface=gs.surfaces.Glass(color=(0.7, 0.85, 1.0, 0.7), vis_mode="particle"),
+    )
+    scene.build(n_envs=0)
+    per_emit = round(0.03 / 0.01) * round(0.05 / 0.01) * round(8.0 * 3e-3 / 0.01)
+    horizon = 40
+    for i in range(horizon):
+        direction = np.array([0.0, np.sin(i / 10) * 0.35, -1.0])
+        emitter.emit(pos=np.array([0.3, 0.0, 0.8]), direction=direction, speed=8.0, droplet_shape="rectangle",
+                     droplet_size=[0.03, 0.05])
+        n = emitter.entity.get_particles_vel()[(i * per_emit) % 4000].numpy()
+        assert np.allclose(n, 8.0 * direction / np.linalg.norm(direction), rtol=0, atol=1e-12)
+        scene.step()
+    assert per_emit == 30 and emitter.next_particle == horizon * per_emit  # 1200 of 4000: no recycling yet
+    x = emitter.entity.get_particles_pos()[:horizon * per_emit].numpy()
+    floor = -0.1 + 3 / 32  # the floor's wall: 3 grid cells above lower_bound
+    assert -0.1 < x[:, 2].min() < floor + 0.05  # it reached the floor and stayed in the domain
+    assert x[:, 1].max() > 0.02  # the nozzle swayed towards +y
+    assert np.isfinite(x).all()
+    assert water.entity.get_mass() == 0.0 and water.next_particle == 0

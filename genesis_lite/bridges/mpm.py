@@ -47,6 +47,15 @@ class MPMSim:
         mass = np.concatenate([np.full(e.n_particles, e._vol * e.material.rho) for e in entities])
         mat = np.concatenate([np.full(e.n_particles, e.material.code) for e in entities])
         self.n_particles = len(x0)
+        # emitters' particles (entities/emitter.py) come after every other entity's (scene._build_mpm);
+        # until emitted they carry no mass or volume in the solver and lie beyond its count
+        self.emitter_entities = [e for e in entities if e.is_emitter]
+        emitting = np.concatenate([np.full(e.n_particles, e.is_emitter) for e in entities])
+        self.n_fixed = int((~emitting).sum())
+        if self.emitter_entities and (emitting[:self.n_fixed].any() or self.requires_grad):
+            raise GenesisException("MPMSim: emitter particles must follow every other entity's, without gradients")
+        self._park = domain_inside(mpm_options)[0]  # where unemitted particles inside the count wait (kernel_park)
+        self.active = torch.as_tensor(~emitting)  # (P,) bool: emitted (or not an emitter's)
         # a solver of the scene's class from the pool (its kernels compiled by an earlier scene, if any),
         # given back when this bridge dies (solvers/mpm/solver.py)
         self.solver, self.reused_solver = acquire_solver(
@@ -54,6 +63,12 @@ class MPMSim:
             sim_options.dt, sim_options.substeps, sim_options.gravity, gs.ti_float, self.requires_grad,
             mpm_options.wall_friction)
         weakref.finalize(self, SOLVER_POOL.release, self.solver)
+        self._mass_np, self._vol_np = mass, vol
+        if self.emitter_entities:
+            self.solver.kernel_set_particle_mass(self.n_fixed, self.n_particles, 0.0, 0.0)
+            self.solver.set_count(self.n_fixed)
+            mass = np.where(emitting, 0.0, mass)
+        # per particle (kg): what the entities' get_mass / get_pos weigh (an unemitted particle: 0)
         self.mass = torch.as_tensor(mass, dtype=self.dtype, device=self.device)
         self.inside = domain_inside(mpm_options)
         self._dx, self._h = mpm_options.dx, sim_options.dt / sim_options.substeps
@@ -98,13 +113,78 @@ class MPMSim:
         out = [torch.empty(B, P, 3, dtype=self.dtype, device=self.device) for _ in range(2)] + \
               [torch.empty(B, P, 3, 3, dtype=self.dtype, device=self.device) for _ in range(2)]
         self.solver.kernel_get_state(slot, *out)
+        if self.emitter_entities:
+            self._fill_inactive(out)
         return tuple(out)
+
+    # ---------------------------------------------------------------- emitters (entities/emitter.py)
+    def _fill_inactive(self, state):
+        """Unemitted particles read as Genesis reports them: at gu.nowhere(), at rest, C = 0, F = I."""
+        from ..entities.emitter import NOWHERE
+
+        off = ~self.active.to(self.device)
+        if bool(off.any()):
+            x, v, C, F = state
+            x[:, off] = torch.as_tensor(NOWHERE, dtype=self.dtype, device=self.device)
+            v[:, off] = 0.0
+            C[:, off] = 0.0
+            F[:, off] = torch.eye(3, dtype=self.dtype, device=self.device)
+
+    def _parked_ranges(self):
+        """[lo, hi) of the unemitted particles inside the solver's count (behind another emitter's emitted ones)."""
+        n = self.solver.n_particles
+        out = []
+        for e in self.emitter_entities:
+            lo, hi = e._p_start + e._emitter.high_water, min(e._p_start + e.n_particles, n)
+            if lo < hi:
+                out.append((lo, hi))
+        return out
+
+    def _park_inactive(self):
+        for lo, hi in self._parked_ranges():
+            self.solver.kernel_park(lo, hi, self._park.tolist())
+
+    def emit(self, ent, start, pos, vel):
+        """Emit the particles start..start+len(pos)-1 of emitter entity `ent` (local indices) in every env
+        at positions pos (n, 3) m with velocity vel (3,) m/s, with C = 0 and F = I (fresh material): they
+        get their mass and volume in the solver, which counts them from now on."""
+        n = len(pos)
+        lo, hi = ent._p_start + start, ent._p_start + start + n
+        x, v, C, F = (t.clone() for t in self.state())
+        x[:, lo:hi] = torch.as_tensor(pos, dtype=self.dtype, device=self.device)
+        v[:, lo:hi] = torch.as_tensor(vel, dtype=self.dtype, device=self.device)
+        C[:, lo:hi] = 0.0
+        F[:, lo:hi] = torch.eye(3, dtype=self.dtype, device=self.device)
+        self.activate(ent, max(ent._emitter.high_water, hi - ent._p_start))  # recycled ones stay emitted
+        self.set_state(x, v, C, F)
+
+    def activate(self, ent, high_water):
+        """Emitter entity `ent` has its first `high_water` particles emitted (and no others): masses,
+        volumes and the solver's count follow."""
+        em = ent._emitter
+        lo, old, hi = ent._p_start, ent._p_start + em.high_water, ent._p_start + high_water
+        if hi > old:
+            self.solver.kernel_set_particle_mass(old, hi, float(self._mass_np[lo]), float(self._vol_np[lo]))
+            self.mass[old:hi] = float(self._mass_np[lo])
+        elif hi < old:
+            self.solver.kernel_set_particle_mass(hi, old, 0.0, 0.0)
+            self.mass[hi:old] = 0.0
+        self.active[old:hi] = True
+        self.active[hi:old] = False
+        em.high_water = high_water
+        count = max([self.n_fixed] + [e._p_start + e._emitter.high_water for e in self.emitter_entities
+                                      if e._emitter.high_water > 0])
+        self.solver.set_count(count)
+        self._state_on_device = False  # written (and parked) before the next step
+        self._loaded = (None, None, None)  # the parameters and forces of the newly counted particles too
 
     def _c(self, t):
         return t.detach().to(self.dtype).contiguous()
 
     def _write_state(self, x, v, C, F):
         self.solver.kernel_set_state(0, self._c(x), self._c(v), self._c(C), self._c(F))
+        if self.emitter_entities:
+            self._park_inactive()
 
     # ---------------------------------------------------------------- parameters and forces
     def params(self):
@@ -208,6 +288,8 @@ class MPMSim:
     def untracked_step_done(self):
         self._state = None
         self._state_on_device = True
+        if self.emitter_entities:
+            self._park_inactive()
 
     def read_outputs(self):
         return list(self._read_state(self.solver.last_slot))

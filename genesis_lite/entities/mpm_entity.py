@@ -29,7 +29,11 @@ class MPMEntityState:
 
 
 class MPMEntity:
-    """Particles sampled in a morph's volume, made of one gs.materials.MPM material."""
+    """Particles sampled in a morph's volume, made of one gs.materials.MPM material (or reserved by an
+    emitter, entities/emitter.py: `is_emitter`, morph None, particles at gu.nowhere() until emitted)."""
+
+    is_emitter = False
+    _emitter = None  # the Emitter that owns this entity's particles
 
     # index and value validation are the rigid entities' (same rules, same messages)
     _idx = RigidEntity._idx

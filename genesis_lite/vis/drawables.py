@@ -200,6 +200,8 @@ class SceneDrawables:
                 P = P.detach().cpu().numpy() if isinstance(P, torch.Tensor) else np.asarray(P)
                 if P.ndim == 3:
                     P = P[env_idx]
+                if getattr(ent, "is_emitter", False):  # only what has been emitted (the rest is 'nowhere')
+                    P = P[:ent._emitter.high_water]
                 P = P.reshape(-1, 3)
                 if radius is None and len(P):
                     radius = _spacing_radius(P)

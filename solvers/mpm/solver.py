@@ -460,6 +460,35 @@ class MPMSolver:
                     x.grad[I] = ti.Matrix.zero(float, x.n, x.m)
         self.vjp_loss.grad[None] = 1.0  # see kernel_vjp
 
+    # ------------------------------------------------------------------ emitters (genesis_lite/entities/emitter.py)
+    def set_count(self, n):
+        """Make the scene's particle count n (<= the capacity): the kernels then loop over the first n
+        particles only. An emitter's particles lie after every other entity's, and the count grows over
+        them as they are emitted, so a particle not yet emitted is in no loop and touches nothing."""
+        if not self.runtime_count or not 0 <= n <= self.cap_particles:
+            raise ValueError(f"MPMSolver.set_count({n}): needs a run-time count and 0 <= n <= {self.cap_particles}")
+        self._n_particles = int(n)
+        self.cfg_i.from_numpy(np.array([n], np.int32))
+
+    @ti.kernel
+    def kernel_set_particle_mass(self, lo: ti.i32, hi: ti.i32, mass: float, vol: float):
+        """Mass (kg) and volume (m^3) of particles lo..hi-1 (an emitter's particles carry none until emitted)."""
+        for i_p in range(lo, hi):
+            self.p_mass[i_p] = mass
+            self.p_vol[i_p] = vol
+
+    @ti.kernel
+    def kernel_park(self, lo: ti.i32, hi: ti.i32, p: ti.types.vector(3, float)):
+        """Put particles lo..hi-1 of slot 0 at rest at p with C = 0 and F = I: particles not yet emitted
+        that lie inside the count (behind another emitter's that has emitted). They carry no mass and no
+        volume, so they add exact zeros to the grid; parking them after every step keeps their F from
+        drifting into a degenerate (non-finite) stress."""
+        for i_b, i_p in ti.ndrange(self.n_envs, (lo, hi)):
+            self.x[0, i_b, i_p] = p
+            self.v[0, i_b, i_p] = ti.Vector.zero(float, 3)
+            self.C[0, i_b, i_p] = ti.Matrix.zero(float, 3, 3)
+            self.F[0, i_b, i_p] = ti.Matrix.identity(float, 3)
+
     @ti.kernel
     def kernel_count_nonfinite(self, slot: ti.i32, step: ti.i32) -> ti.i32:
         """Record the `step` (>= 1) at which env i_b first had a particle whose x or v in `slot` is not
