@@ -1,0 +1,114 @@
+"""Does the quadruped drop of bench_workprecision.py converge as dt shrinks? (issue #24)
+
+The work-precision benchmark measures each engine's error against that engine's own fine run. Ours
+(RK4 at dt = 1e-4 s) was reported with a self-difference of 3.3e-4 m, and our errors stopped falling
+near 6e-4 m. This script runs the same scene (ANYmal B dropped from 0.62 m, PD holding the standing
+pose, float64, 1 env, RK4) at halving steps and prints the base position's change per halving, for the
+default contact model and for one with a tenth of its damping; then restarts a run from the fine run's
+state at t = 0.5 s with a coarse and a fine step, to tell a steady-state error of the step from a
+history (the landing) that the step changes.
+
+    python benchmarks/quadruped_convergence.py [--quick] [--out benchmarks/results/quadruped_convergence.md]
+"""
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(1, str(HERE.parent))
+
+import bench_workprecision as W  # noqa: E402
+from common import progress  # noqa: E402
+
+T_END = 1.0
+SAMPLE = 0.1  # s between recorded base positions
+
+
+def build(gs, files, dt, damping=None):
+    opts = W._gl_opts
+
+    def with_damping(gs_, integrator, dt_, substeps, collision, limits=True):
+        d = opts(gs_, integrator, dt_, substeps, collision, limits)
+        if damping is not None:
+            d["rigid_options"].contact_damping = damping
+        return d
+
+    W._gl_opts = with_damping
+    try:
+        scene, reset, observe = W._gl_build_quad(gs, files, "RK4", dt, 1, 0)
+    finally:
+        W._gl_opts = opts
+    return scene, reset, observe
+
+
+def run(gs, files, dt, damping=None, start=None, t_end=T_END):
+    """Base positions every SAMPLE s up to t_end (from `start` = (qpos, dofs velocity) if given)."""
+    scene, reset, observe = build(gs, files, dt, damping)
+    reset()
+    robot = scene.entities[1]
+    if start is not None:
+        robot.set_qpos(start[0])
+        robot.set_dofs_velocity(start[1])
+    every = int(round(SAMPLE / dt))
+    out = []
+    for i in progress(range(int(round(t_end / dt))), desc=f"dt={dt:g}"):
+        scene.step()
+        if (i + 1) % every == 0:
+            out.append(observe().ravel().copy())
+    return np.array(out), robot
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="three steps per model, no restart")
+    ap.add_argument("--out", default=str(HERE / "results" / "quadruped_convergence.md"))
+    args = ap.parse_args()
+    import genesis_lite as gs
+
+    gs.init(backend=gs.cpu, precision="64", logging_level="warning")
+    files = W._quad_files(Path(tempfile.mkdtemp()))
+    models = [("default (contact_damping 4e4 N s/m)", None, [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5, 6.25e-6]),
+              ("contact_damping 4e3 N s/m", 4e3, [4e-4, 2e-4, 1e-4, 5e-5])]
+    if args.quick:
+        models = [(n, d, dts[:3]) for n, d, dts in models]
+    lines = ["# Quadruped drop: convergence of genesis_lite as dt shrinks (issue #24)", "",
+             "`benchmarks/quadruped_convergence.py`: the work-precision quadruped (ANYmal B dropped from 0.62 m, PD "
+             "kp 100, kv 5 holding the standing pose), float64, 1 env, RK4. Base position at t = 1 s, and the "
+             "largest change of the base position (norm, over t = 0.1 .. 1 s) when dt is halved.", ""]
+    t0 = time.time()
+    for name, damping, dts in models:
+        lines += [f"## {name}", "", "| dt s | base z at t = 1 s (m) | change from dt x 2 (m) | wall s |",
+                  "| --- | --- | --- | --- |"]
+        prev = None
+        for dt in dts:
+            t1 = time.time()
+            traj, _ = run(gs, files, dt, damping)
+            change = "-" if prev is None else f"{np.linalg.norm(traj - prev, axis=1).max():.2e}"
+            lines.append(f"| {dt:g} | {traj[-1][2]:.6f} | {change} | {time.time() - t1:.1f} |")
+            print(lines[-1], flush=True)
+            prev = traj
+        lines.append("")
+    if not args.quick:
+        fine = 1e-4
+        traj, robot = run(gs, files, fine, t_end=0.5)
+        start = (robot.get_qpos().clone(), robot.get_dofs_velocity().clone())
+        lines += ["## Restart at t = 0.5 s (default model)", "",
+                  f"The state of the dt = {fine:g} s run at t = 0.5 s, continued to t = 1 s with each step:", "",
+                  "| dt s | base z at t = 1 s (m) |", "| --- | --- |"]
+        for dt in (4e-4, fine):
+            tr, _ = run(gs, files, dt, start=start, t_end=0.5)
+            lines.append(f"| {dt:g} | {tr[-1][2]:.6f} |")
+            print(lines[-1], flush=True)
+        lines.append("")
+    lines.append(f"Total wall time {time.time() - t0:.0f} s.")
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
