@@ -340,7 +340,8 @@ def compare(a: dict, b: dict) -> str:
 def write_table(data: dict, path: Path, meta: dict):
     ours, theirs = data.get("ours", {}), data.get("genesis", {})
     rec = meta.get("genesis_recorded")
-    lines = [f"Machine: {meta.get('machine')}; CPU only. Genesis: {meta.get('genesis_version', '?')}, scripts from "
+    gver = meta.get("genesis_version") or (rec or {}).get("genesis_version", "?")
+    lines = [f"Machine: {meta.get('machine')}; CPU only. Genesis: {gver}, scripts from "
              f"{meta.get('source', '?')}.", ""]
     if rec and any(r.get("recorded") for r in theirs.values()):
         lines += [f"**The Genesis column is a recorded run**, not today's: {rec.get('genesis_version', '?')}, "
