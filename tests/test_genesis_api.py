@@ -4,6 +4,7 @@ writes them, each checked against what the name means rather than against our ow
   closed form (no gravity, one inertia);
 - set_mass_shift / set_COM_shift / set_links_inertial_mass: the model's values plus the shift, seen in the
   total mass and in the static torque gravity puts on a joint;
+- a URDF with PyBullet's `<?xml version="0.0" ?>` header (Genesis's plane.urdf) loads;
 - entity.set_mass / link.set_mass (mass and inertia scaled together, fixed links left alone) and
   rigid_solver.links_info, against the mass matrix's closed form sum(I + m x^2);
 - set_friction_ratio: the model's coefficient times the ratio on the named links' geoms only, and a box
@@ -164,6 +165,27 @@ def test_links_info_layout_follows_batch_links_info(arm_path):
         else:
             with pytest.raises(gs.GenesisException, match="batch_links_info=True"):
                 info.inertial_mass.to_numpy()
+
+
+def test_urdf_with_pybullet_xml_version_header_loads(tmp_path):
+    """Genesis's urdf/plane/plane.urdf (PyBullet's) starts with `<?xml version="0.0" ?>`, which libxml2
+    refuses; Genesis loads it (go2_env.py, sand_wheel.py): its ground is a 200 x 200 x 10 m box 5 m below
+    the link frame, on a 1 kg link. A file that is really broken still says so."""
+    from genesis_lite.loaders import load_morph
+
+    (tmp_path / "plane.urdf").write_text(
+        '<?xml version="0.0" ?>\n<robot name="plane"><link name="planeLink"><inertial><mass value="1.0"/>'
+        '<inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial><collision>'
+        '<origin rpy="0 0 0" xyz="0 0 -5"/><geometry><box size="200 200 10"/></geometry></collision></link></robot>')
+    model = load_morph(gs.morphs.URDF(file=str(tmp_path / "plane.urdf"), fixed=True), name="plane")
+    (link,) = model.links
+    (geom,) = link.geoms
+    assert geom.type == "box" and link.mass == 1.0
+    np.testing.assert_allclose(np.ravel(geom.size), [100.0, 100.0, 5.0])  # half sizes
+    np.testing.assert_allclose(geom.pos, [0.0, 0.0, -5.0])
+    (tmp_path / "broken.urdf").write_text('<?xml version="0.0" ?>\n<robot name="b"><link name="l"></robot>')
+    with pytest.raises(ValueError, match="broken.urdf.*malformed XML"):
+        load_morph(gs.morphs.URDF(file=str(tmp_path / "broken.urdf")), name="broken")
 
 
 def test_friction_ratio_decides_slide_or_stick_on_a_slope():
