@@ -501,7 +501,7 @@ def main():
         print("Genesis side skipped: no --genesis-python", flush=True)
         sides.remove("genesis")
     if args.genesis_recorded:
-        rpath = Path(args.genesis_recorded)
+        rpath = Path(args.genesis_recorded).resolve()
         if not rpath.exists():
             ap.error(f"--genesis-recorded {rpath}: no such file")
         rec = json.loads(rpath.read_text())
@@ -509,7 +509,7 @@ def main():
         for name in rec_run:
             if name in rec.get("genesis", {}):
                 data.setdefault("genesis", {})[name] = rec["genesis"][name]
-        shown = rpath.relative_to(REPO_ROOT) if rpath.resolve().is_relative_to(REPO_ROOT) else rpath
+        shown = rpath.relative_to(REPO_ROOT) if rpath.is_relative_to(REPO_ROOT) else rpath
         meta["genesis_recorded"] = dict(rec.get("meta", {}), file=str(shown))
     if "ours" in sides:
         meta["ours_run"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
