@@ -442,6 +442,8 @@ def main():
                          "--genesis-recorded FILE (required), with --recorded-meta KEY=VALUE pairs, and exit")
     ap.add_argument("--recorded-meta", action="append", default=[], metavar="KEY=VALUE",
                     help="metadata for --extract-recorded: genesis_version, date, machine, note")
+    ap.add_argument("--table-only", action="store_true",
+                    help="rewrite <out>/table.md from <out>/results.json (and --genesis-recorded) without running")
     ap.add_argument("--out", default=DEFAULT_OUT, help="folder for results.json, table.md, logs (default %(default)s)")
     args = ap.parse_args()
 
@@ -505,12 +507,16 @@ def main():
         if not rpath.exists():
             ap.error(f"--genesis-recorded {rpath}: no such file")
         rec = json.loads(rpath.read_text())
-        rec_run = [] if "genesis" in sides else names
-        for name in rec_run:
-            if name in rec.get("genesis", {}):
-                data.setdefault("genesis", {})[name] = rec["genesis"][name]
+        # every recorded script (ours' results accumulate over runs), except those Genesis runs now
+        for name, r in rec.get("genesis", {}).items():
+            if name in SCRIPTS and not ("genesis" in sides and name in names):
+                data.setdefault("genesis", {})[name] = r
         shown = rpath.relative_to(REPO_ROOT) if rpath.is_relative_to(REPO_ROOT) else rpath
         meta["genesis_recorded"] = dict(rec.get("meta", {}), file=str(shown))
+    if args.table_only:
+        write_table(data, out / "table.md", meta)
+        print(f"table: {out / 'table.md'} (from {res_path}; nothing run)")
+        return
     if "ours" in sides:
         meta["ours_run"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     res_path.write_text(json.dumps(data, indent=1))
