@@ -38,8 +38,8 @@ Without Genesis installed, `--genesis-recorded FILE` fills the Genesis column fr
 by `--save-genesis FILE` after a Genesis-side run, or once by `--extract-recorded MD` from an older results
 markdown); the table then says the Genesis column is that recorded run (version, date, source) and ours is today's:
 
-    python benchmarks/genesis_scripts.py --side ours --rev v0.4.5 --assets <genesis/assets> \
-        --genesis-recorded benchmarks/results/genesis_scripts_genesis045.json
+    python benchmarks/genesis_scripts.py --side ours --rev v0.4.5 --assets <genesis/assets>
+        --genesis-recorded benchmarks/results/genesis_scripts_genesis045.json       (one command line)
 """
 from __future__ import annotations
 
