@@ -33,6 +33,13 @@ needs rsl-rl and a training run), and a tiny loop: `gs.init(backend=gs.cpu)`, `G
 
 Results accumulate in <out>/results.json (one entry per side and script; a run replaces its entries) and
 <out>/table.md is rewritten from it after every script. Logs and transformed scripts: <out>/<side>/.
+
+Without Genesis installed, `--genesis-recorded FILE` fills the Genesis column from a recorded run (a JSON file written
+by `--save-genesis FILE` after a Genesis-side run, or once by `--extract-recorded MD` from an older results
+markdown); the table then says the Genesis column is that recorded run (version, date, source) and ours is today's:
+
+    python benchmarks/genesis_scripts.py --side ours --rev v0.4.5 --assets <genesis/assets>
+        --genesis-recorded benchmarks/results/genesis_scripts_genesis045.json       (one command line)
 """
 from __future__ import annotations
 
@@ -50,6 +57,7 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MIRROR = "/work/.mirror/Genesis-Embodied-AI+Genesis/repo"
 DEFAULT_OUT = "/tmp/genesis_scripts_out"
+RECORDED_DEFAULT = REPO_ROOT / "benchmarks" / "results" / "genesis_scripts_genesis045.json"
 
 # ----------------------------------------------------------------------------------------------- the edits
 IMPORT_EDITS = [  # our side only
@@ -331,8 +339,16 @@ def compare(a: dict, b: dict) -> str:
 
 def write_table(data: dict, path: Path, meta: dict):
     ours, theirs = data.get("ours", {}), data.get("genesis", {})
-    lines = [f"Machine: {meta.get('machine')}; CPU only. Genesis: {meta.get('genesis_version', '?')}, scripts from "
-             f"{meta.get('source', '?')}.", "",
+    rec = meta.get("genesis_recorded")
+    gver = meta.get("genesis_version") or (rec or {}).get("genesis_version", "?")
+    lines = [f"Machine: {meta.get('machine')}; CPU only. Genesis: {gver}, scripts from "
+             f"{meta.get('source', '?')}.", ""]
+    if rec and any(r.get("recorded") for r in theirs.values()):
+        lines += [f"**The Genesis column is a recorded run**, not today's: {rec.get('genesis_version', '?')}, "
+                  f"{rec.get('date', 'date unknown')}, {rec.get('machine', '')}; read from `{rec.get('file', '?')}` "
+                  f"({rec.get('note', '')}). The ours column is today's run"
+                  f"{' (' + meta['ours_run'] + ')' if meta.get('ours_run') else ''}.", ""]
+    lines += [
              "| script | ours | ours error (category: line) | s | Genesis | Genesis error | s | GS_RESULT ours | GS_RESULT Genesis | difference |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for name in SCRIPTS:
@@ -364,6 +380,37 @@ def write_table(data: dict, path: Path, meta: dict):
     path.write_text("\n".join(lines) + "\n")
 
 
+def split_md_row(line: str) -> list[str]:
+    """The cells of a markdown table row (a `\\|` inside a cell is not a separator)."""
+    cells = re.split(r"(?<!\\)\|", line.strip())
+    return [c.strip().replace("\\|", "|") for c in cells[1:-1]]
+
+
+def recorded_from_markdown(md: str) -> dict:
+    """The Genesis side of the first results table of an older `genesis_scripts.md` (columns: script, ours, ours
+    error, s, Genesis, Genesis error, s, GS_RESULT ours, GS_RESULT Genesis, difference): {script: result entry}.
+    The values are as the table printed them (4 significant digits)."""
+    out = {}
+    for line in md.splitlines():
+        if not line.startswith("| "):
+            continue
+        c = split_md_row(line)
+        if len(c) != 10 or c[0] not in SCRIPTS:
+            continue
+        if c[0] in out:  # only the first table (later tables of the file are other runs)
+            break
+        ok = c[4] == "yes"
+        results = {}
+        if c[8] not in ("", "-"):
+            for part in c[8].split("; "):
+                k, v = part.split("=", 1)
+                results[k] = [float(x) for x in v.split(", ")]
+        out[c[0]] = dict(script=c[0], side="genesis", ok=ok, rc=0 if ok else None, timed_out=c[4] == "timeout",
+                         wall_s=float(c[6]) if c[6] else 0.0, error=c[5], category=category(c[5]) if c[5] else "",
+                         results=results, probe_errors={}, log="", recorded=True)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n", 2)[2],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -384,8 +431,33 @@ def main():
                          "lacks (e.g. a folder holding tensordict for go2_env)")
     ap.add_argument("--timeout-ours", type=float, default=300)
     ap.add_argument("--timeout-genesis", type=float, default=600)
+    ap.add_argument("--genesis-recorded", default=None, metavar="FILE",
+                    help=f"JSON of a recorded Genesis-side run (e.g. {RECORDED_DEFAULT.relative_to(REPO_ROOT)}): fills "
+                         "the Genesis column for the scripts whose Genesis side is not run now; the table says so")
+    ap.add_argument("--save-genesis", default=None, metavar="FILE",
+                    help="after the run, write the Genesis side's results (with version, date, machine) to FILE, "
+                         "for later --genesis-recorded use")
+    ap.add_argument("--extract-recorded", default=None, metavar="MD",
+                    help="one-off: parse the Genesis column of the first table of an older results markdown MD into "
+                         "--genesis-recorded FILE (required), with --recorded-meta KEY=VALUE pairs, and exit")
+    ap.add_argument("--recorded-meta", action="append", default=[], metavar="KEY=VALUE",
+                    help="metadata for --extract-recorded: genesis_version, date, machine, note")
+    ap.add_argument("--table-only", action="store_true",
+                    help="rewrite <out>/table.md from <out>/results.json (and --genesis-recorded) without running")
     ap.add_argument("--out", default=DEFAULT_OUT, help="folder for results.json, table.md, logs (default %(default)s)")
     args = ap.parse_args()
+
+    if args.extract_recorded:
+        if not args.genesis_recorded:
+            ap.error("--extract-recorded needs --genesis-recorded FILE to write")
+        rmeta = dict(kv.split("=", 1) for kv in args.recorded_meta)
+        rmeta.setdefault("note", f"parsed from {args.extract_recorded}; values at the 4 significant digits printed there")
+        rec = recorded_from_markdown(Path(args.extract_recorded).read_text())
+        if not rec:
+            ap.error(f"no results table found in {args.extract_recorded}")
+        Path(args.genesis_recorded).write_text(json.dumps(dict(meta=rmeta, genesis=rec), indent=1) + "\n")
+        print(f"{len(rec)} recorded Genesis results -> {args.genesis_recorded}")
+        return
 
     names = [s for s in args.scripts.split(",") if s] or list(SCRIPTS)
     bad = [s for s in names if s not in SCRIPTS]
@@ -430,6 +502,25 @@ def main():
     if "genesis" in sides and not gpy:
         print("Genesis side skipped: no --genesis-python", flush=True)
         sides.remove("genesis")
+    if args.genesis_recorded:
+        rpath = Path(args.genesis_recorded).resolve()
+        if not rpath.exists():
+            ap.error(f"--genesis-recorded {rpath}: no such file")
+        rec = json.loads(rpath.read_text())
+        # every recorded script (ours' results accumulate over runs), except those Genesis runs now
+        for name, r in rec.get("genesis", {}).items():
+            if name in SCRIPTS and not ("genesis" in sides and name in names):
+                data.setdefault("genesis", {})[name] = r
+        shown = rpath.relative_to(REPO_ROOT) if rpath.is_relative_to(REPO_ROOT) else rpath
+        meta["genesis_recorded"] = dict(rec.get("meta", {}), file=str(shown))
+    if args.table_only:
+        write_table(data, out / "table.md", meta)
+        print(f"table: {out / 'table.md'} (from {res_path}; nothing run)")
+        return
+    if "ours" in sides:
+        meta["ours_run"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    res_path.write_text(json.dumps(data, indent=1))
+    write_table(data, out / "table.md", meta)
     for side in sides:
         d = out / side
         d.mkdir(exist_ok=True)
@@ -450,6 +541,11 @@ def main():
             write_table(data, out / "table.md", meta)
             status = "ok" if r["ok"] else f"FAIL [{r['category']}] {r['error'][:160]}"
             print(f"{side:8s} {name:28s} {r['wall_s']:7.1f} s  {status}  {r['results']}", flush=True)
+    if args.save_genesis and "genesis" in sides:
+        gmeta = dict(genesis_version=meta.get("genesis_version"), machine=meta.get("machine"),
+                     source=meta.get("source"), date=time.strftime("%Y-%m-%d", time.gmtime()))
+        Path(args.save_genesis).write_text(json.dumps(dict(meta=gmeta, genesis=data["genesis"]), indent=1) + "\n")
+        print(f"Genesis side saved: {args.save_genesis}")
     print(f"table: {out / 'table.md'}")
 
 

@@ -361,3 +361,34 @@ def test_run_all_quick(tmp_path):
         return
     assert (tmp_path / "workprecision_1env.png").stat().st_size > 10_000
     assert (tmp_path / "workprecision_1024env.png").stat().st_size > 10_000
+
+
+# --- Genesis's scripts: the recorded Genesis column (benchmarks/genesis_scripts.py) ----------------------------
+
+
+def test_genesis_scripts_recorded_column_round_trip(tmp_path):
+    """A results table's Genesis column (escaped pipes in error cells, several probes per script, a later
+    table of another run ignored) is read back as the harness's own entries, and a table made with them
+    says that the Genesis column is a recorded run."""
+    import genesis_scripts as g
+
+    md = "\n".join([
+        "| script | ours | ours error (category: line) | s | Genesis | Genesis error | s | GS_RESULT ours | GS_RESULT Genesis | difference |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+        "| pyramid | no | `X`: a \\| b | 8 | yes |  | 12 | - | boxes_mean_z=0.4577; top_box_z=0.1248 | - |",
+        "| tower | yes |  | 59 | no | `Y`: ValueError: bad | 66 | top_box_z=3.249 | - | - |",
+        "", "| pyramid | yes |  | 1 | yes |  | 1 | - | boxes_mean_z=9 | - |"])
+    rec = g.recorded_from_markdown(md)
+    assert set(rec) == {"pyramid", "tower"}
+    assert rec["pyramid"]["results"] == {"boxes_mean_z": [0.4577], "top_box_z": [0.1248]}
+    assert rec["pyramid"]["ok"] and rec["pyramid"]["wall_s"] == 12.0 and rec["pyramid"]["recorded"]
+    assert not rec["tower"]["ok"] and rec["tower"]["error"] == "`Y`: ValueError: bad" and rec["tower"]["results"] == {}
+    ours = {"pyramid": dict(script="pyramid", side="ours", ok=True, rc=0, timed_out=False, wall_s=8.0, error="",
+                            category="", results={"boxes_mean_z": [0.4583], "top_box_z": [0.125]})}
+    meta = {"machine": "m", "source": "s", "genesis_recorded": {"genesis_version": "genesis-world 0.4.5",
+                                                                 "date": "2026-11-25", "file": "f.json"}}
+    g.write_table({"ours": ours, "genesis": rec}, tmp_path / "t.md", meta)
+    text = (tmp_path / "t.md").read_text()
+    assert "**The Genesis column is a recorded run**, not today's: genesis-world 0.4.5, 2026-11-25" in text
+    row = next(l for l in text.splitlines() if l.startswith("| pyramid |"))
+    assert "boxes_mean_z: max abs diff 0.0006" in row

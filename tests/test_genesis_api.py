@@ -4,6 +4,9 @@ writes them, each checked against what the name means rather than against our ow
   closed form (no gravity, one inertia);
 - set_mass_shift / set_COM_shift / set_links_inertial_mass: the model's values plus the shift, seen in the
   total mass and in the static torque gravity puts on a joint;
+- a URDF with PyBullet's `<?xml version="0.0" ?>` header (Genesis's plane.urdf) loads;
+- entity.set_mass / link.set_mass (mass and inertia scaled together, fixed links left alone) and
+  rigid_solver.links_info, against the mass matrix's closed form sum(I + m x^2);
 - set_friction_ratio: the model's coefficient times the ratio on the named links' geoms only, and a box
   that slides or sticks on a slope as Coulomb's law says for tan(slope) against the new coefficient;
 - get_AABB: against the corners of the boxes and spheres it encloses;
@@ -28,6 +31,7 @@ import pytest
 import torch
 
 import genesis_lite as gs
+from genesis_lite.errors import GenesisWarning
 
 ARM = ('<robot name="arm"><link name="base"/>'
        '<link name="upper"><inertial><origin xyz="0.3 0 0"/><mass value="2.0"/>'
@@ -106,6 +110,83 @@ def test_mass_and_com_shifts_act_as_in_genesis(arm_path):
     arm.set_mass_shift([0.0, 0.0], links_idx_local=[1, 2])
     arm.set_links_inertial_mass([3.0], links_idx_local=[1])
     np.testing.assert_allclose(arm.get_links_mass([1, 2]).numpy(), [3.0, 1.0], atol=1e-12)
+
+
+def test_set_mass_scales_links_as_genesis_and_links_info_reads_them(arm_path):
+    """Genesis's RigidLink.set_mass scales the link's inertia with its mass (a uniformly denser body) and
+    RigidEntity.set_mass scales every link that moves by mass / get_mass(); a link fixed to the world is
+    left alone with a warning. Checked on the shoulder's mass-matrix entry at q = 0, which is
+    sum(Iyy + m x^2) over the links below it (x: centre of mass from the shoulder axis), and on the elbow's,
+    Iyy + m 0.2^2 for the forearm."""
+    scene, arm = _arm_scene(arm_path)
+    model = {"upper": (2.0, 0.05, 0.3), "fore": (1.0, 0.02, 0.8)}  # mass, Iyy, COM distance from the shoulder
+
+    def shoulder(scale_upper, scale_fore):
+        (mu, iu, xu), (mf, i_f, xf) = model["upper"], model["fore"]
+        return scale_upper * (iu + mu * xu ** 2) + scale_fore * (i_f + mf * xf ** 2)
+
+    np.testing.assert_allclose(arm.get_mass_mat().numpy()[0, 0], shoulder(1, 1), rtol=1e-9)
+    assert arm.links[0].is_fixed and not arm.links[1].is_fixed
+    with pytest.warns(GenesisWarning, match="fixed to the world"):
+        arm.links[0].set_mass(5.0)
+    np.testing.assert_allclose(float(arm.get_mass()), 3.0, rtol=1e-12)  # the base link has no mass
+    arm.set_mass(6.0)  # ratio 2 on both moving links, inertia included
+    np.testing.assert_allclose(arm.get_links_mass([1, 2]).numpy(), [4.0, 2.0], rtol=1e-12)
+    np.testing.assert_allclose(arm.get_mass_mat().numpy()[0, 0], shoulder(2, 2), rtol=1e-9)
+    arm.get_link("fore").set_mass(3.0)  # ratio 1.5 on the forearm alone
+    M = arm.get_mass_mat().numpy()
+    np.testing.assert_allclose(M[0, 0], shoulder(2, 3), rtol=1e-9)
+    np.testing.assert_allclose(M[1, 1], 3 * (0.02 + 1.0 * 0.2 ** 2), rtol=1e-9)
+    # Genesis's rigid_solver.links_info (solver link order; the arm is the scene's only entity)
+    info = scene.sim.rigid_solver.links_info
+    np.testing.assert_allclose(info.inertial_mass.to_numpy(), [0.0, 4.0, 3.0], atol=1e-12)
+    np.testing.assert_allclose(info.inertial_pos.to_numpy()[2], [0.2, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(info.inertial_i.to_numpy()[2], np.diag([0.015, 0.06, 0.06]), rtol=1e-12)
+    with pytest.raises(gs.GenesisException, match="read-only"):
+        info.inertial_mass[1] = 1.0
+    with pytest.raises(gs.GenesisException, match="not available"):
+        info.parent_idx  # noqa: B018
+    # a mass shift below minus the model mass (Genesis takes it: a negative mass) is refused, naming the link
+    with pytest.raises(gs.GenesisException, match="link 'upper' a negative mass: model mass 2 kg"):
+        arm.set_mass_shift([-2.5], links_idx_local=[1])
+
+
+def test_links_info_layout_follows_batch_links_info(arm_path):
+    """(n_links, n_envs) with RigidOptions(batch_links_info=True), as Genesis's fields; without it a per-env
+    difference cannot be shown in the (n_links,) layout and is refused with what to do."""
+    for batched in (True, False):
+        scene = gs.Scene(rigid_options=gs.options.RigidOptions(batch_links_info=batched), show_viewer=False)
+        arm = scene.add_entity(gs.morphs.URDF(file=arm_path, fixed=True))
+        scene.build(n_envs=2)
+        info = scene.sim.rigid_solver.links_info
+        assert info.inertial_mass.shape == ((3, 2) if batched else (3,))
+        arm.get_link("upper").set_mass([2.5, 3.0])
+        if batched:
+            np.testing.assert_allclose(info.inertial_mass.to_numpy()[1], [2.5, 3.0], rtol=1e-12)
+        else:
+            with pytest.raises(gs.GenesisException, match="batch_links_info=True"):
+                info.inertial_mass.to_numpy()
+
+
+def test_urdf_with_pybullet_xml_version_header_loads(tmp_path):
+    """Genesis's urdf/plane/plane.urdf (PyBullet's) starts with `<?xml version="0.0" ?>`, which libxml2
+    refuses; Genesis loads it (go2_env.py, sand_wheel.py): its ground is a 200 x 200 x 10 m box 5 m below
+    the link frame, on a 1 kg link. A file that is really broken still says so."""
+    from genesis_lite.loaders import load_morph
+
+    (tmp_path / "plane.urdf").write_text(
+        '<?xml version="0.0" ?>\n<robot name="plane"><link name="planeLink"><inertial><mass value="1.0"/>'
+        '<inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial><collision>'
+        '<origin rpy="0 0 0" xyz="0 0 -5"/><geometry><box size="200 200 10"/></geometry></collision></link></robot>')
+    model = load_morph(gs.morphs.URDF(file=str(tmp_path / "plane.urdf"), fixed=True), name="plane")
+    (link,) = model.links
+    (geom,) = link.geoms
+    assert geom.type == "box" and link.mass == 1.0
+    np.testing.assert_allclose(np.ravel(geom.size), [100.0, 100.0, 5.0])  # half sizes
+    np.testing.assert_allclose(geom.pos, [0.0, 0.0, -5.0])
+    (tmp_path / "broken.urdf").write_text('<?xml version="0.0" ?>\n<robot name="b"><link name="l"></robot>')
+    with pytest.raises(ValueError, match="broken.urdf.*malformed XML"):
+        load_morph(gs.morphs.URDF(file=str(tmp_path / "broken.urdf")), name="broken")
 
 
 def test_friction_ratio_decides_slide_or_stick_on_a_slope():

@@ -85,7 +85,6 @@ def test_all_example_robot_data_urdfs_load():
           f"yourdfpy cannot parse {len(skipped)}: {skipped}")
     assert not failed, "\n".join(failed)
     assert len(loaded) >= 60
-    assert dt < 60
 
 
 def test_joint_order_matches_pinocchio_for_all_robots():

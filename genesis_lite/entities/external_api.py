@@ -45,11 +45,17 @@ class RigidSolverAPI:
     methods onto scene.sim.rigid_solver at build). Holds its scene weakly."""
 
     METHODS = ("apply_links_external_force", "apply_links_external_torque", "get_links_pos", "get_links_quat",
-               "get_links_vel", "get_links_ang", "get_links_root_COM")
+               "get_links_vel", "get_links_ang", "get_links_root_COM", "links_info")
 
     def __init__(self, scene):
         self._scene_ref = weakref.ref(scene)
         self._root_of = None
+
+    @property
+    def links_info(self):
+        """Genesis's `rigid_solver.links_info` for reading the links' inertial parameters (read-only here):
+        `.inertial_mass`, `.inertial_pos`, `.inertial_i`, each with `.to_numpy()` / `.to_torch()`."""
+        return LinksInfoView(self._scene)
 
     # ---------------------------------------------------------------- indices and values
     @property
@@ -280,6 +286,67 @@ class RigidSolverAPI:
                 t = torch.as_tensor(np.array(t), device=R.device).to(R.dtype).expand(len(envs), len(links), 3)
             t = (R[e][:, l] @ t.unsqueeze(-1))[..., 0]
         self._bridge.add_applied(envs, links, None, t)
+
+
+class _ParamField:
+    """One link parameter of the rigid solver in the layout of Genesis's `links_info` fields: (n_links, ...)
+    for the scene's links (every rigid entity's, solver order), with an env axis after the link axis,
+    (n_links, n_envs, ...), when the scene has RigidOptions(batch_links_info=True). Read-only."""
+
+    def __init__(self, scene, param, what):
+        self._scene_ref, self._param, self._what = weakref.ref(scene), param, what
+
+    def to_torch(self, device=None):
+        scene = self._scene_ref()
+        if scene is None:
+            raise GenesisException(f"rigid_solver.links_info.{self._what}: its scene no longer exists")
+        v = scene._rigid.params[self._param].detach()  # (B, n_links, ...)
+        if scene.rigid_options.batch_links_info:
+            v = v.movedim(0, 1)
+        else:
+            if v.shape[0] > 1 and not bool((v == v[:1]).all()):
+                raise GenesisException(
+                    f"rigid_solver.links_info.{self._what}: the envs have different values (set per env), which "
+                    "this unbatched layout cannot show; build with gs.options.RigidOptions(batch_links_info=True) "
+                    "for the (n_links, n_envs) layout, or read them per entity (entity.get_links_mass / "
+                    "get_links_COM / get_links_inertia)")
+            v = v[0]
+        v = v.clone()
+        return v if device is None else v.to(device)
+
+    def to_numpy(self):
+        return self.to_torch().cpu().numpy()
+
+    @property
+    def shape(self):
+        return tuple(self.to_torch().shape)
+
+    def __getitem__(self, key):
+        return self.to_numpy()[key]
+
+    def __setitem__(self, key, value):
+        raise GenesisException(f"rigid_solver.links_info.{self._what} is read-only in genesis_lite; set link "
+                               "parameters with the entity's setters (set_links_inertial_mass, set_links_COM, "
+                               "set_links_inertia, link.set_mass), which keep gradients")
+
+
+class LinksInfoView:
+    """Genesis's `rigid_solver.links_info`, the fields scripts read: inertial_mass (kg), inertial_pos (the
+    centre of mass in the link frame, m), inertial_i (the inertia about it in link axes, kg m^2)."""
+
+    FIELDS = {"inertial_mass": "mass", "inertial_pos": "com", "inertial_i": "inertia"}
+
+    def __init__(self, scene):
+        self._scene_ref = weakref.ref(scene)
+
+    def __getattr__(self, name):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        param = LinksInfoView.FIELDS.get(name)
+        if param is None:
+            raise GenesisException(f"rigid_solver.links_info.{name} is not available in genesis_lite; readable "
+                                   f"are {sorted(LinksInfoView.FIELDS)} (and the entities' getters)")
+        return _ParamField(self._scene_ref(), param, name)
 
 
 class GravityCompensationMixin:

@@ -41,10 +41,29 @@ class RigidLink:
         """This link's mass (kg), per env in a batched scene (Genesis's RigidLink.get_mass)."""
         return self.entity.get_links_mass([self.idx_local], envs_idx)[..., 0]
 
+    @property
+    def is_fixed(self) -> bool:
+        """Whether this link is fixed to the world (no joint with dofs on its way to the root)."""
+        return self.entity._link_is_fixed(self.idx_local)
+
     def set_mass(self, mass, envs_idx=None):
-        """Set this link's mass (kg); differentiable, as entity.set_links_mass."""
+        """Set this link's mass (kg), as Genesis's RigidLink.set_mass: its rotational inertia is scaled by the
+        same ratio (a uniformly denser body, centre of mass kept). A number, or per env (n_envs,) in a
+        batched scene; differentiable. On a link fixed to the world it changes nothing and warns, as
+        Genesis does (entity.set_links_mass sets the mass alone, on any link)."""
+        if self.is_fixed:
+            warnings.warn(f"entity '{self.entity.name}', link '{self.name}': the link is fixed to the world, so its "
+                          "mass has no effect; set_mass skipped (as in Genesis)", GenesisWarning, stacklevel=2)
+            return
+        ent = self.entity
         m = torch.as_tensor(mass) if not torch.is_tensor(mass) else mass
-        self.entity.set_links_mass(m.reshape(*m.shape, 1), [self.idx_local], envs_idx)
+        m = m.reshape(*m.shape, 1)
+        old_m = ent.get_links_mass([self.idx_local], envs_idx).detach()
+        old_i = ent.get_links_inertia([self.idx_local], envs_idx).detach()
+        ent.set_links_mass(m, [self.idx_local], envs_idx)
+        new_m = ent.get_links_mass([self.idx_local], envs_idx)  # checked and broadcast by set_links_mass
+        ratio = new_m / old_m.clamp_min(1e-300)
+        ent.set_links_inertia(old_i * ratio[..., None, None], [self.idx_local], envs_idx)
 
 
 @dataclass
@@ -839,6 +858,28 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
         self._sim.set_param("com", self._values(com, envs, len(ls), "com", (3,)), envs, ls)
 
+    def _link_is_fixed(self, i_local: int) -> bool:
+        """Whether local link i is fixed to the world: it and its ancestors have joints without dofs."""
+        while i_local >= 0:
+            if self.joints[i_local].n_dofs > 0:
+                return False
+            i_local = self.links[i_local].parent_idx_local
+        return True
+
+    def set_mass(self, mass, envs_idx=None):
+        """Set the entity's mass (kg) as Genesis's RigidEntity.set_mass does: every link that is not fixed to
+        the world gets its mass (and inertia) scaled by mass / get_mass(), through RigidLink.set_mass;
+        links fixed to the world keep theirs (they do not move), so get_mass() afterwards differs from
+        `mass` by what those links lost or would have gained. A number, or per env (n_envs,)."""
+        m = torch.as_tensor(mass, dtype=torch.float64) if not torch.is_tensor(mass) else mass
+        if not bool(torch.isfinite(m.detach()).all()) or bool((m.detach() <= 0).any()):
+            raise GenesisException(f"entity '{self.name}': set_mass({mass!r}): the mass must be a positive number (kg)")
+        total = self.get_mass(envs_idx)
+        ratio = m.to(total.dtype) / total
+        moving = [l for l in self.links if not self._link_is_fixed(l.idx_local)]
+        for l in moving:
+            l.set_mass(l.get_mass(envs_idx) * ratio, envs_idx)
+
     def set_links_inertial_mass(self, mass, links_idx_local=None, envs_idx=None):
         """Genesis's name of set_links_mass (kg): the mass alone, the inertia tensor is kept."""
         self.set_links_mass(mass, links_idx_local, envs_idx)
@@ -860,6 +901,17 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         Differentiable in the shift."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
         shift = self._values(mass_shift, envs, len(ls), "mass_shift")
+        base = self._base_param("mass", envs, ls)
+        neg = (base + shift).detach() < 0
+        if bool(neg.any()):
+            e, k = [int(i) for i in torch.nonzero(neg)[0]]
+            env = f" in env {int(envs[e])}" if self._scene.n_envs > 0 else ""
+            raise GenesisException(
+                f"entity '{self.name}': set_mass_shift gives link '{self.links[int(ls[k]) - self._link_start].name}' "
+                f"a negative mass{env}: model mass {base[e, k].item():.4g} kg + shift {shift[e, k].item():.4g} kg. "
+                "Genesis takes such a shift without a word (the link then has a negative mass); genesis_lite refuses "
+                "it. Draw shifts above minus each link's model mass (e.g. a relative shift times "
+                "entity.get_links_mass()).")
         self.set_links_mass(self._unbatch(self._base_param("mass", envs, ls) + shift),
                             (ls - self._link_start).tolist(), envs_idx)
 

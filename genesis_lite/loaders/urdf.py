@@ -16,6 +16,7 @@ inertias times s^5. Efforts and damping are left as written.
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from collections import defaultdict
 from typing import Dict, List, Tuple
@@ -40,6 +41,9 @@ _MOVING = {"revolute", "continuous", "prismatic"}
 _KNOWN = _MOVING | {"fixed", "floating", "planar"}
 
 
+_XML_DECL_VERSION = re.compile(rb"""\A(\s*<\?xml\s+version\s*=\s*["'])(?!1\.)[^"']*(["'])""")
+
+
 def _err(path, msg):
     return ValueError(f"URDF '{path}': {msg}")
 
@@ -56,8 +60,13 @@ def _parse(path: str):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"URDF '{path}': no such file; give the path of an existing .urdf file")
     parser = etree.XMLParser(remove_blank_text=True, remove_comments=True, remove_pis=True)
+    with open(path, "rb") as f:
+        text = f.read()
+    # PyBullet's plane.urdf (which Genesis ships and its scripts load) declares `<?xml version="0.0" ?>`;
+    # libxml2 refuses any XML version but 1.x, while the rest of such a file is well-formed: read it as 1.0
+    text = _XML_DECL_VERSION.sub(rb"\g<1>1.0\g<2>", text, count=1)
     try:
-        root = etree.parse(path, parser).getroot()
+        root = etree.fromstring(text, parser, base_url=path).getroottree().getroot()
     except etree.XMLSyntaxError as e:
         # yourdfpy would silently 'recover' a broken file; a half-read robot is worse than an error
         raise _err(path, f"malformed XML ({e}); fix the file so that it is well-formed XML") from e
