@@ -207,15 +207,14 @@ def test_tiny_urdf_merging_matches_pinocchio(tmp_path):
 # --------------------------------------------------------------------------------------------
 # URDF features
 # --------------------------------------------------------------------------------------------
-def test_panda_loads_fast_and_has_expected_structure():
+def test_panda_loads_with_expected_structure():
     p = erd("panda_description/urdf/panda.urdf")
     urdf(p)  # imports
     prim._MESH_CACHE.clear()
     t = time.perf_counter()
     m = urdf(p, fixed=True)
     dt = time.perf_counter() - t
-    print(f"\npanda cold-cache load: {dt * 1000:.1f} ms")
-    assert dt < 1.0
+    print(f"\npanda cold-cache load: {dt * 1000:.1f} ms")  # timed in benchmarks/bench_build.py, not asserted
     assert m.n_dofs == 9 and m.n_qs == 9
     mesh_geoms = [g for l in m.links for g in l.geoms if g.type == "mesh"]
     assert mesh_geoms and all(g.vertices.shape[1] == 3 and g.faces.shape[1] == 3 for g in mesh_geoms)
