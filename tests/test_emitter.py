@@ -211,7 +211,8 @@ def test_a_stream_and_a_droplet_fall_freely():
 
 def test_grid_mass_is_the_entities_plus_the_emitted_particles():
     """Mass on the grid after a step: the cube's alone before any emission (the emitter's particles
-    weigh nothing), plus rho * droplet volume after a 10 x 10 x 4 cm box of liquid is emitted."""
+    weigh nothing), plus rho * droplet volume after a 10 x 10 x 4 cm box of liquid is emitted; those
+    particles, and only those, are active (get_particles_active)."""
     scene, cube, (em,) = _scene(particle_size=0.01)
     scene.build()
     cube_mass = 1000.0 * 0.1 ** 3
@@ -222,6 +223,13 @@ def test_grid_mass_is_the_entities_plus_the_emitted_particles():
         scene.step()
         assert _grid_mass(scene) == pytest.approx(cube_mass + 1000.0 * 0.1 * 0.1 * 0.04, rel=1e-12)
     assert em.entity.get_mass() == pytest.approx(0.4, rel=1e-12)
+    # Genesis's get_particles_active: the 10 x 10 x 4 emitted particles (of 1 cm) and none of the rest;
+    # every particle of an ordinary entity
+    act = em.entity.get_particles_active()
+    assert act.dtype == torch.bool and act.shape == (2000,) and int(act.sum()) == 400
+    assert bool((em.entity.get_particles_pos()[act][:, 2] < 1.0).all())
+    assert not bool((em.entity.get_particles_pos()[~act] != NOWHERE).any())
+    assert bool(cube.get_particles_active().all())
 
 
 def test_an_unemitted_emitter_behind_an_emitting_one_stays_out():

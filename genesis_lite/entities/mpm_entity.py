@@ -89,6 +89,14 @@ class MPMEntity:
         """Particle positions (m), (n_particles, 3)."""
         return self._state_part(0, envs_idx)
 
+    def get_particles_active(self, envs_idx=None):
+        """Which particles take part in the simulation (Genesis's name): a boolean tensor (n_particles,),
+        batched (n_envs, n_particles). All of an entity's; an emitter's (scene.add_emitter) once emitted,
+        the same in every env."""
+        envs = self._envs(envs_idx)  # (checks envs_idx)
+        act = self._sim.active[self._range].to(self._sim.device)
+        return self._out(act.unsqueeze(0).expand(len(envs), -1).clone())
+
     def get_particles_in_bbox(self, bbox_min, bbox_max, envs_idx=None):
         """Which particles lie in the axis-aligned box [bbox_min, bbox_max] (m) now: a boolean tensor
         (n_particles,), batched (n_envs, n_particles) (Genesis's name)."""
