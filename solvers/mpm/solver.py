@@ -104,6 +104,12 @@ class MPMSolver:
         self.has_ad = any(m in AD_MATERIALS for m in self.mats)
         self.n_slots = n_slots
         self._region = None  # see `region`
+        # particle to grid of the no-gradient substep without atomics, one thread per env's grid
+        # (kernel_substep_nograd), where that beats atomic adds from every thread: on the CPU with fewer
+        # than 5 threads per env (one thread adds without atomics in a fifth of the time it takes with them,
+        # measured on this project's CPUs); never on a GPU, whose float atomics are native
+        cfg = taichi_compat.config()
+        self.plain_p2g = cfg.arch in (ti.x64, ti.arm64) and cfg.cpu_max_num_threads < 5 * n_envs
         self._allocate()
         self._make_units()
 
@@ -418,8 +424,9 @@ class MPMSolver:
         of the gradient path, with two differences in how it runs: the region stays on the device (the
         grid loops read it from active_lo, active_n; the host reads it only when a coupler asks, `region`),
         and particle to grid adds without atomics, each env's particles added in order by one thread (see
-        p2g.py): the sums at a node are the same up to their order, which is fixed here (particle order)
-        where the atomic adds of the parallel loop leave it to the threads."""
+        p2g.py; `plain_p2g`, else with atomics as kernel_p2g): the sums at a node are the same up to their
+        order, which is fixed here (particle order) where the atomic adds of the parallel loop leave it to
+        the threads."""
         if ti.static(pre):
             for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
                 if ti.static(self.has_svd):
@@ -433,9 +440,13 @@ class MPMSolver:
             lo, n = self.active_lo[None], self.active_n[None]
             for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
                 self.func_clear_node(i_b, lo + ti.Vector([i, j, k]))
-            for i_b in range(self.n_envs):
-                for i_p in range(self.n_particles):
-                    func_p2g(self, i_b, i_p, 0, h, False)
+            if ti.static(self.plain_p2g):
+                for i_b in range(self.n_envs):
+                    for i_p in range(self.n_particles):
+                        func_p2g(self, i_b, i_p, 0, h, False)
+            else:
+                for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+                    func_p2g(self, i_b, i_p, 0, h, True)
         if ti.static(grid):
             glo, gn = self.active_lo[None], self.active_n[None]
             for i_b, i, j, k in ti.ndrange(self.n_envs, gn[0], gn[1], gn[2]):
