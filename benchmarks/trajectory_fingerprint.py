@@ -8,6 +8,10 @@ Scenes (all at the default build options: collision on, default integrator, floa
   anymal   ANYmal B (example-robot-data) on a plane, 8 envs, PD control towards per-env targets, 40 steps
   coupling a rigid box pushing an elastic MPM cube (two-way coupling), 10 steps, gradient to the box's
            initial velocity and mass
+  mpm      no gradients: elastic, neo-Hookean, plasticine, sand and liquid bodies falling and colliding in
+           2 envs with different initial velocities, 25 steps (the solver's no-gradient substep)
+  coupling_nograd  the coupling scene's box and cube without gradients, 10 steps
+--precision 32 runs the scenes in float32 (only mpm and coupling_nograd take no float64 inputs).
 Prints the sha256 of the raw float64 bytes of every recorded tensor, then one line per scene (a hash of
 the tensors' hashes). Two runs on one tree must print the same lines; a refactor that claims to change no
 numerics must too (diff the output).
@@ -114,19 +118,60 @@ def coupling_scene():
     return {"pusher_qpos": traj, "particles": parts, "loss": loss.reshape(1), "grad_vel": vel.grad, "grad_mass": mass.grad}
 
 
+def mpm_scene():
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=8),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.6, 0.6, 0.6), grid_density=40))
+    M = gs.materials.MPM
+    ents = [scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, 0.12), size=(0.08, 0.08, 0.08)), material=M.Elastic(E=3e4, nu=0.3)),
+            scene.add_entity(gs.morphs.Box(pos=(0.15, 0.18, 0.3), size=(0.06, 0.06, 0.06)), material=M.Elastic(E=2e4, nu=0.25, model="neohooken")),
+            scene.add_entity(gs.morphs.Sphere(pos=(0.4, 0.4, 0.15), radius=0.05), material=M.ElastoPlastic(E=5e4, nu=0.3)),
+            scene.add_entity(gs.morphs.Box(pos=(0.42, 0.2, 0.1), size=(0.08, 0.06, 0.06)), material=M.Sand()),
+            scene.add_entity(gs.morphs.Sphere(pos=(0.2, 0.42, 0.2), radius=0.05), material=M.Liquid())]
+    scene.build(n_envs=2)
+    for k, e in enumerate(ents):
+        v = torch.tensor([[0.3 * (k - 2), 0.2, -0.5], [-0.4, 0.1 * k, 0.6]], dtype=gs.tc_float)
+        e.set_velocity(v)
+    out = {}
+    for t in range(25):
+        scene.step()
+    for k, e in enumerate(ents):
+        out[f"x{k}"] = e.get_particles_pos()
+        out[f"v{k}"] = e.get_particles_vel()
+    return out
+
+
+def coupling_nograd_scene():
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=5),
+                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5), grid_density=32))
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.25, 0.25), size=(0.1, 0.1, 0.1)),
+                            material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
+    pusher = scene.add_entity(gs.morphs.Box(pos=(0.215, 0.26, 0.24), size=(0.05, 0.12, 0.1), quat=(0.99, 0.05, 0.1, 0.0)),
+                              material=gs.materials.Rigid(rho=2000, coup_friction=0.4))
+    scene.build()
+    pusher.set_dofs_velocity(torch.tensor([1.2, 0.1, -0.05, 0.5, -0.3, 1.0], dtype=gs.tc_float))
+    traj, parts = [], []
+    for _ in range(10):
+        scene.step()
+        traj.append(pusher.get_qpos())
+        parts.append(cube.get_particles_pos())
+    return {"pusher_qpos": torch.stack(traj), "particles": torch.stack(parts)}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=None, help="also write the lines to this file")
-    ap.add_argument("--scenes", default="contact,anymal,coupling", help="comma-separated subset")
+    ap.add_argument("--scenes", default="contact,anymal,coupling,mpm,coupling_nograd", help="comma-separated subset")
+    ap.add_argument("--precision", default="64", choices=("32", "64"))
     ap.add_argument("--npz", default=None, help="also save the tensors to this .npz file; --compare the npz of "
                     "another tree prints how far each tensor moved (for a change that moves rounding only)")
     ap.add_argument("--compare", default=None, help="an .npz written by --npz: print each tensor's largest "
                     "difference from it, relative to the tensor's largest magnitude")
     args = ap.parse_args()
-    gs.init(backend=gs.cpu, precision="64", logging_level="warning")
+    gs.init(backend=gs.cpu, precision=args.precision, logging_level="warning")
     lines, arrays = [], {}
     for name in args.scenes.split(","):
-        tensors = {"contact": contact_scene, "anymal": anymal_scene, "coupling": coupling_scene}[name]()
+        tensors = {"contact": contact_scene, "anymal": anymal_scene, "coupling": coupling_scene, "mpm": mpm_scene,
+                   "coupling_nograd": coupling_nograd_scene}[name]()
         hashes = []
         for k, v in tensors.items():
             h = _digest(v)

@@ -281,6 +281,10 @@ class MPMSim:
     def substep_post_coupling(self, i, grad):
         self.solver.substep_post_coupling(i, grad)
 
+    def substep_uncoupled(self, i):
+        """Substep i without gradients and without a coupler: the three stages above in one launch."""
+        self.solver.substep_uncoupled(i)
+
     def record_substep(self, i, stages):
         """Substep i as one call on the scene's Tape; stages(i, grad, replay) runs its stages."""
         self.solver.record_substep(i, stages)

@@ -3,7 +3,10 @@ mass, its momentum m v plus its external impulse dt f, and the affine momentum
 (m C - dt V 4/dx^2 tau)(x_node - x_p) to the 27 nodes around it.
 
 Written for Taichi's reverse mode: every local is assigned once, the scatter is an atomic add (its
-adjoint is a gather).
+adjoint is a gather). The no-gradient substep scatters with plain adds instead (`atomic=False`), from a
+loop in which one thread owns each env's grid (solver.py kernel_substep_nograd): on the CPU a float
+atomic add is a compare-and-swap loop, and the 108 of them per particle cost five times the rest of the
+particle-to-grid transfer.
 """
 import taichi as ti
 
@@ -24,7 +27,7 @@ def func_stencil(s: ti.template(), x):
 
 
 @ti.func
-def func_p2g(s: ti.template(), i_b, i_p, src, dt):
+def func_p2g(s: ti.template(), i_b, i_p, src, dt, atomic: ti.template()):
     x = s.x[src, i_b, i_p]
     m = s.p_mass[i_p]
     base, fx, w = func_stencil(s, x)
@@ -40,5 +43,9 @@ def func_p2g(s: ti.template(), i_b, i_p, src, dt):
     for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
         weight = w[i][0] * w[j][1] * w[k][2]
         I = base + ti.Vector([i, j, k])
-        s.grid_mv[i_b, I] += weight * (q + float(i) * a0 + float(j) * a1 + float(k) * a2)
-        s.grid_m[i_b, I] += weight * m
+        if ti.static(atomic):
+            s.grid_mv[i_b, I] += weight * (q + float(i) * a0 + float(j) * a1 + float(k) * a2)
+            s.grid_m[i_b, I] += weight * m
+        else:  # (a load and a store: the caller guarantees no other thread adds to this env's grid)
+            s.grid_mv[i_b, I] = s.grid_mv[i_b, I] + weight * (q + float(i) * a0 + float(j) * a1 + float(k) * a2)
+            s.grid_m[i_b, I] = s.grid_m[i_b, I] + weight * m

@@ -103,6 +103,13 @@ class MPMSolver:
         self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
         self.has_ad = any(m in AD_MATERIALS for m in self.mats)
         self.n_slots = n_slots
+        self._region = None  # see `region`
+        # particle to grid of the no-gradient substep without atomics, one thread per env's grid
+        # (kernel_substep_nograd), where that beats atomic adds from every thread: on the CPU with fewer
+        # than 5 threads per env (one thread adds without atomics in a fifth of the time it takes with them,
+        # measured on this project's CPUs); never on a GPU, whose float atomics are native
+        cfg = taichi_compat.config()
+        self.plain_p2g = cfg.arch in (ti.x64, ti.arm64) and cfg.cpu_max_num_threads < 5 * n_envs
         self._allocate()
         self._make_units()
 
@@ -204,6 +211,19 @@ class MPMSolver:
         self.region = tuple(int(r) for r in self.kernel_active_region(src))
         self.kernel_clear_grid()
 
+    @property
+    def region(self):
+        """(lower corner, extent) of the substep's active block of grid nodes, as Python ints: read from
+        the device only when asked (a kernel's return value waits for the device and costs several
+        launches), which a substep without gradients and without a coupler never does."""
+        if self._region is None:
+            self._region = tuple(int(r) for r in self.kernel_read_region())
+        return self._region
+
+    @region.setter
+    def region(self, value):
+        self._region = value
+
     @staticmethod
     def slots(i, grad):
         """(source, destination) particle slots of substep i: i -> i + 1 with gradients, 0 in place without."""
@@ -216,8 +236,12 @@ class MPMSolver:
         constitutive update, whose outputs are kept, is left out. Otherwise they are plain launches:
         Taichi clears its 'inside a grad_replaced call' flag when such a wrapper returns, so one called
         inside the substep's own grad_replaced forward would let the launches after it onto the scene's
-        Tape."""
+        Tape. Without gradients: one launch (kernel_substep_nograd)."""
         src, dst = self.slots(i, grad)
+        if not grad:
+            self.kernel_substep_nograd(self.h, True, False, False)
+            self._region = None
+            return
         if replay:
             self.clear_grid(src)
         else:
@@ -236,47 +260,73 @@ class MPMSolver:
         """Substep i from the grid's velocities on: grid-to-particle."""
         self.kernel_g2p(*self.slots(i, grad), self.h)
 
+    def substep_uncoupled(self, i):
+        """Substep i without gradients in a scene without a coupler: substep_pre_coupling, grid_update and
+        substep_post_coupling in that order, in one launch (kernel_substep_nograd)."""
+        self.kernel_substep_nograd(self.h, True, True, True)
+        self._region = None
+
     @property
     def last_slot(self):
         return self.n_slots - 1
 
     # ------------------------------------------------------------------ kernels: the substep
+    @ti.func
+    def func_chunk_bounds(self, c, src):
+        """Bounds of the stencils of the particles (all envs) in chunk c of slot src, into chunk_lo, chunk_hi."""
+        big = 1 << 30
+        total = self.n_envs * self.n_particles
+        lo = ti.Vector([big, big, big])
+        hi = ti.Vector([-big, -big, -big])
+        for k in range(c * total // self.n_chunks, (c + 1) * total // self.n_chunks):
+            x = self.x[src, k // self.n_particles, k % self.n_particles]
+            base = ti.cast(ti.floor((x - self.lower) * self.inv_dx - 0.5), ti.i32)
+            lo = ti.min(lo, base)
+            hi = ti.max(hi, base + 3)
+        self.chunk_lo[c] = lo
+        self.chunk_hi[c] = hi
+
+    @ti.func
+    def func_merge_chunks(self):
+        """active_lo, active_n from the chunks' bounds, clamped to the grid (one thread)."""
+        big = 1 << 30
+        lo = ti.Vector([big, big, big])
+        hi = ti.Vector([-big, -big, -big])
+        for c in range(self.n_chunks):
+            lo = ti.min(lo, self.chunk_lo[c])
+            hi = ti.max(hi, self.chunk_hi[c])
+        lo = ti.max(lo, 0)
+        hi = ti.min(hi, ti.Vector([self.grid_res[0], self.grid_res[1], self.grid_res[2]]))
+        self.active_lo[None] = lo
+        self.active_n[None] = ti.max(hi - lo, 0)
+
     @ti.kernel
     def kernel_active_region(self, src: ti.i32) -> ti.types.vector(6, ti.i32):
         """(lower corner, extent) of the block of nodes the stencils of all particles in slot src touch
         (all envs), also left in active_lo, active_n for the clearing kernels."""
-        big = 1 << 30
-        total = self.n_envs * self.n_particles
         for c in range(self.n_chunks):
-            lo = ti.Vector([big, big, big])
-            hi = ti.Vector([-big, -big, -big])
-            for k in range(c * total // self.n_chunks, (c + 1) * total // self.n_chunks):
-                x = self.x[src, k // self.n_particles, k % self.n_particles]
-                base = ti.cast(ti.floor((x - self.lower) * self.inv_dx - 0.5), ti.i32)
-                lo = ti.min(lo, base)
-                hi = ti.max(hi, base + 3)
-            self.chunk_lo[c] = lo
-            self.chunk_hi[c] = hi
+            self.func_chunk_bounds(c, src)
         for _ in range(1):
-            lo = ti.Vector([big, big, big])
-            hi = ti.Vector([-big, -big, -big])
-            for c in range(self.n_chunks):
-                lo = ti.min(lo, self.chunk_lo[c])
-                hi = ti.max(hi, self.chunk_hi[c])
-            lo = ti.max(lo, 0)
-            hi = ti.min(hi, ti.Vector([self.grid_res[0], self.grid_res[1], self.grid_res[2]]))
-            self.active_lo[None] = lo
-            self.active_n[None] = ti.max(hi - lo, 0)
+            self.func_merge_chunks()
         lo, n = self.active_lo[None], self.active_n[None]
         return ti.Vector([lo[0], lo[1], lo[2], n[0], n[1], n[2]])
+
+    @ti.kernel
+    def kernel_read_region(self) -> ti.types.vector(6, ti.i32):
+        """The region the last kernel_active_region or kernel_substep_nograd left in active_lo, active_n."""
+        lo, n = self.active_lo[None], self.active_n[None]
+        return ti.Vector([lo[0], lo[1], lo[2], n[0], n[1], n[2]])
+
+    @ti.func
+    def func_clear_node(self, i_b, I):
+        self.grid_m[i_b, I] = 0.0
+        self.grid_mv[i_b, I] = ti.Vector.zero(float, 3)
 
     @ti.kernel
     def kernel_clear_grid(self):
         lo, n = self.active_lo[None], self.active_n[None]
         for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
-            I = lo + ti.Vector([i, j, k])
-            self.grid_m[i_b, I] = 0.0
-            self.grid_mv[i_b, I] = ti.Vector.zero(float, 3)
+            self.func_clear_node(i_b, lo + ti.Vector([i, j, k]))
 
     @ti.kernel
     def kernel_clear_grid_grads(self, src: ti.i32):
@@ -295,22 +345,26 @@ class MPMSolver:
         A = ti.Matrix.identity(float, 3) + h * self.C[src, i_b, i_p]
         return A, A @ self.F[src, i_b, i_p]
 
+    @ti.func
+    def func_constitutive_svd(self, i_b, i_p, src, dst, h):
+        mat = self.p_mat[i_p]
+        if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:  # an SVD material
+            _, Ft = self.func_trial(i_b, i_p, src, h)
+            U, s, V = func_svd3(Ft)
+            hs, _Jh, _dh, t, _Jt, _dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
+                                               self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], False, self.mats)
+            Fn = U @ ti.Matrix([[hs[0], 0.0, 0.0], [0.0, hs[1], 0.0], [0.0, 0.0, hs[2]]]) @ V.transpose()
+            # elastic: F_new is F_trial itself, not its SVD reassembled (which would drift by round-off)
+            if mat == MAT_ELASTIC:
+                self.F[dst, i_b, i_p] = Ft
+            else:
+                self.F[dst, i_b, i_p] = Fn
+            self.tau[src, i_b, i_p] = U @ ti.Matrix([[t[0], 0.0, 0.0], [0.0, t[1], 0.0], [0.0, 0.0, t[2]]]) @ U.transpose()
+
     @ti.kernel
     def kernel_constitutive_svd(self, src: ti.i32, dst: ti.i32, h: float):
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
-            mat = self.p_mat[i_p]
-            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:  # an SVD material
-                _, Ft = self.func_trial(i_b, i_p, src, h)
-                U, s, V = func_svd3(Ft)
-                hs, _Jh, _dh, t, _Jt, _dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
-                                                   self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], False, self.mats)
-                Fn = U @ ti.Matrix([[hs[0], 0.0, 0.0], [0.0, hs[1], 0.0], [0.0, 0.0, hs[2]]]) @ V.transpose()
-                # elastic: F_new is F_trial itself, not its SVD reassembled (which would drift by round-off)
-                if mat == MAT_ELASTIC:
-                    self.F[dst, i_b, i_p] = Ft
-                else:
-                    self.F[dst, i_b, i_p] = Fn
-                self.tau[src, i_b, i_p] = U @ ti.Matrix([[t[0], 0.0, 0.0], [0.0, t[1], 0.0], [0.0, 0.0, t[2]]]) @ U.transpose()
+            self.func_constitutive_svd(i_b, i_p, src, dst, h)
 
     @ti.kernel
     def kernel_constitutive_svd_grad(self, src: ti.i32, dst: ti.i32, h: float):
@@ -333,21 +387,25 @@ class MPMSolver:
                 self.yield_stress.grad[i_b, i_p] += gp[2]
                 self.alpha.grad[i_b, i_p] += gp[3]
 
+    @ti.func
+    def func_constitutive_ad(self, i_b, i_p, src, dst, h):
+        mat = self.p_mat[i_p]
+        if mat == MAT_NEOHOOKEAN or mat == MAT_LIQUID:
+            _, Ft = self.func_trial(i_b, i_p, src, h)
+            Fn, tau = func_ad_material(mat, Ft, self.C[src, i_b, i_p], h, self.mu[i_b, i_p],
+                                       self.lam[i_b, i_p], self.viscosity[i_b, i_p], self.mats)
+            self.F[dst, i_b, i_p] = Fn
+            self.tau[src, i_b, i_p] = tau
+
     @ti.kernel
     def kernel_constitutive_ad(self, src: ti.i32, dst: ti.i32, h: float):
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
-            mat = self.p_mat[i_p]
-            if mat == MAT_NEOHOOKEAN or mat == MAT_LIQUID:
-                _, Ft = self.func_trial(i_b, i_p, src, h)
-                Fn, tau = func_ad_material(mat, Ft, self.C[src, i_b, i_p], h, self.mu[i_b, i_p],
-                                           self.lam[i_b, i_p], self.viscosity[i_b, i_p], self.mats)
-                self.F[dst, i_b, i_p] = Fn
-                self.tau[src, i_b, i_p] = tau
+            self.func_constitutive_ad(i_b, i_p, src, dst, h)
 
     @ti.kernel
     def kernel_p2g(self, src: ti.i32, h: float):
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
-            func_p2g(self, i_b, i_p, src, h)
+            func_p2g(self, i_b, i_p, src, h, True)
 
     @ti.kernel
     def kernel_grid_update(self, h: float, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32,
@@ -357,6 +415,46 @@ class MPMSolver:
         for i_b, i, j, k in ti.ndrange(self.n_envs, n0, n1, n2):
             I = ti.Vector([l0 + i, l1 + j, l2 + k])
             self.grid_v[i_b, I] = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
+
+    @ti.kernel
+    def kernel_substep_nograd(self, h: float, pre: ti.template(), grid: ti.template(), post: ti.template()):
+        """Stages of a substep without gradients, in place in slot 0, in one launch: `pre` (what
+        substep_pre_coupling does: the active region, clearing it, the constitutive update, particle to
+        grid), `grid` (grid_update), `post` (grid to particle). The same arithmetic as the separate kernels
+        of the gradient path, with two differences in how it runs: the region stays on the device (the
+        grid loops read it from active_lo, active_n; the host reads it only when a coupler asks, `region`),
+        and particle to grid adds without atomics, each env's particles added in order by one thread (see
+        p2g.py; `plain_p2g`, else with atomics as kernel_p2g): the sums at a node are the same up to their
+        order, which is fixed here (particle order) where the atomic adds of the parallel loop leave it to
+        the threads."""
+        if ti.static(pre):
+            for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+                if ti.static(self.has_svd):
+                    self.func_constitutive_svd(i_b, i_p, 0, 0, h)
+                if ti.static(self.has_ad):
+                    self.func_constitutive_ad(i_b, i_p, 0, 0, h)
+            for c in range(self.n_chunks):
+                self.func_chunk_bounds(c, 0)
+            for _ in range(1):
+                self.func_merge_chunks()
+            lo, n = self.active_lo[None], self.active_n[None]
+            for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
+                self.func_clear_node(i_b, lo + ti.Vector([i, j, k]))
+            if ti.static(self.plain_p2g):
+                for i_b in range(self.n_envs):
+                    for i_p in range(self.n_particles):
+                        func_p2g(self, i_b, i_p, 0, h, False)
+            else:
+                for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+                    func_p2g(self, i_b, i_p, 0, h, True)
+        if ti.static(grid):
+            glo, gn = self.active_lo[None], self.active_n[None]
+            for i_b, i, j, k in ti.ndrange(self.n_envs, gn[0], gn[1], gn[2]):
+                I = glo + ti.Vector([i, j, k])
+                self.grid_v[i_b, I] = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
+        if ti.static(post):
+            for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+                func_g2p(self, i_b, i_p, 0, 0, h)
 
     @ti.kernel
     def kernel_g2p(self, src: ti.i32, dst: ti.i32, h: float):
