@@ -52,9 +52,11 @@ def _grid_mass(scene):
 # ------------------------------------------------------------------------------------ a silent emitter
 SILENT = textwrap.dedent("""
     import torch
-    import genesis_lite as gs
-    gs.init(backend=gs.cpu, precision="64")
     import sys
+    import genesis_lite as gs
+    # "exact": Taichi's fast_math off, so that kernels compiled for another capacity class (the emitters'
+    # particles make the class larger) round alike
+    gs.init(backend=gs.cpu, precision="64", **({"fast_math": False} if sys.argv[1] == "exact" else {}))
     sys.path.insert(0, "tests")
     from test_emitter import _scene, NOWHERE
     runs = []
@@ -70,22 +72,29 @@ SILENT = textwrap.dedent("""
             assert torch.count_nonzero(em.entity.get_particles_vel()) == 0 and em.entity.get_mass() == 0.0
     assert runs[0][0][:, 2].min() < 0.157  # its lowest particles (at 0.16 m) fell g t^2 / 2 = 4 mm: not trivial
     for x, v in runs[1:]:
-        print("bitwise", torch.equal(x, runs[0][0]) and torch.equal(v, runs[0][1]), (x - runs[0][0]).abs().max().item())
+        print("bitwise", torch.equal(x, runs[0][0]) and torch.equal(v, runs[0][1]),
+              max((x - runs[0][0]).abs().max().item(), (v - runs[0][1]).abs().max().item()))
 """)
 
 
 def test_an_emitter_that_has_not_emitted_changes_no_bit_of_the_scene():
     """The same elastic cube dropped on the floor, without an emitter, with one and with two: the same
-    positions and velocities to the last bit; the emitter's particles read as Genesis reports unemitted
-    ones (at gu.nowhere(), at rest) and weigh nothing. In a process of one thread: with several, the
-    order of the grid's atomic sums varies from run to run, and so does the last bit of any MPM
-    trajectory, emitter or not."""
+    positions and velocities to the last bit with Taichi's fast_math off; the emitter's particles read as
+    Genesis reports unemitted ones (at gu.nowhere(), at rest) and weigh nothing. With the default
+    fast_math, the scenes with emitters run kernels compiled for a larger capacity class, which LLVM may
+    round differently (measured: 8e-17 m after 15 steps): within 1e-14. In a process of one thread: with
+    many threads per env, particle-to-grid adds atomically, in an order that varies from run to run."""
     env = dict(os.environ, GS_NUM_THREADS="1")
-    out = subprocess.run([sys.executable, "-c", SILENT], capture_output=True, text=True, timeout=900, env=env,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    assert out.returncode == 0, out.stderr[-3000:]
-    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("bitwise")]
-    assert lines == ["bitwise True 0.0"] * 2, out.stdout[-2000:]
+    for mode in ("exact", "default"):
+        out = subprocess.run([sys.executable, "-c", SILENT, mode], capture_output=True, text=True, timeout=900,
+                             env=env, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        assert out.returncode == 0, out.stderr[-3000:]
+        lines = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("bitwise")]
+        assert len(lines) == 2, out.stdout[-2000:]
+        if mode == "exact":
+            assert all(ln[1] == "True" for ln in lines), out.stdout[-2000:]
+        else:
+            assert all(float(ln[2]) < 1e-14 for ln in lines), out.stdout[-2000:]
 
 
 # ------------------------------------------------------------------------------------ droplet shapes
