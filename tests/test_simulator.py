@@ -43,11 +43,18 @@ def test_a_coupled_substep_runs_mpm_coupling_mpm_then_rigid(grad):
     assert log == expected
 
 
-def test_without_a_coupler_the_mpm_grid_update_takes_its_place():
+@pytest.mark.parametrize("grad", [False, True])
+def test_without_a_coupler_the_mpm_grid_update_takes_its_place(grad):
+    """With gradients, the three MPM stages with the grid update between them; without, the same stages
+    in one launch (substep_uncoupled: test_mpm.py checks it gives the staged path's numbers)."""
     log = _Log()
-    _simulator(log, coupler=False, substeps=1)._run(grad=False)
-    assert log == [("mpm", "substep_pre_coupling", 0, False, False), ("mpm", "grid_update", 0),
-                   ("mpm", "substep_post_coupling", 0, False), ("rigid", "substep", 0, False, 1)]
+    _simulator(log, coupler=False, substeps=1)._run(grad=grad)
+    if grad:
+        assert log == [("mpm", "record_substep", 0), ("mpm", "substep_pre_coupling", 0, True, False),
+                       ("mpm", "grid_update", 0), ("mpm", "substep_post_coupling", 0, True),
+                       ("rigid", "substep", 0, True, 1)]
+    else:
+        assert log == [("mpm", "substep_uncoupled", 0), ("rigid", "substep", 0, False, 1)]
 
 
 def test_rigid_bodies_alone_step_in_one_fused_launch_without_gradients():
