@@ -95,24 +95,35 @@ def anymal_scene():
     return {"qpos": torch.stack(traj), "qvel": torch.stack(vel)}
 
 
-def coupling_scene():
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=5, requires_grad=True),
+def _coupling_build(requires_grad):
+    """An elastic cube and a tilted rigid pusher (coupled), built: (scene, cube, pusher)."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=5, requires_grad=requires_grad),
                      mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5), grid_density=32))
     cube = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.25, 0.25), size=(0.1, 0.1, 0.1)),
                             material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
     pusher = scene.add_entity(gs.morphs.Box(pos=(0.215, 0.26, 0.24), size=(0.05, 0.12, 0.1), quat=(0.99, 0.05, 0.1, 0.0)),
                               material=gs.materials.Rigid(rho=2000, coup_friction=0.4))
     scene.build()
-    vel = torch.tensor([1.2, 0.1, -0.05, 0.5, -0.3, 1.0], **F64).requires_grad_(True)
-    mass = torch.tensor([pusher.get_mass()], **F64).requires_grad_(True)
-    pusher.set_links_mass(mass)
-    pusher.set_dofs_velocity(vel)
+    return scene, cube, pusher
+
+
+def _coupling_rollout(scene, cube, pusher):
+    """10 steps: the pusher's qpos and the cube's particles at each, stacked."""
     traj, parts = [], []
     for _ in range(10):
         scene.step()
         traj.append(pusher.get_qpos())
         parts.append(cube.get_particles_pos())
-    traj, parts = torch.stack(traj), torch.stack(parts)
+    return torch.stack(traj), torch.stack(parts)
+
+
+def coupling_scene():
+    scene, cube, pusher = _coupling_build(True)
+    vel = torch.tensor([1.2, 0.1, -0.05, 0.5, -0.3, 1.0], **F64).requires_grad_(True)
+    mass = torch.tensor([pusher.get_mass()], **F64).requires_grad_(True)
+    pusher.set_links_mass(mass)
+    pusher.set_dofs_velocity(vel)
+    traj, parts = _coupling_rollout(scene, cube, pusher)
     loss = (torch.tensor([1.0, -0.7, 0.4], **F64) * parts[-1].mean(0)).sum() + traj[:, :3].sum()
     loss.backward()
     return {"pusher_qpos": traj, "particles": parts, "loss": loss.reshape(1), "grad_vel": vel.grad, "grad_mass": mass.grad}
@@ -141,20 +152,11 @@ def mpm_scene():
 
 
 def coupling_nograd_scene():
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=5),
-                     mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5), grid_density=32))
-    cube = scene.add_entity(gs.morphs.Box(pos=(0.3, 0.25, 0.25), size=(0.1, 0.1, 0.1)),
-                            material=gs.materials.MPM.Elastic(E=2e4, nu=0.3))
-    pusher = scene.add_entity(gs.morphs.Box(pos=(0.215, 0.26, 0.24), size=(0.05, 0.12, 0.1), quat=(0.99, 0.05, 0.1, 0.0)),
-                              material=gs.materials.Rigid(rho=2000, coup_friction=0.4))
-    scene.build()
+    """The coupling scene without gradients (the MPM substep's no-gradient path, coupled)."""
+    scene, cube, pusher = _coupling_build(False)
     pusher.set_dofs_velocity(torch.tensor([1.2, 0.1, -0.05, 0.5, -0.3, 1.0], dtype=gs.tc_float))
-    traj, parts = [], []
-    for _ in range(10):
-        scene.step()
-        traj.append(pusher.get_qpos())
-        parts.append(cube.get_particles_pos())
-    return {"pusher_qpos": torch.stack(traj), "particles": torch.stack(parts)}
+    traj, parts = _coupling_rollout(scene, cube, pusher)
+    return {"pusher_qpos": traj, "particles": parts}
 
 
 def main():
