@@ -376,6 +376,16 @@ class Scene:
         return self._mpm
 
     # ---------------------------------------------------------------- running
+    def _link_owner(self, link_idx, what):
+        """(rigid entity, local index) of the link with scene-wide index link_idx (RigidLink.idx)."""
+        n = sum(e.n_links for e in self.rigid_entities)
+        if isinstance(link_idx, bool) or not isinstance(link_idx, (int, np.integer)) or not 0 <= link_idx < n:
+            raise GenesisException(f"{what}: link_idx must be a link's scene-wide index (entity.links[k].idx), an "
+                                   f"int in [0, {n}), got {link_idx!r}")
+        for e in self.rigid_entities:
+            if e.link_start <= link_idx < e.link_start + e.n_links:
+                return e, int(link_idx) - e.link_start
+
     def _sim(self, what):
         if not self._built:
             raise GenesisException(f"scene.{what}() before scene.build(): call scene.build() first")

@@ -10,7 +10,8 @@ and nowhere else, `_substep`):
     coupler.couple               grid velocities with gravity, walls and the rigid bodies as moving
                                  boundaries; the momentum the grid loses becomes a wrench on the links
                                  (mpm.grid_update instead: gravity and walls, when nothing couples)
-    mpm.substep_post_coupling    grid-to-particle
+    mpm.substep_post_coupling    grid-to-particle (coupler.g2p_attached instead when particles are
+                                 attached to links: the same, with each attached particle's spring)
     rigid.substep                rigid dynamics with that wrench, contacts, integration
 
 A solver or a coupler the scene does not have is skipped (None). A scene of rigid bodies alone steps
@@ -138,7 +139,10 @@ class Simulator:
             self.coupler.couple(i, grad, replay)
         else:
             self.mpm.grid_update(i)
-        self.mpm.substep_post_coupling(i, grad)
+        if self.coupler is not None and self.coupler.attached:
+            self.coupler.g2p_attached(i, grad)
+        else:
+            self.mpm.substep_post_coupling(i, grad)
 
     @staticmethod
     def _split(xs, counts):

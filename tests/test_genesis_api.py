@@ -264,7 +264,7 @@ def test_out_of_scope_solvers_are_accepted_in_set_up_and_refused_on_use():
         gs.Scene(sph_optoins=1)
 
 
-def test_particles_in_bbox_and_attachment_refused():
+def test_particles_in_bbox_and_attachment_needs_a_coupled_link():
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3, substeps=10),
                      mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(1, 1, 1), grid_density=32),
                      show_viewer=False)
@@ -276,7 +276,8 @@ def test_particles_in_bbox_and_attachment_refused():
     np.testing.assert_array_equal(mask, x[:, 2] >= 0.35)
     assert 0 < mask.sum() < len(mask)
     assert scene.get_entity(uid=cube.uid.short()) is cube  # an MPM entity has Genesis's uid too
-    with pytest.raises(gs.GenesisException, match="set_particle_constraints .* not implemented"):
+    # no rigid entity: nothing to attach to (tests/test_attach.py: attachments themselves)
+    with pytest.raises(gs.GenesisException, match="set_particle_constraints .* coupler"):
         cube.set_particle_constraints(mask, 0, 1e4)
 
 

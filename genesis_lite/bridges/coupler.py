@@ -59,6 +59,15 @@ class CouplerBridge:
         """The coupling stage of substep i (see solvers/coupling.py)."""
         self.coupler.couple(i, grad, replay)
 
+    @property
+    def attached(self):
+        """Whether particles are attached to links (MPMEntity.set_particle_constraints)."""
+        return self.coupler.attached
+
+    def g2p_attached(self, i, grad):
+        """Grid-to-particle of substep i with the attachments (see solvers/coupling.py)."""
+        self.coupler.g2p_attached(i, grad)
+
     def reset(self):
         """A new rollout, or some envs restored: the floor watch starts again (CouplerBridge.check)."""
         self.coupler.clear_through()

@@ -108,11 +108,72 @@ class MPMEntity:
         lo, hi = lo.to(x), hi.to(x)
         return ((x >= lo) & (x <= hi)).all(-1)
 
-    def set_particle_constraints(self, *args, **kwargs):
-        raise GenesisException(
-            f"entity '{self.name}': set_particle_constraints (attaching particles to a rigid link) is not implemented "
-            "in genesis_lite; rigid bodies act on MPM material through contact (gs.materials.Rigid(needs_coup=True), "
-            "coup_friction), or drive the particles with set_particles_force / set_particles_vel")
+    def set_particle_constraints(self, particles_mask, link_idx, stiffness):
+        """Attach particles to a rigid link (Genesis's name): each particle where `particles_mask` is true
+        ((n_particles,), or (n_envs, n_particles) in a batched scene) is pulled towards the point of link
+        `link_idx` (its scene-wide index, `link.idx`) where it lies now, by a spring of `stiffness` (N/m)
+        with critical damping against its velocity relative to that point (solvers/coupling.py). One-way, as
+        Genesis's: the link drives the particles and does not feel them. Call it again to re-attach."""
+        coupler = self._coupler("set_particle_constraints")
+        mask = self._particle_mask(particles_mask, "set_particle_constraints")
+        k = stiffness
+        if isinstance(k, bool) or not isinstance(k, (int, float, np.integer, np.floating)) or not np.isfinite(k) or k <= 0:
+            raise GenesisException(f"entity '{self.name}': set_particle_constraints needs a finite stiffness > 0 "
+                                   f"(N/m), got {stiffness!r}")
+        ent, local = self._scene._link_owner(link_idx, "set_particle_constraints")
+        with torch.no_grad():
+            p = ent.get_links_pos([local]).detach().reshape(-1, 3).to(torch.float64).cpu()
+            q = ent.get_links_quat([local]).detach().reshape(-1, 4).to(torch.float64).cpu()
+            x = self.get_particles_pos().detach().reshape(-1, self.n_particles, 3).to(torch.float64).cpu()
+        w, v = q[:, :1, None], q[:, 1:, None]  # (B, 1, 1), (B, 3, 1)
+        d = (x - p[:, None, :]).transpose(1, 2)  # (B, 3, n): the offset in the world frame
+        # R^T d for the unit quaternion (w, v): d - 2 w (v x d) + 2 v x (v x d)
+        vxd = torch.cross(v.expand_as(d), d, dim=1)
+        local_x = (d - 2 * w * vxd + 2 * torch.cross(v.expand_as(d), vxd, dim=1)).transpose(1, 2)
+        coupler.set_attachments(self._full(mask), int(link_idx), self._full(local_x.numpy()), float(k))
+
+    def remove_particle_constraints(self, particles_mask=None):
+        """Detach the particles where `particles_mask` is true (all of this entity's when None)."""
+        coupler = self._coupler("remove_particle_constraints")
+        if particles_mask is None:
+            mask = np.ones((self._n_env_rows(), self.n_particles), dtype=bool)
+        else:
+            mask = self._particle_mask(particles_mask, "remove_particle_constraints")
+        coupler.set_attachments(self._full(mask), -1, None, 0.0)
+
+    def _coupler(self, what):
+        self._sim  # (raises before build)
+        bridge = self._scene._coupler
+        if bridge is None:
+            raise GenesisException(
+                f"entity '{self.name}': {what} attaches particles to a rigid link through the rigid-MPM coupler, "
+                "which this scene does not have: it needs a rigid entity whose material couples "
+                "(gs.materials.Rigid(needs_coup=True), the default) and CouplerOptions(rigid_mpm=True)")
+        return bridge.coupler
+
+    def _n_env_rows(self):
+        return max(self._scene.n_envs, 1)
+
+    def _particle_mask(self, mask, what):
+        """A boolean mask (n_particles,) or (n_envs, n_particles) as a numpy (n_env_rows, n_particles) array."""
+        B = self._n_env_rows()
+        m = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
+        if m.dtype != bool:
+            raise GenesisException(f"entity '{self.name}': {what} takes a boolean particles mask (as "
+                                   f"get_particles_in_bbox returns), got dtype {m.dtype}")
+        if m.shape == (self.n_particles,):
+            m = np.broadcast_to(m, (B, self.n_particles))
+        if m.shape != (B, self.n_particles):
+            want = f"({self.n_particles},)" + (f" or ({B}, {self.n_particles})" if self._scene.n_envs > 0 else "")
+            raise GenesisException(f"entity '{self.name}': {what}: particles mask of shape {tuple(m.shape)}; this "
+                                   f"entity's is {want}")
+        return m
+
+    def _full(self, a):
+        """An entity's (n_env_rows, n_particles, ...) array placed in the solver's (n_env_rows, capacity, ...)."""
+        out = np.zeros((a.shape[0], self._sim.solver.cap_particles) + a.shape[2:], dtype=a.dtype)
+        out[:, self._range] = a
+        return out
 
     def get_particles_vel(self, envs_idx=None):
         """Particle velocities (m/s), (n_particles, 3)."""

@@ -9,6 +9,13 @@ from .p2g import func_stencil
 @ti.func
 def func_g2p(s: ti.template(), i_b, i_p, src, dst, dt):
     x = s.x[src, i_b, i_p]
+    new_v, C = func_g2p_gather(s, i_b, x)
+    func_g2p_store(s, i_b, i_p, dst, x, new_v, C, dt)
+
+
+@ti.func
+def func_g2p_gather(s: ti.template(), i_b, x):
+    """The new velocity and affine velocity C of a particle at x, gathered from the grid."""
     base, fx, w = func_stencil(s, x)
     # C = 4/dx sum_o w_o v_o (o - fx)^T = 4/dx (sum_o w_o v_o o^T - new_v fx^T), accumulated column by
     # column over the nodes with o_a > 0 (o's entries are the constants 0, 1, 2); also because Taichi
@@ -25,8 +32,14 @@ def func_g2p(s: ti.template(), i_b, i_p, src, dst, dt):
         c1 += float(j) * wv
         c2 += float(k) * wv
     scale = 4.0 * s.inv_dx
+    C = ti.Matrix.cols([scale * (c0 - fx[0] * new_v), scale * (c1 - fx[1] * new_v), scale * (c2 - fx[2] * new_v)])
+    return new_v, C
+
+
+@ti.func
+def func_g2p_store(s: ti.template(), i_b, i_p, dst, x, new_v, C, dt):
+    """The particle moves from x with its new velocity (kept inside the walls) into slot dst."""
     x_new = x + dt * new_v
     s.x[dst, i_b, i_p] = ti.Vector([ti.min(ti.max(x_new[a], s.x_min[a]), s.x_max[a]) for a in ti.static(range(3))])
     s.v[dst, i_b, i_p] = new_v
-    s.C[dst, i_b, i_p] = ti.Matrix.cols([scale * (c0 - fx[0] * new_v), scale * (c1 - fx[1] * new_v),
-                                         scale * (c2 - fx[2] * new_v)])
+    s.C[dst, i_b, i_p] = C
