@@ -332,6 +332,17 @@ def build_ball_in_block(v):
                  defaults={"ball.dofs_velocity": np.array([0.1, -0.05, -0.8, 1.0, 0.5, -0.3])})
 
 
+def build_ball_attached(v):
+    """ball_in_block's scene (its solver classes: it compiles only the attachment's stage) with the block's
+    top particles attached to the ball by springs (MPMEntity.set_particle_constraints)."""
+    b = build_ball_in_block(v)
+    block, ball = b.ents["block"], b.ents["ball"]
+    top = block.get_particles_in_bbox((0.0, 0.0, 3 / 32 + 0.06), (1.0, 1.0, 1.0))
+    assert bool(top.any()) and not bool(top.all())
+    block.set_particle_constraints(top, ball.links[0].idx, stiffness=300.0)
+    return b
+
+
 def build_arm_press(v):
     """assets/urdf/arm.urdf under PD control pressing its tool into plasticine, coupled both ways
     (default CouplerOptions); examples/arm_press_plasticine.py shrunk to 32 cells/m and 6 steps: the
@@ -383,6 +394,7 @@ SCENES: Dict[str, Callable[[Variation], Built]] = {
     "mpm_four": build_mpm_four,
     **{f"mpm_{m.lower()}": (lambda v, m=m: build_mpm_cube(v, m)) for m in MPM_MATERIALS},
     "ball_in_block": build_ball_in_block,
+    "ball_attached": build_ball_attached,
     "arm_press": build_arm_press,
 }
 
@@ -739,6 +751,8 @@ def _table() -> List[Case]:
     slow("ball_in_block", BALL, BALL_OUT, V(n_envs=3))
     slow("ball_in_block", BALL, BALL_OUT, V(checkpoint_every=2))
     slow("ball_in_block", BALL[:3], BALL_OUT, V(precision="32"))
+    add("ball_attached", BALL, BALL_OUT)  # particles attached to the ball: the coupler's grid-to-particle stage
+    slow("ball_attached", BALL, BALL_OUT, V(n_envs=3))
     # both ways: the arm's targets and gains move the plasticine, the plasticine's stiffness moves the arm
     PRESS = ("arm.ctrl_position", "arm.dofs_kp", "block.E")
     PRESS_OUT = ("block.particles_pos", "arm.links_pos", "arm.dofs_velocity")

@@ -157,6 +157,9 @@ def test_stack_of_five_boxes_stands_10s():
     assert v < 1e-4
 
 
+# slow (suite time, ~16 s): a 10 s stand; the quadruped on its feet is also checked by default
+# (trajectory fingerprints, quadruped gradients)
+@pytest.mark.slow
 def test_quadruped_held_by_pd_stands_10s(urdf_path):
     """ANYmal (fixed=False) dropped onto the ground and held by PD stands for 10 s."""
     scene, robot, q0, dofs = _anymal_on_ground(urdf_path)
@@ -951,6 +954,9 @@ def test_box_tipped_onto_another_box_edge_rests():
     assert float(plank.get_vel().abs().max()) < 1e-2 and float(box.get_vel().abs().max()) < 1e-2
 
 
+# slow (suite time, ~30 s): box-box edge crossings also rest in the default boxes_crossed_edge_on_edge and
+# plank tests
+@pytest.mark.slow
 def test_stack_of_boxes_turned_45_degrees_rests():
     """Four boxes of decreasing size, each turned 45 degrees about the vertical to the one below (so every
     interface is edges crossing edges), released 2 mm apart: they land together and rest at the heights
@@ -1033,6 +1039,9 @@ def test_crossed_planks_tilted_settle_flat():
     assert max(float(b.get_vel().abs().max()) for b in (lower, upper)) < 1e-2
 
 
+# slow (suite time, ~24 s): face-slot contact of crossed planks is checked by default on two planks
+# (plank across two planks, tilted crossed planks)
+@pytest.mark.slow
 def test_crossed_plank_tower_stands():
     """A log-cabin tower as Genesis's tower example builds it (its 100 boxes fell through each other here):
     two planks on the ground at x = -+0.4 m along y, two across them at y = -+0.4 m along x, one on those along

@@ -52,6 +52,9 @@ def test_box_resting_on_an_elastic_block_feels_its_weight():
     assert abs(box.get_pos()[2].item() - (3 / dens + 0.1 + 0.025)) < 1.0 / dens
 
 
+# slow (suite time, ~30 s): the coupled boundary holding a body is checked by default by the box resting
+# on an elastic block
+@pytest.mark.slow
 def test_sphere_dropped_into_sand_comes_to_rest_inside_it():
     dens = 48
     scene = _scene(density=dens, upper=(0.3, 0.3, 0.4), substeps=10)
