@@ -185,6 +185,39 @@ def sand_alpha(friction_angle_deg):
     return float(np.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s))
 
 
+@dataclass
+class Tool:
+    """Genesis's tool material (gs.materials.Tool): a rigid body that moves only as it is told
+    (entity.set_position / set_quat / set_velocity, differentiable) and acts on MPM material as a moving
+    boundary, one-way: nothing pushes it back, gravity does not act on it, and it passes through other
+    rigid bodies. friction: Coulomb coefficient against the material; coup_softness (m): the width of the
+    band outside its surface over which its boundary fades in (Genesis's default 0.01); collision: whether
+    it acts on the material at all; sdf_res: Genesis's SDF grid resolution, accepted and not used (the
+    boundary is the shape's own signed distance, of its convex hull for a mesh)."""
+
+    friction: float = 0.0
+    coup_softness: float = 0.01
+    collision: bool = True
+    sdf_res: int = 128
+
+    def __post_init__(self):
+        if not isinstance(self.collision, bool):
+            raise TypeError(f"gs.materials.Tool(collision={self.collision!r}): give True or False")
+        if isinstance(self.sdf_res, bool) or not isinstance(self.sdf_res, (int, np.integer)) or self.sdf_res <= 0:
+            raise ValueError(f"gs.materials.Tool(sdf_res={self.sdf_res!r}): must be a positive int")
+        try:
+            self.rigid()  # friction and coup_softness: Rigid's checks
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"gs.materials.Tool(friction={self.friction!r}, coup_softness={self.coup_softness!r}): {e} "
+                          "(a tool's friction is its coup_friction)") from None
+
+    def rigid(self) -> Rigid:
+        """The rigid material the tool's body is simulated with (always massive enough not to matter: no
+        force acts on it)."""
+        return Rigid(rho=1000.0, friction=0.0, needs_coup=self.collision, coup_friction=self.friction,
+                     coup_softness=self.coup_softness, gravity_compensation=1.0)
+
+
 class _OutOfScopeMaterial:
     """A material of a Genesis solver genesis_lite does not have: it can be created (so a script's set-up
     runs) and is refused, with what to use instead, when an entity is made of it."""

@@ -22,21 +22,45 @@ from solvers.rigid.schedule import Integrator, rk4_combine
 logger = logging.getLogger("genesis_lite")
 
 
+class SolverState(tuple):
+    """One solver's state tensors (a tuple, as scene.reset takes them back), also by Genesis's names: an MPM
+    solver's pos, vel, C, F ((n_envs, n_particles, ...)) and active ((n_envs, n_particles) bool: the particles
+    in the simulation, all but an emitter's not yet emitted); a rigid solver's qpos and dofs_vel."""
+
+    def __new__(cls, tensors, names, **extra):
+        obj = super().__new__(cls, tensors)
+        obj._names = tuple(names)
+        obj.__dict__.update(extra)
+        return obj
+
+    def __getattr__(self, k):
+        names = self.__dict__.get("_names", ())
+        if k in names:
+            return self[names.index(k)]
+        raise AttributeError(f"a solver state has {', '.join(names + tuple(self.__dict__.keys() - {'_names'}))}, "
+                             f"not {k!r}")
+
+
 @dataclass
 class SimState:
-    """A snapshot of the scene's state (detached tensors), for scene.reset(state): `solvers` holds
-    each solver's state tensors; `qpos`/`qvel` are the rigid solver's (None without rigid entities)."""
+    """A snapshot of the scene's state, for scene.reset(state): `solvers` holds each solver's state
+    tensors (SolverState); `qpos`/`qvel` are the rigid solver's (None without rigid entities). Detached
+    copies, except in a scene built with requires_grad=True, where they are in torch's graph like every
+    getter's value (a loss on them has gradients, as in Genesis); scene.reset(state) starts from their values."""
 
     solvers: tuple
     step: int
     qpos: Optional[torch.Tensor] = None
     qvel: Optional[torch.Tensor] = None
     emitted: tuple = ()  # per emitter, how many of its particles had been emitted
+    genesis_order: tuple = ()  # indices into `solvers` in the order of scene.solvers (rigid, then MPM)
 
     @property
     def solvers_state(self):
-        """Genesis's name of `solvers`."""
-        return list(self.solvers)
+        """Genesis's name: the solvers' states in the order of scene.solvers (the rigid solver's, then the
+        MPM solver's), so that solvers_state[scene.solvers.index(scene.mpm_solver)] is the MPM state."""
+        order = self.genesis_order or range(len(self.solvers))
+        return [self.solvers[i] for i in order]
 
 
 class Scene:
@@ -168,11 +192,14 @@ class Scene:
         """Genesis's scene.sim: the scene's solvers (rigid_solver, mpm_solver, solvers), dt and substeps."""
         return _SimView(self)
 
-    def add_entity(self, morph, material=None, surface=None, visualize_contact=False, name=None):
+    def add_entity(self, morph, material=None, surface=None, visualize_contact=False, vis_mode=None, name=None):
         """Add an entity described by `morph` (gs.morphs.*) made of `material`: gs.materials.Rigid (the
         default) makes a rigid body or robot, a gs.materials.MPM.* material fills the morph's volume
-        with MPM particles."""
+        with MPM particles, gs.materials.Tool makes a body that moves as it is told and pushes MPM
+        material (entities/tool_entity.py). vis_mode (Genesis's: "visual", "collision", "particle", ...)
+        is kept as the entity's `vis_mode` for the cameras."""
         from .entities.rigid_entity import RigidEntity
+        from .entities.tool_entity import ToolEntity, make_tool_model
         from .loaders import load_morph
         from .utils.uid import UID
 
@@ -183,9 +210,11 @@ class Scene:
         material = material if material is not None else gmat.Rigid()
         if isinstance(material, gmat._OutOfScopeMaterial):
             material.refuse("scene.add_entity")
-        if not isinstance(material, (gmat.Rigid, gmat.MPM.Base)):
-            raise TypeError(f"add_entity: material must be gs.materials.Rigid or gs.materials.MPM.*, got "
-                            f"{type(material).__name__}")
+        if not isinstance(material, (gmat.Rigid, gmat.MPM.Base, gmat.Tool)):
+            raise TypeError(f"add_entity: material must be gs.materials.Rigid, gs.materials.MPM.* or "
+                            f"gs.materials.Tool, got {type(material).__name__}")
+        if vis_mode is not None and not isinstance(vis_mode, str):
+            raise TypeError(f"add_entity(vis_mode={vis_mode!r}): a string (Genesis's 'visual', 'collision', 'particle', ...)")
         if surface is not None and not isinstance(surface, gs_surfaces.Surface):
             raise TypeError(f"add_entity: surface must be a gs.surfaces.* instance, got {type(surface).__name__}")
         taken = set(self.entity_names)
@@ -204,13 +233,20 @@ class Scene:
         if isinstance(material, gmat.MPM.Base):
             ent = self._add_mpm_entity(morph, material, name)
         else:
+            tool = material if isinstance(material, gmat.Tool) else None
+            if tool is not None:
+                material = tool.rigid()  # what the rigid solver and the coupler read (entity.tool_material: the Tool)
             model = load_morph(morph, material, name)
+            if tool is not None:
+                model = make_tool_model(model, name)
             model.validate()
             validate_model(model)
-            ent = RigidEntity(self, len(self.entities), model, morph, material)
+            ent = (ToolEntity if tool is not None else RigidEntity)(self, len(self.entities), model, morph, material)
+            ent.tool_material = tool
             ent._solver_idx = len(self.rigid_entities)
             self.rigid_entities.append(ent)
         ent.surface = surface  # read by cameras (colour, vis_mode)
+        ent.vis_mode = vis_mode
         ent._uid = UID.unique({e.uid.short() for e in self.entities})
         self.entities.append(ent)
         return ent
@@ -414,10 +450,19 @@ class Scene:
     def get_state(self) -> SimState:
         """The current state of every solver (detached copies) and the step count."""
         sim = self._sim("get_state")
-        states = tuple(tuple(x.detach().clone() for x in b.state()) for b in sim.bridges)
+        keep = (lambda x: x.clone()) if sim.requires_grad else (lambda x: x.detach().clone())  # noqa: E731
+        states = []
+        for b in sim.bridges:
+            xs = tuple(keep(x) for x in b.state())
+            if b is self._mpm:
+                active = self._mpm.active.to(xs[0].device).unsqueeze(0).expand(xs[0].shape[0], -1).clone()
+                states.append(SolverState(xs, ("pos", "vel", "C", "F"), active=active))
+            else:
+                states.append(SolverState(xs, ("qpos", "dofs_vel")))
         q, v = self._rigid.get_state() if self._rigid is not None else (None, None)
-        q, v = (q.detach().clone(), v.detach().clone()) if q is not None else (None, None)
-        return SimState(states, sim.step_count, q, v, tuple(em.high_water for em in self._emitters))
+        q, v = (keep(q), keep(v)) if q is not None else (None, None)
+        order = tuple(i for kind in (self._rigid, self._mpm) for i, b in enumerate(sim.bridges) if b is kind)
+        return SimState(tuple(states), sim.step_count, q, v, tuple(em.high_water for em in self._emitters), order)
 
     def reset(self, state: Optional[SimState] = None, envs_idx=None):
         """Return to the state right after build() (or to `state` from get_state()). Controls and
@@ -439,7 +484,7 @@ class Scene:
             # emission starts again from the first particle (Genesis's scene.reset calls emitter.reset())
             self._mpm.activate(em.entity, n)
             em.reset()
-        sim.new_rollout([tuple(x.clone() for x in s) for s in state.solvers])
+        sim.new_rollout([tuple(x.detach().clone() for x in s) for s in state.solvers])
         self._nan.clear(np.ones(self._nan.B, dtype=bool))
         if self._coupler is not None:
             self._coupler.reset()
@@ -474,7 +519,7 @@ class Scene:
             new = []
             for x, x0 in zip(now, saved):
                 keep = rows.to(x.device).reshape((-1,) + (1,) * (x.dim() - 1))
-                new.append(torch.where(keep, x0.to(x.dtype), x))
+                new.append(torch.where(keep, x0.detach().to(x.dtype), x))
             b.set_state(*new)
         self._nan.clear(mask)
         if self._rigid is not None:

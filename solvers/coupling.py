@@ -108,6 +108,7 @@ class RigidMPMCoupler:
         self.geom_size = ti.Vector.field(3, dtype, shape=G)
         self.geom_kdop = ti.field(dtype, shape=(G, kdop_width))
         self.geom_friction = ti.field(dtype, shape=G)
+        self.geom_react = ti.field(dtype, shape=G)  # 1: the geom's link feels the material (two-way), 0: not (a tool)
         self.node_geom = ti.field(ti.i32, shape=(B,) + tuple(mpm.grid_res))
         # the domain's floor, watched (see kernel_select): 1 where geom g's origin was inside the domain at
         # the last substep; 1 where it has since gone below the floor within the domain's footprint
@@ -128,9 +129,10 @@ class RigidMPMCoupler:
         return (id(mpm), id(rigid.link_R), id(rigid.ext_f), len(idx), tuple(sorted({int(t) for t in geoms.type[idx]})),
                 float(softness), bool(reaction), int(geoms.kdop.shape[1]), rigid.n_envs, rigid.n_links)
 
-    def load(self, rigid, geoms, idx, friction):
+    def load(self, rigid, geoms, idx, friction, react=None):
         """A scene into the coupler: its rigid solver's port and the coupled geoms (their Coulomb
-        coefficients against the material: friction)."""
+        coefficients against the material: friction; react: per geom whether its link feels the material,
+        default all, when the coupler is two-way)."""
         self.rigid = rigid
         if rigid.requires_grad:
             require_ad_stack(self.n_geoms)  # each grid node loops over the coupled geoms
@@ -144,6 +146,7 @@ class RigidMPMCoupler:
         self.geom_size.from_numpy(geoms.size[idx].astype(npf))
         self.geom_kdop.from_numpy(np.ascontiguousarray(geoms.kdop[idx]).astype(npf))
         self.geom_friction.from_numpy(np.asarray(friction, dtype=npf))
+        self.geom_react.from_numpy(np.ones(len(idx), npf) if react is None else np.asarray(react, dtype=npf))
         self.clear_through()
         if self.att_link is not None:
             self.att_link.fill(-1)
@@ -325,7 +328,7 @@ class RigidMPMCoupler:
         vt_new = vt * ti.max(0.0, 1.0 + self.geom_friction[gg] * ti.min(vn, 0.0) / vt_norm)
         v_new = v + alpha * approach * (vt_new + push * n - v_rel)
         if ti.static(self.reaction):
-            f = mpm.grid_m[i_b, I] / h * (v - v_new)
+            f = (self.geom_react[gg] * mpm.grid_m[i_b, I] / h) * (v - v_new)
             self.rigid.ext_f[i_b, sub, l] += f
             self.rigid.ext_t[i_b, sub, l] += x.cross(f)
         return v_new
@@ -338,12 +341,12 @@ class _Pool:
     def __init__(self):
         self.free = {}
 
-    def acquire(self, mpm, rigid, geoms, idx, friction, softness, reaction):
+    def acquire(self, mpm, rigid, geoms, idx, friction, softness, reaction, react=None):
         """(coupler, reused) for a scene (see RigidMPMCoupler), loaded with it."""
         key = RigidMPMCoupler.make_key(mpm, rigid, geoms, idx, softness, reaction)
         free = self.free.get(key)
         coupler, reused = (free.pop(), True) if free else (RigidMPMCoupler(key, mpm, rigid), False)
-        coupler.load(rigid, geoms, idx, friction)
+        coupler.load(rigid, geoms, idx, friction, react)
         return coupler, reused
 
     def release(self, coupler):

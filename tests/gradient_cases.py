@@ -318,7 +318,7 @@ def build_mpm_four(v):
     return Built(scene, ents, T=4, defaults=defaults)
 
 
-def build_ball_in_block(v):
+def build_ball_in_block(v, material=None):
     """A rigid ball (default Rigid material) pressed into a soft elastic block, two-way coupled."""
     dens = 32
     floor = 3 / dens
@@ -326,7 +326,7 @@ def build_ball_in_block(v):
     block = scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, floor + 0.04), size=(0.12, 0.12, 0.08)),
                              material=gs.materials.MPM.Elastic(E=1e4, nu=0.3))
     ball = scene.add_entity(gs.morphs.Sphere(pos=(0.155, 0.148, floor + 0.08 + 0.035), radius=0.04),
-                            material=gs.materials.Rigid(rho=800))
+                            material=material or gs.materials.Rigid(rho=800))
     scene.build(n_envs=v.n_envs)
     return Built(scene, {"block": block, "ball": ball}, T=5,
                  defaults={"ball.dofs_velocity": np.array([0.1, -0.05, -0.8, 1.0, 0.5, -0.3])})
@@ -341,6 +341,12 @@ def build_ball_attached(v):
     assert bool(top.any()) and not bool(top.all())
     block.set_particle_constraints(top, ball.links[0].idx, stiffness=300.0)
     return b
+
+
+def build_tool_in_block(v):
+    """ball_in_block with the ball made of gs.materials.Tool (the Rigid ball's coupling friction and band, so
+    the same solver classes): it moves into the block at the velocity it was given, one-way."""
+    return build_ball_in_block(v, gs.materials.Tool(friction=0.1, coup_softness=0.5 / 32))
 
 
 def build_arm_press(v):
@@ -395,6 +401,7 @@ SCENES: Dict[str, Callable[[Variation], Built]] = {
     **{f"mpm_{m.lower()}": (lambda v, m=m: build_mpm_cube(v, m)) for m in MPM_MATERIALS},
     "ball_in_block": build_ball_in_block,
     "ball_attached": build_ball_attached,
+    "tool_in_block": build_tool_in_block,
     "arm_press": build_arm_press,
 }
 
@@ -752,6 +759,9 @@ def _table() -> List[Case]:
     slow("ball_in_block", BALL, BALL_OUT, V(checkpoint_every=2))
     slow("ball_in_block", BALL[:3], BALL_OUT, V(precision="32"))
     add("ball_attached", BALL, BALL_OUT)  # particles attached to the ball: the coupler's grid-to-particle stage
+    # a tool (gs.materials.Tool): its velocity and start move the block, nothing moves it (its mass has no effect)
+    # (slow: tests/test_tool.py checks the tool's per-step velocities and start on this scene by default)
+    slow("tool_in_block", ("ball.dofs_velocity", "ball.pos", "block.E", "block.particles_vel"), BALL_OUT)
     slow("ball_attached", BALL, BALL_OUT, V(n_envs=3))
     # both ways: the arm's targets and gains move the plasticine, the plasticine's stiffness moves the arm
     PRESS = ("arm.ctrl_position", "arm.dofs_kp", "block.E")

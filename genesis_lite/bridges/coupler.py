@@ -48,8 +48,10 @@ class CouplerBridge:
         softness = max(softness, 1e-6 * dx)  # 0 (Genesis's hard boundary): a band far below the grid's resolution
         # a coupler of the scene's class from the pool (its kernels compiled by an earlier scene, if any),
         # given back when this bridge dies
+        # a tool (gs.materials.Tool) moves as it is told: the material does not push it back
+        react = [getattr(rigid_entities[int(geoms.entity[i])], "tool_material", None) is None for i in idx]
         coupler, reused = POOL.acquire(mpm.solver, RigidPort(rigid.solver), geoms, idx, [m.coup_friction for m in mats],
-                                       softness, coupler_options.mpm_reaction)
+                                       softness, coupler_options.mpm_reaction, react)
         bridge = cls(coupler, [rigid_entities[int(geoms.entity[i])].name for i in idx], float(mpm.solver.np_lower[2]))
         bridge.reused = reused
         weakref.finalize(bridge, POOL.release, coupler)

@@ -22,6 +22,11 @@ class Tensor(torch.Tensor):
                 "torch.no_grad().")
         return super().backward(gradient, retain_graph, create_graph, inputs)
 
+    def zero_grad(self):
+        """Zero this leaf's accumulated gradient in place (Genesis's gs.Tensor.zero_grad); nothing when it has none."""
+        if self.grad is not None:
+            self.grad.zero_()
+
     def __format__(self, spec):
         # torch formats 0-d tensors with a spec (f"{x:.3f}") only for the exact torch.Tensor type
         return torch.Tensor.__format__(self.as_subclass(torch.Tensor), spec)

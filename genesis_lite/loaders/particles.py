@@ -50,6 +50,10 @@ def sample_particles(morph, spacing: float, name: str):
         mesh = trimesh.load(morph.file, force="mesh")
         mesh.apply_scale(morph.scale)
         if not mesh.is_watertight:
+            # an OBJ splits its vertices along texture and normal seams (Genesis's duck.obj): joined at the
+            # same positions, the surface is closed; the geometry is unchanged
+            mesh.merge_vertices(merge_tex=True, merge_norm=True)
+        if not mesh.is_watertight:
             raise GenesisException(
                 f"MPM entity '{name}': the mesh {morph.file!r} is not closed (watertight), so the particle sampler "
                 "cannot tell its inside from its outside. Close its holes (e.g. trimesh's fill_holes, or a "

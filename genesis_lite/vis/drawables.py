@@ -71,7 +71,7 @@ class SceneDrawables:
             self.rigid.append((ent, n_links))
             own = entity_color(ent, i_e)
             fallback = PALETTE[i_e % len(PALETTE)] if own is None else own
-            mode = getattr(getattr(ent, "surface", None), "vis_mode", None) or "visual"
+            mode = getattr(ent, "vis_mode", None) or getattr(getattr(ent, "surface", None), "vis_mode", None) or "visual"
             for i_l, link in enumerate(model.links):
                 row = n_links + i_l
                 parts = None

@@ -122,6 +122,7 @@ class EntityModel:
     name: str
     links: List[LinkDesc]
     source: str = ""
+    rigid_contact: bool = True  # whether its geoms collide with other entities' (a gs.materials.Tool's do not)
 
     @property
     def n_links(self) -> int:

@@ -175,15 +175,16 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                      arr(kdop, (G, N_KDOP)), pts, names, starts, counts)
 
 
-def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool):
-    """[(ga, gb)] of geoms that may touch (see the module docstring for the rules)."""
+def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool, no_contact=()):
+    """[(ga, gb)] of geoms that may touch (see the module docstring for the rules); none of the entities
+    whose indices are in `no_contact` (gs.materials.Tool's: they act on MPM material only)."""
     dyn = link_is_dynamic(flat)
     parent = flat.np_link_parent
     pairs, bad = [], []
     for a in range(geoms.n):
         for b in range(a + 1, geoms.n):
             la, lb = geoms.link[a], geoms.link[b]
-            if la == lb or not (dyn[la] or dyn[lb]):
+            if la == lb or not (dyn[la] or dyn[lb]) or geoms.entity[a] in no_contact or geoms.entity[b] in no_contact:
                 continue
             if geoms.entity[a] == geoms.entity[b]:
                 if not self_collision or parent[la] == lb or parent[lb] == la:

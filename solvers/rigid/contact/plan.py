@@ -29,7 +29,8 @@ class ContactPlan:
         if geoms.n == 0:
             return None
         pairs = candidate_pairs(geoms, flat, bool(options.enable_self_collision),
-                                bool(getattr(options, "ignore_unsupported_pairs", False)))
+                                bool(getattr(options, "ignore_unsupported_pairs", False)),
+                                {i for i, m in enumerate(models) if not m.rigid_contact})
         if not pairs:
             return None
         return ContactPlan(flat, geoms, pairs, options, specialized)
