@@ -27,7 +27,7 @@ class SolverState(tuple):
     solver's pos, vel, C, F ((n_envs, n_particles, ...)) and active ((n_envs, n_particles) bool: the particles
     in the simulation, all but an emitter's not yet emitted); a rigid solver's qpos and dofs_vel."""
 
-    def __new__(cls, tensors, names, **extra):
+    def __new__(cls, tensors, names=(), **extra):  # (names default: copy and pickle rebuild from the tuple alone)
         obj = super().__new__(cls, tensors)
         obj._names = tuple(names)
         obj.__dict__.update(extra)

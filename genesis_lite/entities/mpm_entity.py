@@ -113,7 +113,8 @@ class MPMEntity:
         ((n_particles,), or (n_envs, n_particles) in a batched scene) is pulled towards the point of link
         `link_idx` (its scene-wide index, `link.idx`) where it lies now, by a spring of `stiffness` (N/m)
         with critical damping against its velocity relative to that point (solvers/coupling.py). One-way, as
-        Genesis's: the link drives the particles and does not feel them. Call it again to re-attach."""
+        Genesis's: the link drives the particles and does not feel them. Call it again to re-attach; the
+        attachments are kept through scene.reset(), as Genesis's (remove_particle_constraints ends them)."""
         coupler = self._coupler("set_particle_constraints")
         mask = self._particle_mask(particles_mask, "set_particle_constraints")
         k = stiffness
