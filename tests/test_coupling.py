@@ -243,6 +243,9 @@ def _pushed_jelly(vel):
     return (x.detach(), q.detach(), v.grad), reused
 
 
+# slow (suite time, ~37 s: a coupled gradient class of its own): pooling is checked by default for the MPM solver
+# (test_faults_mpm.py, a dropped scene gives its solver to the next) and the rigid one (test_build.py)
+@pytest.mark.slow
 def test_a_second_coupled_scene_of_its_class_compiles_nothing_and_gives_the_same_numbers(compiled):
     import gc
 

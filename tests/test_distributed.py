@@ -56,6 +56,8 @@ def _cores():
         return os.cpu_count()
 
 
+# slow (suite time, ~33 s: two ranks each compiling in their own process), with the torchrun examples below
+@pytest.mark.slow
 def test_two_gloo_ranks_give_the_single_process_loss_and_gradients():
     gs.init(backend=gs.cpu, precision="64")
     loss, grad = _reference()

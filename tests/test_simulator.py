@@ -11,6 +11,8 @@ class _Log(list):
         log = self
 
         class Bridge:
+            attached = False  # (the coupler's: particles attached to links, MPMEntity.set_particle_constraints)
+
             def __init__(self):
                 self.n_state, self.n_outputs = n_state, n_state
 
@@ -41,6 +43,17 @@ def test_a_coupled_substep_runs_mpm_coupling_mpm_then_rigid(grad):
         expected += [("mpm", "substep_pre_coupling", i, grad, False), ("coupler", "couple", i, grad, False),
                      ("mpm", "substep_post_coupling", i, grad), ("rigid", "substep", i, grad, 1)]
     assert log == expected
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_with_attached_particles_the_coupler_s_grid_to_particle_takes_the_mpm_one_s_place(grad):
+    log = _Log()
+    sim = _simulator(log, substeps=1)
+    sim.coupler.attached = True
+    sim._run(grad=grad)
+    assert log == ([("mpm", "record_substep", 0)] if grad else []) + [
+        ("mpm", "substep_pre_coupling", 0, grad, False), ("coupler", "couple", 0, grad, False),
+        ("coupler", "g2p_attached", 0, grad), ("rigid", "substep", 0, grad, 1)]
 
 
 @pytest.mark.parametrize("grad", [False, True])
