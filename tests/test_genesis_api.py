@@ -454,3 +454,14 @@ def test_sand_wheel_style_emitter_script():
     assert x[:, 1].max() > 0.02  # the nozzle swayed towards +y
     assert np.isfinite(x).all()
     assert water.entity.get_mass() == 0.0 and water.next_particle == 0
+
+
+def test_add_entity_takes_genesis_vis_mode():
+    """differentiable_push passes vis_mode="particle" to add_entity: accepted, kept for the cameras (which draw
+    a rigid entity's collision shapes for "collision"); a non-string is refused."""
+    scene = gs.Scene(show_viewer=False)
+    box = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), vis_mode="collision")
+    assert box.vis_mode == "collision"
+    assert scene.add_entity(gs.morphs.Sphere(radius=0.1, pos=(1.0, 0.0, 0.0))).vis_mode is None
+    with pytest.raises(TypeError, match="vis_mode"):
+        scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), vis_mode=3)
