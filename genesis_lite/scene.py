@@ -419,7 +419,7 @@ class Scene:
             raise GenesisException(f"{what}: link_idx must be a link's scene-wide index (entity.links[k].idx), an "
                                    f"int in [0, {n}), got {link_idx!r}")
         for e in self.rigid_entities:
-            if e.link_start <= link_idx < e.link_start + e.n_links:
+            if e.link_start <= link_idx < e.link_end:
                 return e, int(link_idx) - e.link_start
 
     def _sim(self, what):
@@ -455,8 +455,7 @@ class Scene:
         for b in sim.bridges:
             xs = tuple(keep(x) for x in b.state())
             if b is self._mpm:
-                active = self._mpm.active.to(xs[0].device).unsqueeze(0).expand(xs[0].shape[0], -1).clone()
-                states.append(SolverState(xs, ("pos", "vel", "C", "F"), active=active))
+                states.append(SolverState(xs, ("pos", "vel", "C", "F"), active=self._mpm.active_rows(xs[0].shape[0])))
             else:
                 states.append(SolverState(xs, ("qpos", "dofs_vel")))
         q, v = self._rigid.get_state() if self._rigid is not None else (None, None)

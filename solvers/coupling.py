@@ -206,17 +206,11 @@ class RigidMPMCoupler:
             loc, k, c = self.att_local.to_numpy(), self.att_k.to_numpy(), self.att_c.to_numpy()
             loc[m] = np.asarray(local, dtype=np.float64)[m]
             k[m] = float(stiffness)
-            c[m] = (2.0 * np.sqrt(float(stiffness) * self.mpm.p_mass.to_numpy()[None, :]) * np.ones_like(c))[m]
+            c[m] = np.broadcast_to(2.0 * np.sqrt(float(stiffness) * self.mpm.p_mass.to_numpy()), c.shape)[m]
             self.att_local.from_numpy(loc.astype(npf))
             self.att_k.from_numpy(k.astype(npf))
             self.att_c.from_numpy(c.astype(npf))
         self.attached = bool((lk >= 0).any())
-
-    def attachments(self):
-        """(link (n_envs, capacity) with -1 where free, stiffness (n_envs, capacity)), or None."""
-        if not self.attached:
-            return None
-        return self.att_link.to_numpy(), self.att_k.to_numpy()
 
     def g2p_attached(self, i, grad):
         """The grid-to-particle stage of substep i with the attachments (MPMSolver.substep_post_coupling

@@ -281,6 +281,11 @@ class MPMSim:
     def substep_post_coupling(self, i, grad):
         self.solver.substep_post_coupling(i, grad)
 
+    def active_rows(self, n_rows):
+        """`active` for n_rows envs: a (n_rows, P) bool tensor on the scene's device (emission is the same
+        in every env)."""
+        return self.active.to(self.device).unsqueeze(0).expand(n_rows, -1).clone()
+
     def substep_uncoupled(self, i):
         """Substep i without gradients and without a coupler: the three stages above in one launch."""
         self.solver.substep_uncoupled(i)

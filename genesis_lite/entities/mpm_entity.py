@@ -14,6 +14,7 @@ import torch
 from ..errors import GenesisException
 from ..grad.indexing import index_put
 from ..grad.tensor import wrap
+from ..utils.geom import inv_transform_by_trans_quat
 from .rigid_entity import RigidEntity
 
 
@@ -94,8 +95,7 @@ class MPMEntity:
         batched (n_envs, n_particles). All of an entity's; an emitter's (scene.add_emitter) once emitted,
         the same in every env."""
         envs = self._envs(envs_idx)  # (checks envs_idx)
-        act = self._sim.active[self._range].to(self._sim.device)
-        return self._out(act.unsqueeze(0).expand(len(envs), -1).clone())
+        return self._out(self._sim.active_rows(len(envs))[:, self._range])
 
     def get_particles_in_bbox(self, bbox_min, bbox_max, envs_idx=None):
         """Which particles lie in the axis-aligned box [bbox_min, bbox_max] (m) now: a boolean tensor
@@ -123,14 +123,10 @@ class MPMEntity:
                                    f"(N/m), got {stiffness!r}")
         ent, local = self._scene._link_owner(link_idx, "set_particle_constraints")
         with torch.no_grad():
-            p = ent.get_links_pos([local]).detach().reshape(-1, 3).to(torch.float64).cpu()
-            q = ent.get_links_quat([local]).detach().reshape(-1, 4).to(torch.float64).cpu()
+            p = ent.get_links_pos([local]).detach().reshape(-1, 1, 3).to(torch.float64).cpu()
+            q = ent.get_links_quat([local]).detach().reshape(-1, 1, 4).to(torch.float64).cpu()
             x = self.get_particles_pos().detach().reshape(-1, self.n_particles, 3).to(torch.float64).cpu()
-        w, v = q[:, :1, None], q[:, 1:, None]  # (B, 1, 1), (B, 3, 1)
-        d = (x - p[:, None, :]).transpose(1, 2)  # (B, 3, n): the offset in the world frame
-        # R^T d for the unit quaternion (w, v): d - 2 w (v x d) + 2 v x (v x d)
-        vxd = torch.cross(v.expand_as(d), d, dim=1)
-        local_x = (d - 2 * w * vxd + 2 * torch.cross(v.expand_as(d), vxd, dim=1)).transpose(1, 2)
+        local_x = inv_transform_by_trans_quat(x, p, q)  # (B, n, 3): each particle in the link's frame
         coupler.set_attachments(self._full(mask), int(link_idx), self._full(local_x.numpy()), float(k))
 
     def remove_particle_constraints(self, particles_mask=None):
