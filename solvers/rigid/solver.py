@@ -138,6 +138,8 @@ class RigidSolver:
         self._fill_info(gravity)
         self._scratch = None  # the (e, src, h) whose evaluation the scratch fields hold, if any
         self._fused_ready = False  # kernel_step_fused compiled (see taichi_compat.compile_options.ForwardCompile)
+        self._fused_bound = (None, None)  # see _launch_fused
+        self._watch_clock = self.contact.clock if self.contact is not None else None
         self.applied = None
         self.evaluate = self._evaluation_unit()
         self.kinematics = self._kinematics_unit()
@@ -257,11 +259,21 @@ class RigidSolver:
         if self.core.requires_grad:
             return self._unfused(step, k0, k1, finish)
         if self._fused_ready or self.specialized:
-            return self.step_core.kernel_step_fused(step, k0, k1, finish)
+            return self._launch_fused(step, k0, k1, finish)
         with ForwardCompile():
             n = self.step_core.kernel_step_fused(step, k0, k1, finish)
         self._fused_ready = True
         return n
+
+    @property
+    def _launch_fused(self):
+        """step_core.kernel_step_fused, bound once per step core: Taichi binds a data-oriented class's
+        kernel anew at every attribute access (~3 us, a tenth of a 1-env step)."""
+        core, bound = self._fused_bound
+        if core is not self.step_core:
+            bound = self.step_core.kernel_step_fused
+            self._fused_bound = (self.step_core, bound)
+        return bound
 
     def _unfused(self, step, k0, k1, finish):
         """Ops k0..k1-1 as the gradient path launches them (whole substeps), then kernel_finish."""
@@ -275,7 +287,7 @@ class RigidSolver:
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
         self._scratch = None
         n = self._fused(step, 0, self.n_ops, 1)
-        if self.contact is not None:  # a contact that ended the step deep inside a body warns once
+        if self._watch_clock is not None and self._watch_clock.due():  # a contact deep inside a body warns once
             self.contact.watch(step, self.n_evals, self.dt / self.substeps)
         return n
 
@@ -284,7 +296,7 @@ class RigidSolver:
         substeps); the last substep makes its result the current state (slot 0)."""
         self._scratch = None
         n = self._fused(step, self.substep_first_op[i], self.substep_first_op[i + 1], int(i == self.substeps - 1))
-        if self.contact is not None and i == self.substeps - 1:
+        if self._watch_clock is not None and i == self.substeps - 1 and self._watch_clock.due():
             self.contact.watch(step, self.n_evals, self.dt / self.substeps)
         return n
 

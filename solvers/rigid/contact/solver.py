@@ -32,6 +32,23 @@ def _runtime(index):
     return property(get)
 
 
+class WatchClock:
+    """When ContactSolver.watch reads the device (one int, ~15 us): after each of the first 16 steps,
+    then after every 16th, never once it has warned. A plain object, so that the fused step's Python
+    asks it without the ~1 us that each attribute of a data-oriented class costs."""
+    __slots__ = ("n", "done")
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self):
+        self.n, self.done = 0, False
+
+    def due(self) -> bool:
+        self.n += 1
+        return not self.done and (self.n <= 16 or self.n % 16 == 0)
+
+
 @ti.data_oriented
 class ContactSolver:
     """Fields and stages of the contact model of a RigidSolver (see the module docstring).
@@ -139,7 +156,7 @@ class ContactSolver:
         # limit]), any env's
         self.eval_count = I(B)
         self.deep_i, self.deep_f, self.deep_any = I((B, 3)), F((B, 4), False), I(1)
-        self._deep_warned, self._watch_n = False, 0
+        self.clock = WatchClock()
         self.tree = tree.finalize()
 
         self.stages = CONTACT_STAGES
@@ -187,7 +204,7 @@ class ContactSolver:
         geom_f = np.concatenate([geoms.pos, geoms.center, geoms.size, R,
                                  np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None],
                                  np.minimum(geom_half_thickness(geoms), 1e30)[:, None]], -1)
-        self._deep_warned, self._watch_n = False, 0
+        self.clock.reset()
         dyn = np.zeros(max(plan.n_links, 1), dtype=np.int32)
         dyn[: plan.n_links] = plan.link_dyn
         slot_i = np.array([[x[0], x[1], x[2], x[3], lp] for x, lp in zip(slots, plan.slot_lp)], dtype=np.int32)
@@ -365,15 +382,12 @@ class ContactSolver:
                     x.grad[I] = ti.Matrix.zero(s.dtype, x.n, x.m)
 
     def watch(self, step: int, evals_per_step: int, h: float):
-        """After a step without gradients (scene step number `step`): warn once per scene when a
-        contact has ended a step deep inside the other body (func_report_slot records the first one).
-        Reads one int every step for the first 16 steps, then every 16th (a read costs a few µs)."""
-        self._watch_n += 1
-        if self._deep_warned or (self._watch_n > 16 and self._watch_n % 16):
-            return
+        """After a step without gradients (scene step number `step`) when `clock.due()` says so: warn
+        once per scene when a contact has ended a step deep inside the other body (func_report_slot
+        records the first one)."""
         if self.deep_any[0] == 0:
             return
-        self._deep_warned = True
+        self.clock.done = True
         di, df = self.deep_i.to_numpy()[: max(self.n_envs, 1)], self.deep_f.to_numpy()[: max(self.n_envs, 1)]
         hit = np.nonzero(di[:, 0])[0]
         # the earliest record, the deepest (relative to its limit) among those
