@@ -12,7 +12,9 @@ Materials (codes in MAT_*), with Lame parameters mu, lam (Pa):
 - LIQUID:                F_new = J^(1/3) I,  tau = lam J (J - 1) I + eta J (C + C^T)   (viscosity eta, Pa s)
 
 The three that need the singular values of F_trial (ELASTIC, PLASTIC, SAND) are isotropic maps
-F_trial = U diag(s) V^T -> F_new = U diag(h(s)) V^T, tau = U diag(t(s)) U^T. Taichi's reverse mode
+F_trial = U diag(s) V^T -> F_new = U diag(h(s)) V^T, tau = U diag(t(s)) U^T. ELASTIC's forward needs only
+the rotation R = U V^T, which svd.func_polar finds in a third of the SVD's time (solver.py,
+func_constitutive_svd); the SVD stays its fallback (inverted particles) and its adjoint's basis. Taichi's reverse mode
 cannot differentiate an SVD where singular values coincide (every particle at rest), so their adjoint
 is written out here (`func_svd_adjoint`) from the derivatives of isotropic matrix functions: with
 dF~ = U^T dF V split into its symmetric part S and skew part A,
