@@ -39,6 +39,7 @@ import taichi as ti
 from .. import taichi_compat
 
 from .constitutive import (AD_MATERIALS, MAT_ELASTIC, MAT_LIQUID, MAT_NEOHOOKEAN, SVD_MATERIALS, func_ad_material,
+                           func_corotated_polar_adjoint,
                            func_principal, func_svd_adjoint)
 from .g2p import func_g2p
 from .grid import func_grid_velocity, func_walls
@@ -380,11 +381,25 @@ class MPMSolver:
 
     @ti.kernel
     def kernel_constitutive_svd_grad(self, src: ti.i32, dst: ti.i32, h: float):
-        """Adjoint of kernel_constitutive_svd (constitutive.func_svd_adjoint), into C, F and the
+        """Adjoint of kernel_constitutive_svd (constitutive.func_svd_adjoint; for elastic particles whose
+        forward took the polar rotation, constitutive.func_corotated_polar_adjoint), into C, F and the
         material parameters of slot src."""
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
             mat = self.p_mat[i_p]
-            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:
+            polar = False
+            if ti.static(MAT_ELASTIC in self.mats) and mat == MAT_ELASTIC:
+                # where the forward took the polar rotation, its adjoint (no SVD)
+                A, Ft = self.func_trial(i_b, i_p, src, h)
+                R, polar = func_polar(Ft, ti.static(POLAR_TOL[self.bits]))
+                if polar:
+                    gFt, gmu, glam = func_corotated_polar_adjoint(Ft, R, self.mu[i_b, i_p], self.lam[i_b, i_p],
+                                                                  self.tau.grad[src, i_b, i_p])
+                    gFt += self.F.grad[dst, i_b, i_p]  # F_new = F_trial
+                    self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
+                    self.F.grad[src, i_b, i_p] += A.transpose() @ gFt
+                    self.mu.grad[i_b, i_p] += gmu
+                    self.lam.grad[i_b, i_p] += glam
+            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID and not polar:
                 A, Ft = self.func_trial(i_b, i_p, src, h)
                 U, s, V = func_svd3(Ft)
                 hs, Jh, dh, t, Jt, dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
