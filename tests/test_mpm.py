@@ -302,6 +302,55 @@ def test_batched_environments_match_single_runs_and_get_their_own_gradients():
             assert torch.allclose(v1.grad, v.grad[1], rtol=1e-10, atol=1e-14)
 
 
+def test_elastic_stress_is_the_corotated_law_at_any_stretch_and_for_inverted_particles():
+    """The elastic constitutive update (F's rotation by Newton's polar iteration, the SVD where that does
+    not apply: inverted or nearly flat particles) against the corotated law written with numpy and
+    scipy's polar decomposition, tau = 2 mu (F - R) F^T + lam (J - 1) J I, R the rotation nearest to F
+    (for det F < 0: U diag(1, 1, -1) V^T of its SVD, the rotation the signed SVD takes)."""
+    from scipy.linalg import polar
+    from scipy.spatial.transform import Rotation
+
+    E, nu = 3e5, 0.2
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    scene = _scene()
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.25, 0.25, 0.25), size=(0.1, 0.1, 0.1)),
+                            material=gs.materials.MPM.Elastic(E=E, nu=nu))
+    scene.build()
+    scene.step()  # uploads the material parameters
+    s = scene.mpm_solver
+    P = cube.n_particles
+    assert np.allclose(s.mu.to_numpy()[0, :P], mu) and np.allclose(s.lam.to_numpy()[0, :P], lam)
+    rng = np.random.default_rng(11)
+    rot = lambda n: Rotation.random(n, random_state=rng).as_matrix()  # noqa: E731
+    groups = {  # name: (P_g, 3, 3) deformation gradients
+        "small strain": rot(P) @ (np.eye(3) + 1e-3 * rng.standard_normal((P, 3, 3))),
+        "moderate": rot(P) @ (np.eye(3) + 0.3 * rng.standard_normal((P, 3, 3))),
+        "stretches 0.05-8": rot(P) @ (np.eye(3)[None] * np.exp(rng.uniform(np.log(0.05), np.log(8), (P, 1, 3)))) @ rot(P),
+        "nearly flat": rot(P) @ (np.eye(3)[None] * np.array([1.3, 0.8, 1e-7])[None, :, None]) @ rot(P),
+        "inverted": rot(P) @ (np.eye(3)[None] * np.array([1.1, 0.9, -0.2])[None, :, None]) @ rot(P),
+    }
+    for name, F in groups.items():
+        B = s.n_envs
+        x = np.tile(cube.get_particles_pos().detach().numpy()[None], (B, 1, 1))
+        zeros3, zeros33 = np.zeros((B, P, 3)), np.zeros((B, P, 3, 3))
+        s.kernel_set_state(0, x, zeros3, zeros33, np.ascontiguousarray(np.tile(F[None], (B, 1, 1, 1))))
+        s.kernel_constitutive_svd(0, 0, 1e-4)  # C = 0: the trial F is F itself
+        tau = s.tau.to_numpy()[0, 0, :P]
+        assert np.allclose(s.F.to_numpy()[0, 0, :P], F, rtol=0, atol=1e-15), name  # elastic keeps F
+        J = np.linalg.det(F)
+        R = np.empty_like(F)
+        for i in range(P):
+            if J[i] > 0:
+                R[i] = polar(F[i])[0]
+            else:
+                U, _, Vt = np.linalg.svd(F[i])
+                R[i] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        want = 2 * mu * (F - R) @ F.transpose(0, 2, 1) + (lam * (J - 1) * J)[:, None, None] * np.eye(3)
+        scale = (2 * mu + lam) * np.maximum(np.linalg.norm(F, axis=(1, 2)) ** 2, 1.0)
+        err = np.abs(tau - want).max(axis=(1, 2)) / scale
+        assert err.max() < 1e-12, (name, err.max())
+
+
 def test_the_one_launch_substep_gives_the_staged_substeps_numbers():
     """Without gradients a substep is one kernel launch that adds to the grid without atomics (solver.py
     kernel_substep_nograd); with gradients, separate stages with atomic adds. The same scene of every

@@ -12,7 +12,10 @@ Materials (codes in MAT_*), with Lame parameters mu, lam (Pa):
 - LIQUID:                F_new = J^(1/3) I,  tau = lam J (J - 1) I + eta J (C + C^T)   (viscosity eta, Pa s)
 
 The three that need the singular values of F_trial (ELASTIC, PLASTIC, SAND) are isotropic maps
-F_trial = U diag(s) V^T -> F_new = U diag(h(s)) V^T, tau = U diag(t(s)) U^T. Taichi's reverse mode
+F_trial = U diag(s) V^T -> F_new = U diag(h(s)) V^T, tau = U diag(t(s)) U^T. ELASTIC's forward needs only
+the rotation R = U V^T, which svd.func_polar finds in a third of the SVD's time (solver.py,
+func_constitutive_svd); the SVD stays its fallback (inverted particles). Its adjoint likewise goes
+through R (func_corotated_polar_adjoint) where the forward did. Taichi's reverse mode
 cannot differentiate an SVD where singular values coincide (every particle at rest), so their adjoint
 is written out here (`func_svd_adjoint`) from the derivatives of isotropic matrix functions: with
 dF~ = U^T dF V split into its symmetric part S and skew part A,
@@ -205,3 +208,35 @@ def func_ad_material(mat, F, C, dt, mu, lam, eta, present: ti.template()):
     tau = w * (mu * (F @ F.transpose() - I) + lam * ti.log(Jc) * I) + (1.0 - w) * (
         lam * J * (J - 1.0) * I + eta * J * (C + C.transpose()))
     return F_new, tau
+
+
+@ti.func
+def func_cofactor(F):
+    """d det(F) / dF = det(F) F^-T: the columns f1 x f2, f2 x f0, f0 x f1 of F's columns f0, f1, f2."""
+    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    return ti.Matrix.cols([f1.cross(f2), f2.cross(f0), f0.cross(f1)])
+
+
+@ti.func
+def func_corotated_polar_adjoint(F, R, mu, lam, G):
+    """(dL/dF, dL/dmu, dL/dlam) of corotated elasticity's tau = mu (Q + Q^T) + lam (J - 1) J I, Q = (F - R) F^T,
+    from G = dL/dtau, with R the rotation of F = R S (svd.func_polar, det F > 0). With H = G + G^T:
+        dL = mu <2 H F - H R, dF> - mu <H F, dR> + lam (2 J - 1) tr(G) <cof F, dF>,
+    and R's variation dR = R [w]x, where (tr(S) I - S) w is the axial vector of R^T dF - dF^T R (from
+    dF = dR S + R dS). So -mu <H F, dR> = <R [y]x, dF> for y = (tr(S) I - S)^-1 m, m the axial vector
+    of M - M^T, M = -mu R^T H F. tr(S) I - S has the eigenvalues s_i + s_j > 0: no divided differences,
+    nothing degenerate where singular values coincide (which the SVD's adjoint has to work around)."""
+    H = G + G.transpose()
+    J = F.determinant()
+    HF = H @ F
+    M = -mu * R.transpose() @ HF
+    m = ti.Vector([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    S = R.transpose() @ F
+    S = 0.5 * (S + S.transpose())
+    y = (S.trace() * ti.Matrix.identity(float, 3) - S).inverse() @ m
+    Y = ti.Matrix([[0.0, -y[2], y[1]], [y[2], 0.0, -y[0]], [-y[1], y[0], 0.0]])
+    trG = G.trace()
+    gF = mu * (2.0 * HF - H @ R) + R @ Y + lam * (2.0 * J - 1.0) * trG * func_cofactor(F)
+    return gF, (H * ((F - R) @ F.transpose())).sum(), trG * (J - 1.0) * J

@@ -39,11 +39,12 @@ import taichi as ti
 from .. import taichi_compat
 
 from .constitutive import (AD_MATERIALS, MAT_ELASTIC, MAT_LIQUID, MAT_NEOHOOKEAN, SVD_MATERIALS, func_ad_material,
+                           func_corotated_polar_adjoint,
                            func_principal, func_svd_adjoint)
 from .g2p import func_g2p
 from .grid import func_grid_velocity, func_walls
 from .p2g import func_p2g
-from .svd import func_svd3
+from .svd import POLAR_TOL, func_polar, func_svd3
 
 BOUND = 3  # grid nodes at each face that act as walls (particles live inside them)
 NAN_BIG = 1 << 30  # nan_env holds NAN_BIG - (first non-finite step) (kernel_count_nonfinite)
@@ -86,6 +87,7 @@ class MPMSolver:
         self._n_particles = cap  # the scene's count: the capacity itself unless it is read at run time
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
+        self.bits = 64 if dtype == ti.f64 else 32
         self.dx = float(dx)
         self.inv_dx = 1.0 / self.dx
         self.lower = ti.Vector([float(v) for v in lower])
@@ -348,7 +350,18 @@ class MPMSolver:
     @ti.func
     def func_constitutive_svd(self, i_b, i_p, src, dst, h):
         mat = self.p_mat[i_p]
-        if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:  # an SVD material
+        polar = False
+        if ti.static(MAT_ELASTIC in self.mats) and mat == MAT_ELASTIC:
+            # corotated: tau = 2 mu (F - R) F^T + lam (J - 1) J I needs only F's rotation R (func_polar),
+            # the SVD's U V^T; symmetrised (it is symmetric up to round-off, as U diag(t) U^T is exactly)
+            _, Ft = self.func_trial(i_b, i_p, src, h)
+            R, polar = func_polar(Ft, ti.static(POLAR_TOL[self.bits]))
+            if polar:
+                J = Ft.determinant()
+                P = self.mu[i_b, i_p] * (Ft - R) @ Ft.transpose()
+                self.F[dst, i_b, i_p] = Ft
+                self.tau[src, i_b, i_p] = P + P.transpose() + self.lam[i_b, i_p] * (J - 1.0) * J * ti.Matrix.identity(float, 3)
+        if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID and not polar:  # an SVD material
             _, Ft = self.func_trial(i_b, i_p, src, h)
             U, s, V = func_svd3(Ft)
             hs, _Jh, _dh, t, _Jt, _dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
@@ -368,11 +381,25 @@ class MPMSolver:
 
     @ti.kernel
     def kernel_constitutive_svd_grad(self, src: ti.i32, dst: ti.i32, h: float):
-        """Adjoint of kernel_constitutive_svd (constitutive.func_svd_adjoint), into C, F and the
+        """Adjoint of kernel_constitutive_svd (constitutive.func_svd_adjoint; for elastic particles whose
+        forward took the polar rotation, constitutive.func_corotated_polar_adjoint), into C, F and the
         material parameters of slot src."""
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
             mat = self.p_mat[i_p]
-            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID:
+            polar = False
+            if ti.static(MAT_ELASTIC in self.mats) and mat == MAT_ELASTIC:
+                # where the forward took the polar rotation, its adjoint (no SVD)
+                A, Ft = self.func_trial(i_b, i_p, src, h)
+                R, polar = func_polar(Ft, ti.static(POLAR_TOL[self.bits]))
+                if polar:
+                    gFt, gmu, glam = func_corotated_polar_adjoint(Ft, R, self.mu[i_b, i_p], self.lam[i_b, i_p],
+                                                                  self.tau.grad[src, i_b, i_p])
+                    gFt += self.F.grad[dst, i_b, i_p]  # F_new = F_trial
+                    self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
+                    self.F.grad[src, i_b, i_p] += A.transpose() @ gFt
+                    self.mu.grad[i_b, i_p] += gmu
+                    self.lam.grad[i_b, i_p] += glam
+            if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID and not polar:
                 A, Ft = self.func_trial(i_b, i_p, src, h)
                 U, s, V = func_svd3(Ft)
                 hs, Jh, dh, t, Jt, dt = func_principal(mat, s, self.mu[i_b, i_p], self.lam[i_b, i_p],
