@@ -13,7 +13,7 @@ Materials (codes in MAT_*), with Lame parameters mu, lam (Pa):
 
 The three that need the singular values of F_trial (ELASTIC, PLASTIC, SAND) are isotropic maps
 F_trial = U diag(s) V^T -> F_new = U diag(h(s)) V^T, tau = U diag(t(s)) U^T. ELASTIC's forward needs only
-the rotation R = U V^T, which svd.func_polar finds in a third of the SVD's time (solver.py,
+the rotation R = U V^T, which svd.func_polar finds in a third to a fifth of the SVD's time (solver.py,
 func_constitutive_svd); the SVD stays its fallback (inverted particles). Its adjoint likewise goes
 through R (func_corotated_polar_adjoint) where the forward did. Taichi's reverse mode
 cannot differentiate an SVD where singular values coincide (every particle at rest), so their adjoint

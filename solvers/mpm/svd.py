@@ -10,7 +10,7 @@ written out in constitutive.py.
 
 Also the polar rotation R of F = R S by Newton's iteration (func_polar), which corotated elasticity
 needs instead of the whole SVD: three to five iterations for the stretches of an elastic body, each
-a few cross products, where the Jacobi SVD costs three to four times as much.
+a few cross products, where the Jacobi SVD costs three to five times as much.
 """
 import taichi as ti
 
@@ -112,7 +112,7 @@ def func_svd3(F):
 
 POLAR_MAX_ITERS = 20
 # squared Frobenius norm of an iteration's change below which it has converged (the error after it is
-# about the change squared): per precision, from the solver (MPMSolver.polar_tol)
+# about the change squared), by the solver's precision in bits (MPMSolver.bits)
 POLAR_TOL = {32: 1e-12, 64: 1e-26}
 
 
