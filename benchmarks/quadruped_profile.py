@@ -229,43 +229,52 @@ def child_gl(integrator, n_envs, steps, rounds, profile, threads=0):
 
     names = [getattr(f, "__name__", str(f)) for f in s.dynamics_stages]
 
-    def op_by_op(labels):
+    def run_ops(labels, dynamics, solve):
+        """One step of the schedule's ops, each op a launch of its own: dynamics(e, src, h, labels) and
+        solve(e, labels) launch (and label) the evaluation and solve ops, integration and finish as the
+        fused step does them."""
         step_no[0] += 1
         for kind_op, kind, e, base, src, dst, h in sol.ops:
             if kind_op == OP_DYN:
-                for k in range(len(names)):
-                    s.kernel_dynamics_part(k, k + 1, e, src, h)
-                    labels.append(names[k])
+                dynamics(e, src, h, labels)
             elif kind_op == OP_SOLVE:
-                k_contact_solve(s, e)
-                labels.append("contact_solve")
+                solve(e, labels)
             elif kind_op == OP_INT:
                 core.kernel_integrate(kind, e, base, src, dst, h)
                 labels.append("integrate")
         core.kernel_finish(step_no[0], 1)
         labels.append("finish")
 
+    def dynamics_by_stage(e, src, h, labels):
+        for k in range(len(names)):
+            s.kernel_dynamics_part(k, k + 1, e, src, h)
+            labels.append(names[k])
+
+    def no_grad_solve(e, labels):
+        k_contact_solve(s, e)
+        labels.append("contact_solve")
+
+    def dynamics_whole(e, src, h, labels):
+        s.kernel_dynamics(e, src, h)
+        labels.append("dynamics (all stages)")
+
+    def grad_solve(e, labels):
+        """The solve op as ContactSolver.factor_solve's launches (the gradient path's)."""
+        for which in ("solve_candidates", "relinearise_pass", "solve_normal", "coulomb_pass",
+                      "solve_coulomb", "friction_pass"):
+            c.kernel_run(s, which)
+            labels.append(which)
+        s.kernel_mass_solve(e, False)
+        labels.append("final factor-solve")
+        c.kernel_report(s, e)
+        labels.append("report")
+
+    def op_by_op(labels):
+        run_ops(labels, dynamics_by_stage, no_grad_solve)
+
     def grad_path_solve(labels):
         """One step whose solve op runs as ContactSolver.factor_solve's launches (the gradient path's)."""
-        step_no[0] += 1
-        for kind_op, kind, e, base, src, dst, h in sol.ops:
-            if kind_op == OP_DYN:
-                s.kernel_dynamics(e, src, h)
-                labels.append("dynamics (all stages)")
-            elif kind_op == OP_SOLVE:
-                for which in ("solve_candidates", "relinearise_pass", "solve_normal", "coulomb_pass",
-                              "solve_coulomb", "friction_pass"):
-                    c.kernel_run(s, which)
-                    labels.append(which)
-                s.kernel_mass_solve(e, False)
-                labels.append("final factor-solve")
-                c.kernel_report(s, e)
-                labels.append("report")
-            elif kind_op == OP_INT:
-                core.kernel_integrate(kind, e, base, src, dst, h)
-                labels.append("integrate")
-        core.kernel_finish(step_no[0], 1)
-        labels.append("finish")
+        run_ops(labels, dynamics_whole, grad_solve)
 
     def side(labels):
         """Measurements that leave the state as it is: the narrow-phase geometry, one factor-solve of M."""
