@@ -329,10 +329,10 @@ def test_elastic_stress_is_the_corotated_law_at_any_stretch_and_for_inverted_par
         "nearly flat": rot(P) @ (np.eye(3)[None] * np.array([1.3, 0.8, 1e-7])[None, :, None]) @ rot(P),
         "inverted": rot(P) @ (np.eye(3)[None] * np.array([1.1, 0.9, -0.2])[None, :, None]) @ rot(P),
     }
+    B = s.n_envs
+    x = np.tile(cube.get_particles_pos().detach().numpy()[None], (B, 1, 1))
+    zeros3, zeros33 = np.zeros((B, P, 3)), np.zeros((B, P, 3, 3))
     for name, F in groups.items():
-        B = s.n_envs
-        x = np.tile(cube.get_particles_pos().detach().numpy()[None], (B, 1, 1))
-        zeros3, zeros33 = np.zeros((B, P, 3)), np.zeros((B, P, 3, 3))
         s.kernel_set_state(0, x, zeros3, zeros33, np.ascontiguousarray(np.tile(F[None], (B, 1, 1, 1))))
         s.kernel_constitutive_svd(0, 0, 1e-4)  # C = 0: the trial F is F itself
         tau = s.tau.to_numpy()[0, 0, :P]

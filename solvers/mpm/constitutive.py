@@ -28,6 +28,8 @@ and C and go through Taichi's autodiff.
 """
 import taichi as ti
 
+from .svd import func_cofactor
+
 MAT_ELASTIC, MAT_NEOHOOKEAN, MAT_PLASTIC, MAT_SAND, MAT_LIQUID = 0, 1, 2, 3, 4
 SVD_MATERIALS = (MAT_ELASTIC, MAT_PLASTIC, MAT_SAND)
 AD_MATERIALS = (MAT_NEOHOOKEAN, MAT_LIQUID)
@@ -208,15 +210,6 @@ def func_ad_material(mat, F, C, dt, mu, lam, eta, present: ti.template()):
     tau = w * (mu * (F @ F.transpose() - I) + lam * ti.log(Jc) * I) + (1.0 - w) * (
         lam * J * (J - 1.0) * I + eta * J * (C + C.transpose()))
     return F_new, tau
-
-
-@ti.func
-def func_cofactor(F):
-    """d det(F) / dF = det(F) F^-T: the columns f1 x f2, f2 x f0, f0 x f1 of F's columns f0, f1, f2."""
-    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
-    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
-    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
-    return ti.Matrix.cols([f1.cross(f2), f2.cross(f0), f0.cross(f1)])
 
 
 @ti.func

@@ -110,6 +110,15 @@ def func_svd3(F):
     return U, s, V
 
 
+@ti.func
+def func_cofactor(F):
+    """d det(F) / dF = det(F) F^-T: the columns f1 x f2, f2 x f0, f0 x f1 of F's columns f0, f1, f2."""
+    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
+    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
+    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
+    return ti.Matrix.cols([f1.cross(f2), f2.cross(f0), f0.cross(f1)])
+
+
 POLAR_MAX_ITERS = 20
 # squared Frobenius norm of an iteration's change below which it has converged (the error after it is
 # about the change squared), by the solver's precision in bits (MPMSolver.bits)
@@ -121,7 +130,7 @@ def func_polar(F, tol: ti.template()):
     """(R, ok): the rotation of the polar decomposition F = R S (S symmetric positive definite) by
     Newton's iteration X <- (X + X^-T) / 2 from X = F, whose fixed point is R and which converges
     quadratically once near it (Higham 1986; unscaled: F of an elastic body is near a rotation).
-    X^-T is the cofactor matrix (columns x1 x x2, x2 x x0, x0 x x1) over det X. ok is False when det F
+    X^-T is the cofactor matrix over det X (its first column dotted with X's). ok is False when det F
     <= 0 (an inverted particle: R would be a reflection) or the iteration has not converged in
     POLAR_MAX_ITERS; the caller then takes the SVD (func_svd3), whose U V^T is the same R."""
     X = F
@@ -129,11 +138,8 @@ def func_polar(F, tol: ti.template()):
     converged = False
     n = 0
     while ok and not converged:
-        x0 = ti.Vector([X[0, 0], X[1, 0], X[2, 0]])
-        x1 = ti.Vector([X[0, 1], X[1, 1], X[2, 1]])
-        x2 = ti.Vector([X[0, 2], X[1, 2], X[2, 2]])
-        c0 = x1.cross(x2)
-        Y = 0.5 * (X + ti.Matrix.cols([c0, x2.cross(x0), x0.cross(x1)]) / x0.dot(c0))
+        C = func_cofactor(X)
+        Y = 0.5 * (X + C / (X[0, 0] * C[0, 0] + X[1, 0] * C[1, 0] + X[2, 0] * C[2, 0]))
         converged = (Y - X).norm_sqr() < tol
         X = Y
         n += 1
