@@ -103,8 +103,8 @@ class RigidOptions(_Options):
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which
     Coulomb friction becomes viscous (smaller: less creep on slopes, stiffer gradients).
     max_mesh_contact_points caps the hull points a collision mesh contacts with (more: smoother, slower).
-    ignore_unsupported_pairs lets pairs the contact model cannot handle (mesh against mesh) pass
-    through each other instead of raising at build.
+    ignore_unsupported_pairs lets pairs the contact model cannot handle (a plane on a moving link)
+    pass through each other instead of raising at build.
 
     specialize_kernels: True compiles the no-gradient step for this scene alone, with its contact sizes
     as constants and Taichi's full optimisation (~25 % faster batched contact steps, ~50 s more compile

@@ -20,15 +20,17 @@ function (SDF) of the other (the "SDF side"):
                               face lying on it (face on face: crossed       plane)
                               planks touch only there)
   other primitive pairs,      corners + edge midpoints (box), rim and cap   the other geom
-  mesh x primitive            samples (cylinder), axis samples (capsule),
-                              hull vertices (mesh), in both directions
-  mesh x mesh                 unsupported (an error at build, see below)
+  mesh x primitive,           samples (cylinder), axis samples (capsule),
+  mesh x mesh                 hull vertices (mesh), in both directions
 
 SDFs are exact for plane, sphere, capsule, box and cylinder; a mesh is its convex hull, whose SDF is
 approximated by a 26-plane discrete-orientation polytope (k-DOP) around it. Inside a box, cylinder or
 k-DOP the nearest face is ambiguous where faces meet (two stacked identical boxes touch corner on
 corner), so the face is chosen by penetration plus a bias towards the face that looks at the other
-geom's centre.
+geom's centre. Two meshes touch where a hull vertex of one enters the other's k-DOP: a vertex-free
+contact (two hulls crossed edge on edge, with no vertex of either inside the other) is missed, as it
+was for crossed box planks before their face slots, and a rounded hull rests on the facets of the
+other's k-DOP, up to its gap to the hull (none for a box-shaped mesh).
 
 Which pairs are candidates: geoms of different entities; geoms of one entity only with
 `enable_self_collision`, and never on the same or adjacent (parent/child) links; never two geoms that

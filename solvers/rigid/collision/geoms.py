@@ -193,8 +193,8 @@ def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsuppo
             if ta == GEOM_PLANE and tb == GEOM_PLANE:
                 continue
             moving_plane = (ta == GEOM_PLANE and dyn[la]) or (tb == GEOM_PLANE and dyn[lb])
-            if (ta == GEOM_MESH and tb == GEOM_MESH) or moving_plane:
-                bad.append((a, b, "a plane on a moving link" if moving_plane else "mesh against mesh"))
+            if moving_plane:
+                bad.append((a, b, "a plane on a moving link"))
                 continue
             # a plane is always the second geom of its pair (the broad phase tests the first against it)
             pairs.append((b, a) if ta == GEOM_PLANE else (a, b))
@@ -202,10 +202,8 @@ def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsuppo
         a, b, why = bad[0]
         more = f" (and {len(bad) - 1} more such pairs)" if len(bad) > 1 else ""
         raise ContactBuildError(
-            f"unsupported collision pair ({why}): {geoms.names[a]} and {geoms.names[b]}{more}. Supported are plane "
-            "(static) against every shape, sphere/box/capsule/cylinder among themselves, and meshes against planes "
-            "and primitives. Give one of them primitive collision shapes, turn self-collision off "
-            "(RigidOptions(enable_self_collision=False)) if they belong to one entity, or pass "
+            f"unsupported collision pair ({why}): {geoms.names[a]} and {geoms.names[b]}{more}. A plane must be "
+            "static (the ground, or a body fixed to the world); use a thin box on a moving link, or pass "
             "RigidOptions(ignore_unsupported_pairs=True) to let such pairs pass through each other.")
     return pairs
 
