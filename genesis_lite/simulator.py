@@ -142,7 +142,7 @@ class Simulator:
         if self.coupler is not None and self.coupler.attached:
             self.coupler.g2p_attached(i, grad)
         else:
-            self.mpm.substep_post_coupling(i, grad)
+            self.mpm.substep_post_coupling(i, grad, replay)
 
     @staticmethod
     def _split(xs, counts):

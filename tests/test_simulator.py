@@ -41,7 +41,7 @@ def test_a_coupled_substep_runs_mpm_coupling_mpm_then_rigid(grad):
         if grad:
             expected.append(("mpm", "record_substep", i))
         expected += [("mpm", "substep_pre_coupling", i, grad, False), ("coupler", "couple", i, grad, False),
-                     ("mpm", "substep_post_coupling", i, grad), ("rigid", "substep", i, grad, 1)]
+                     ("mpm", "substep_post_coupling", i, grad, False), ("rigid", "substep", i, grad, 1)]
     assert log == expected
 
 
@@ -64,7 +64,7 @@ def test_without_a_coupler_the_mpm_grid_update_takes_its_place(grad):
     _simulator(log, coupler=False, substeps=1)._run(grad=grad)
     if grad:
         assert log == [("mpm", "record_substep", 0), ("mpm", "substep_pre_coupling", 0, True, False),
-                       ("mpm", "grid_update", 0), ("mpm", "substep_post_coupling", 0, True),
+                       ("mpm", "grid_update", 0), ("mpm", "substep_post_coupling", 0, True, False),
                        ("rigid", "substep", 0, True, 1)]
     else:
         assert log == [("mpm", "substep_uncoupled", 0), ("rigid", "substep", 0, False, 1)]

@@ -278,8 +278,8 @@ class MPMSim:
     def grid_update(self, i):
         self.solver.grid_update(i)
 
-    def substep_post_coupling(self, i, grad):
-        self.solver.substep_post_coupling(i, grad)
+    def substep_post_coupling(self, i, grad, replay=False):
+        self.solver.substep_post_coupling(i, grad, replay)
 
     def active_rows(self, n_rows):
         """`active` for n_rows envs: a (n_rows, P) bool tensor on the scene's device (emission is the same

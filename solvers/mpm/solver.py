@@ -17,7 +17,11 @@ on the scene's Tape (`record_substep`), whose adjoint recomputes the substep's g
 has overwritten it) by replaying the stages (`replay=True`) under a nested Tape, which then runs their
 adjoints in reverse, followed by the adjoint of the constitutive update (the SVD-based one
 hand-written, constitutive.py; the others Taichi's). The constitutive update itself is not replayed:
-its outputs (F of the next slot, tau of this one) are kept.
+its outputs (F of the next slot, tau of this one) are kept. The two transfers have written-out
+adjoints (p2g.func_p2g_adjoint, g2p.func_g2p_adjoint; Taichi's own are the same sums, its g2p one
+with an atomic add per node and component); the grid update and a coupler's stages keep Taichi's.
+Particle to grid adds the same way with and without gradients (func_p2g_all), so a rollout's numbers
+do not depend on requires_grad.
 
 One compile serves every scene of a class, as in the rigid solver (solvers/rigid/solver.py): Taichi
 bakes the fields a kernel touches, and every Python value it reads while compiling, into the compiled
@@ -41,9 +45,9 @@ from .. import taichi_compat
 from .constitutive import (AD_MATERIALS, MAT_ELASTIC, MAT_LIQUID, MAT_NEOHOOKEAN, SVD_MATERIALS, func_ad_material,
                            func_corotated_polar_adjoint,
                            func_principal, func_svd_adjoint)
-from .g2p import func_g2p
+from .g2p import func_g2p, func_g2p_adjoint
 from .grid import func_grid_velocity, func_walls
-from .p2g import func_p2g
+from .p2g import func_p2g, func_p2g_adjoint
 from .svd import POLAR_TOL, func_polar, func_svd3
 
 BOUND = 3  # grid nodes at each face that act as walls (particles live inside them)
@@ -203,7 +207,28 @@ class MPMSolver:
             if self.has_svd:
                 self.kernel_constitutive_svd_grad(i, i + 1, self.h)
 
+        # the transfers as the substep's adjoint records them: p2g forward as the no-gradient substep adds
+        # (kernel_p2g_fwd), both with written-out adjoints (kernel_p2g_grad, kernel_g2p_grad) instead of
+        # Taichi's (whose g2p adjoint scatters with atomic adds: ~5x slower on the CPU)
+        @ti.ad.grad_replaced
+        def p2g(src):
+            self.kernel_p2g_fwd(src, self.h)
+
+        @ti.ad.grad_for(p2g)
+        def p2g_grad(src):
+            self.kernel_p2g_grad(src, self.h)
+
+        @ti.ad.grad_replaced
+        def g2p(src, dst):
+            self.kernel_g2p(src, dst, self.h)
+
+        @ti.ad.grad_for(g2p)
+        def g2p_grad(src, dst):
+            self.kernel_g2p_grad(src, dst, self.h)
+
         self.clear_grid = clear_grid
+        self.p2g_replay = p2g
+        self.g2p_replay = g2p
         # record_substep(i, stages): substep i as one call on the scene's Tape, where stages(i, grad, replay)
         # runs the substep's stages in the simulator's order (replay=True: the adjoint's recompute)
         self.record_substep = record_substep
@@ -246,21 +271,25 @@ class MPMSolver:
             return
         if replay:
             self.clear_grid(src)
+            self.p2g_replay(src)
         else:
             self._clear_grid(src)
             if self.has_svd:
                 self.kernel_constitutive_svd(src, dst, self.h)
             if self.has_ad:
                 self.kernel_constitutive_ad(src, dst, self.h)
-        self.kernel_p2g(src, self.h)
+            self.kernel_p2g_fwd(src, self.h)
 
     def grid_update(self, i):
         """Grid velocities of substep i with gravity and the domain walls (a scene without a coupler)."""
         self.kernel_grid_update(self.h, i, *self.region)
 
-    def substep_post_coupling(self, i, grad):
-        """Substep i from the grid's velocities on: grid-to-particle."""
-        self.kernel_g2p(*self.slots(i, grad), self.h)
+    def substep_post_coupling(self, i, grad, replay=False):
+        """Substep i from the grid's velocities on: grid-to-particle (replay: see substep_pre_coupling)."""
+        if replay:
+            self.g2p_replay(*self.slots(i, grad))
+        else:
+            self.kernel_g2p(*self.slots(i, grad), self.h)
 
     def substep_uncoupled(self, i):
         """Substep i without gradients in a scene without a coupler: substep_pre_coupling, grid_update and
@@ -430,9 +459,28 @@ class MPMSolver:
             self.func_constitutive_ad(i_b, i_p, src, dst, h)
 
     @ti.kernel
-    def kernel_p2g(self, src: ti.i32, h: float):
+    def kernel_p2g_grad(self, src: ti.i32, h: float):
+        """Adjoint of kernel_p2g_fwd (p2g.func_p2g_adjoint: a gather, one thread per particle)."""
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
-            func_p2g(self, i_b, i_p, src, h, True)
+            func_p2g_adjoint(self, i_b, i_p, src, h)
+
+    @ti.func
+    def func_p2g_all(self, src, h):
+        """Particle to grid for every particle of slot src: without atomics, each env's particles added
+        in order by one thread, where threads are few (`plain_p2g`, see p2g.py), else with atomics."""
+        if ti.static(self.plain_p2g):
+            for i_b in range(self.n_envs):
+                for i_p in range(self.n_particles):
+                    func_p2g(self, i_b, i_p, src, h, False)
+        else:
+            for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+                func_p2g(self, i_b, i_p, src, h, True)
+
+    @ti.kernel
+    def kernel_p2g_fwd(self, src: ti.i32, h: float):
+        """Particle to grid as the no-gradient substep adds (func_p2g_all): the gradient path's forward and
+        its adjoint's recompute (the same numbers both times)."""
+        self.func_p2g_all(src, h)
 
     @ti.kernel
     def kernel_grid_update(self, h: float, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32, n1: ti.i32,
@@ -448,12 +496,8 @@ class MPMSolver:
         """Stages of a substep without gradients, in place in slot 0, in one launch: `pre` (what
         substep_pre_coupling does: the active region, clearing it, the constitutive update, particle to
         grid), `grid` (grid_update), `post` (grid to particle). The same arithmetic as the separate kernels
-        of the gradient path, with two differences in how it runs: the region stays on the device (the
-        grid loops read it from active_lo, active_n; the host reads it only when a coupler asks, `region`),
-        and particle to grid adds without atomics, each env's particles added in order by one thread (see
-        p2g.py; `plain_p2g`, else with atomics as kernel_p2g): the sums at a node are the same up to their
-        order, which is fixed here (particle order) where the atomic adds of the parallel loop leave it to
-        the threads."""
+        of the gradient path; the region stays on the device (the grid loops read it from active_lo,
+        active_n; the host reads it only when a coupler asks, `region`)."""
         if ti.static(pre):
             for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
                 if ti.static(self.has_svd):
@@ -467,13 +511,7 @@ class MPMSolver:
             lo, n = self.active_lo[None], self.active_n[None]
             for i_b, i, j, k in ti.ndrange(self.n_envs, n[0], n[1], n[2]):
                 self.func_clear_node(i_b, lo + ti.Vector([i, j, k]))
-            if ti.static(self.plain_p2g):
-                for i_b in range(self.n_envs):
-                    for i_p in range(self.n_particles):
-                        func_p2g(self, i_b, i_p, 0, h, False)
-            else:
-                for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
-                    func_p2g(self, i_b, i_p, 0, h, True)
+            self.func_p2g_all(0, h)
         if ti.static(grid):
             glo, gn = self.active_lo[None], self.active_n[None]
             for i_b, i, j, k in ti.ndrange(self.n_envs, gn[0], gn[1], gn[2]):
@@ -487,6 +525,18 @@ class MPMSolver:
     def kernel_g2p(self, src: ti.i32, dst: ti.i32, h: float):
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
             func_g2p(self, i_b, i_p, src, dst, h)
+
+    @ti.kernel
+    def kernel_g2p_grad(self, src: ti.i32, dst: ti.i32, h: float):
+        """Adjoint of kernel_g2p (g2p.func_g2p_adjoint), its scatter into the grid adjoints added as
+        func_p2g_all adds: without atomics by one thread per env where threads are few."""
+        if ti.static(self.plain_p2g):
+            for i_b in range(self.n_envs):
+                for i_p in range(self.n_particles):
+                    func_g2p_adjoint(self, i_b, i_p, src, dst, h, False)
+        else:
+            for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
+                func_g2p_adjoint(self, i_b, i_p, src, dst, h, True)
 
     # ------------------------------------------------------------------ kernels: I/O and gradients
     @ti.kernel
