@@ -3,7 +3,7 @@ velocity C (APIC) from the 27 nodes around it and moves with the new velocity.
 """
 import taichi as ti
 
-from .p2g import func_stencil
+from .p2g import func_stencil, func_stencil_dw, func_weight_grad
 
 
 @ti.func
@@ -52,19 +52,20 @@ def func_g2p_adjoint(s: ti.template(), i_b, i_p, src, dst, dt, atomic: ti.templa
     where one thread owns the env's grid, as in p2g.py) and of its old position (slot src, through the
     clamp to the walls, the move and the weights). Taichi's own adjoint of the gather is the same sums
     with 81 atomic adds per particle and a recompute of the stencil per node; this one is ~5x faster on
-    the CPU (solvers/mpm/solver.py kernel_g2p_grad).
+    the CPU (solvers/mpm/solver.py kernel_g2p_grad). It reads the forward's new_v and x' from slot dst
+    (the replay has just written them) rather than gathering again.
 
     Forward: new_v = sum_o W_o v_o, c_a = sum_o o_a W_o v_o, C[:, a] = 4/dx (c_a - fx_a new_v),
     x' = clamp(x + dt new_v), W_o = w_i(fx_0) w_j(fx_1) w_k(fx_2), fx = (x - lower)/dx - base."""
     x = s.x[src, i_b, i_p]
     base, fx, w = func_stencil(s, x)
-    # the weights' derivatives d w_n / d fx, per axis
-    dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
-    new_v, _C = func_g2p_gather(s, i_b, x)
-    x_new = x + dt * new_v
+    dw = func_stencil_dw(fx)
+    # the forward's outputs are in slot dst: new_v itself, and x' inside the walls exactly where the clamp
+    # left x + dt new_v alone, which is where it passes the adjoint (the walls are constants)
+    new_v = s.v[dst, i_b, i_p]
+    x_out = s.x[dst, i_b, i_p]
     gX = s.x.grad[dst, i_b, i_p]
-    # the clamp passes the adjoint where it did not clamp (the walls are constants)
-    gxn = ti.Vector([ti.select((x_new[a] > s.x_min[a]) & (x_new[a] < s.x_max[a]), gX[a], 0.0)
+    gxn = ti.Vector([ti.select((x_out[a] > s.x_min[a]) & (x_out[a] < s.x_max[a]), gX[a], 0.0)
                      for a in ti.static(range(3))])
     gC = s.C.grad[dst, i_b, i_p]
     scale = 4.0 * s.inv_dx
@@ -82,6 +83,5 @@ def func_g2p_adjoint(s: ti.template(), i_b, i_p, src, dst, dt, atomic: ti.templa
         else:  # (the caller guarantees no other thread adds to this env's grid adjoints)
             s.grid_v.grad[i_b, I] = s.grid_v.grad[i_b, I] + wt * g_node
         sw = g_node.dot(s.grid_v[i_b, I])
-        g_fx += sw * ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])
+        g_fx += sw * func_weight_grad(w, dw, i, j, k)
     s.x.grad[src, i_b, i_p] += gxn + s.inv_dx * g_fx

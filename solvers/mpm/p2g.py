@@ -26,6 +26,18 @@ def func_stencil(s: ti.template(), x):
 
 
 @ti.func
+def func_stencil_dw(fx):
+    """The weights' derivatives d w_n / d fx of func_stencil, per axis (for the written-out adjoints)."""
+    return [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+
+
+@ti.func
+def func_weight_grad(w, dw, i: ti.template(), j: ti.template(), k: ti.template()):
+    """d W_o / d fx of node o = (i, j, k)'s weight W_o = w_i(fx_0) w_j(fx_1) w_k(fx_2)."""
+    return ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2], w[i][0] * w[j][1] * dw[k][2]])
+
+
+@ti.func
 def func_p2g(s: ti.template(), i_b, i_p, src, dt, atomic: ti.template()):
     x = s.x[src, i_b, i_p]
     m = s.p_mass[i_p]
@@ -62,7 +74,7 @@ def func_p2g_adjoint(s: ti.template(), i_b, i_p, src, dt):
     x = s.x[src, i_b, i_p]
     m = s.p_mass[i_p]
     base, fx, w = func_stencil(s, x)
-    dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+    dw = func_stencil_dw(fx)
     ks = -dt * s.p_vol[i_p] * 4.0 * s.inv_dx * s.inv_dx
     affine = ks * s.tau[src, i_b, i_p] + m * s.C[src, i_b, i_p]
     q = m * s.v[src, i_b, i_p] + dt * s.f_ext[i_b, i_p] - affine @ (fx * s.dx)
@@ -84,8 +96,7 @@ def func_p2g_adjoint(s: ti.template(), i_b, i_p, src, dt):
         g1 += float(j) * wG
         g2 += float(k) * wG
         gW = G.dot(q + float(i) * a0 + float(j) * a1 + float(k) * a2) + s.grid_m.grad[i_b, I] * m
-        g_fx += gW * ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])
+        g_fx += gW * func_weight_grad(w, dw, i, j, k)
     # q = ... - A (fx dx) and a_c = A[:, c] dx: the adjoint of A, column by column
     fxd = fx * s.dx
     gA = ti.Matrix.cols([s.dx * g0 - fxd[0] * g_q, s.dx * g1 - fxd[1] * g_q, s.dx * g2 - fxd[2] * g_q])
