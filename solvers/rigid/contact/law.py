@@ -33,10 +33,11 @@ def func_softplus(x, xc):
 
 @ti.func
 def func_heavy_scale(s: ti.template(), i_b, i_s):
-    """(heavy, scale): whether slot i_s's pair is heavier than HEAVY_MASS, and m_eff / HEAVY_MASS, the
-    factor on its stiffness and damping (see HEAVY_MASS). m_eff = 1 / (1 / m_a + 1 / m_b) over the sides
-    that move (a static side is infinitely heavy), each side its own link's mass: a light link pressed
-    by a heavy load through its joints (a foot under a heavy robot) keeps the options' law."""
+    """(heavy, scale, inv): whether slot i_s's pair is heavier than HEAVY_MASS, m_eff / HEAVY_MASS (the
+    factor on its stiffness, and on a fixed damping: see HEAVY_MASS) and 1 / m_eff, where m_eff = 1 /
+    (1 / m_a + 1 / m_b) over the sides that move (a static side is infinitely heavy), each side its own
+    link's mass: a light link pressed by a heavy load through its joints (a foot under a heavy robot)
+    keeps the options' stiffness."""
     c = s.contact
     la = c.geom_link[c.slot_ga[i_s]]
     lb = c.geom_link[c.slot_gb[i_s]]
@@ -46,16 +47,18 @@ def func_heavy_scale(s: ti.template(), i_b, i_s):
     heavy = inv * HEAVY_MASS < 1.0
     # inv > 0 on the heavy side; the other side's value is never used (nor its adjoint: 0)
     scale = ti.select(heavy, 1.0 / (ti.max(inv, 1e-30) * HEAVY_MASS), 1.0)
-    return heavy, scale
+    return heavy, scale, inv
 
 
 @ti.func
-def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale):
+def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
     """(normal force, slope h * dF/d(approach speed)) of the implicit law for the depth now and the
     depth predicted for the end of the step, and the force of the current state alone (the spring on
-    the current depth and the damper on the current approach). heavy, scale: func_heavy_scale's, the
-    factor on k and c (all three are linear in them); each side of the kink is its own branch (ti.select),
-    exact on its side."""
+    the current depth and the damper on the current approach). heavy, scale, inv: func_heavy_scale's.
+    The stiffness is c.k, times `scale` for a heavy pair. The damping is the pair's critical damping
+    times c.zeta (RigidOptions.contact_damping_ratio), 2 zeta sqrt(k m_eff), when c.zeta > 0 (the
+    default), else the fixed c.d (RigidOptions.contact_damping) times `scale`; each side of the kink
+    is its own branch (ti.select), exact on its side."""
     z = depth / c.delta
     zp = depth_end / c.delta
     # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)
@@ -64,22 +67,36 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale):
     sp = func_softplus(z, zc)
     spp = func_softplus(zp, zpc)
     sg = 1.0 / (1.0 + ti.exp(-zpc))
-    ch = c.d / h
-    fn = (c.k + ch) * c.delta * spp - ch * c.delta * sp
-    wn = h * (c.d + h * c.k) * sg
-    fn_now = c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
-    # the heavy law spelled out with its own k and c, not as scale * fn: LLVM's fast math folds
-    # select(heavy, scale * fn, fn) into fn * select(heavy, scale, 1) and regroups that product with
-    # fn's terms, which moved the light law's rounding (a contact scene's gradient build left main's
-    # trajectory by 1e-19 m in its first steps). Spelled out, a light pair's forces are the options'
-    # law's to the bit; its gradients move at rounding level (the adjoint sums are regrouped)
-    k = c.k * scale
-    d = c.d * scale
-    chs = d / h
-    fn_h = (k + chs) * c.delta * spp - chs * c.delta * sp
-    wn_h = h * (d + h * k) * sg
-    fn_now_h = k * c.delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
-    return ti.select(heavy, fn_h, fn), ti.select(heavy, wn_h, wn), ti.select(heavy, fn_now_h, fn_now)
+    fn, wn, fn_now = 0.0 * sp, 0.0 * sp, 0.0 * sp
+    if ti.static(c.zeta > 0.0):
+        # mass-relative damping: the contact's damping ratio is zeta for every pair, light or heavy, so
+        # its fastest time scale is sqrt(m_eff / k) / (2 zeta) whatever the mass (a fixed damper of
+        # 4e4 N s/m gave a 0.3 kg foot 1e-5 s, which no practical step resolves: the quadruped drop did
+        # not converge as dt shrank, issue #24)
+        k = c.k * scale
+        d = (2.0 * c.zeta) * ti.sqrt(k / ti.max(inv, 1e-30))
+        chs = d / h
+        fn = (k + chs) * c.delta * spp - chs * c.delta * sp
+        wn = h * (d + h * k) * sg
+        fn_now = k * c.delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+    else:
+        ch = c.d / h
+        fl = (c.k + ch) * c.delta * spp - ch * c.delta * sp
+        wl = h * (c.d + h * c.k) * sg
+        fl_now = c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+        # the heavy law spelled out with its own k and c, not as scale * fn: LLVM's fast math folds
+        # select(heavy, scale * fn, fn) into fn * select(heavy, scale, 1) and regroups that product with
+        # fn's terms, which moved the light law's rounding (a contact scene's gradient build left main's
+        # trajectory by 1e-19 m in its first steps). Spelled out, a light pair's forces are the options'
+        # law's to the bit; its gradients move at rounding level (the adjoint sums are regrouped)
+        k = c.k * scale
+        d = c.d * scale
+        chs = d / h
+        fh = (k + chs) * c.delta * spp - chs * c.delta * sp
+        wh = h * (d + h * k) * sg
+        fh_now = k * c.delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+        fn, wn, fn_now = ti.select(heavy, fh, fl), ti.select(heavy, wh, wl), ti.select(heavy, fh_now, fl_now)
+    return fn, wn, fn_now
 
 
 @ti.func

@@ -43,7 +43,11 @@ class ContactPlan:
         self.n_links = flat.n_links
         self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
         self.k = float(options.contact_stiffness)
-        self.d = float(options.contact_damping)
+        # the damping: a damping ratio for every pair (contact_damping None, the default), or a fixed
+        # N s/m (then zeta = 0)
+        fixed = getattr(options, "contact_damping", None)
+        self.zeta = 0.0 if fixed is not None else float(options.contact_damping_ratio)
+        self.d = float(fixed) if fixed is not None else 0.0
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
         self.margin = MARGIN_WIDTHS * self.delta
@@ -99,7 +103,7 @@ class ContactPlan:
             self.caps = (_cap(self.n_geoms, 16), _cap(self.n_pairs, 16), _cap(self.n_slots, 64),
                          _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
         self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types,
-                      (self.k, self.d, self.delta, self.eps), self.static)
+                      (self.k, self.d, self.zeta, self.delta, self.eps), self.static)
 
 
 def _link_dofs(flat, l):

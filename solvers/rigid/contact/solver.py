@@ -70,7 +70,7 @@ class ContactSolver:
         (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types, consts,
          self.static_sizes) = plan.flags
         self.baked_sizes = tuple(plan.cfg_i)
-        self.k, self.d, self.delta, self.eps = consts
+        self.k, self.d, self.zeta, self.delta, self.eps = consts
         self.margin = MARGIN_WIDTHS * self.delta
         self.dtype = core.dtype
         G, Pn, S, n_lp, n_cross = plan.caps
