@@ -182,6 +182,41 @@ def test_quadruped_held_by_pd_stands_10s(urdf_path):
     np.testing.assert_allclose(total, [0, 0, float(robot.get_mass()) * G], rtol=1e-3, atol=1e-2)
 
 
+def _anymal_drop_heights(urdf_path, dt, t_end, every, **rigid):
+    """Base heights of ANYmal dropped from 0.62 m and held by PD, sampled every `every` s (defaults but dt)."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), rigid_options=gs.options.RigidOptions(**rigid))
+    scene.add_entity(gs.morphs.Plane())
+    robot = scene.add_entity(gs.morphs.URDF(file=str(urdf_path("anymal")), fixed=False, pos=(0.0, 0.0, 0.62)))
+    scene.build()
+    q0, dofs = _anymal_standing_pose(robot)
+    robot.set_dofs_kp(torch.full((len(dofs),), 100.0, dtype=F64), dofs)
+    robot.set_dofs_kv(torch.full((len(dofs),), 5.0, dtype=F64), dofs)
+    robot.set_dofs_position(q0, dofs)
+    robot.control_dofs_position(q0, dofs)
+    n, k = int(round(t_end / dt)), int(round(every / dt))
+    out = []
+    for i in range(n):
+        scene.step()
+        if (i + 1) % k == 0:
+            out.append(_np(robot.get_pos()).copy())
+    return np.array(out)
+
+
+def test_quadruped_drop_converges_as_dt_shrinks(urdf_path):
+    """Issue #24: the legged landing converges as the step shrinks, with the default contact law.
+    ANYmal dropped from 0.62 m (impact ~1 m/s, feet sliding as the legs take the load), then standing:
+    the base positions over 0.6 s change less and less as dt halves, as a first-order method's should.
+    With the old fixed contact damping (4e4 N s/m per point, RigidOptions(contact_damping=4e4)) the
+    change grew as dt halved (1.9e-4, 3.3e-4, 6.0e-4 m from 4e-4 s down: a light foot's damping time
+    m / c ~ 1e-5 s, which no practical step resolves), and this test fails."""
+    runs = [_anymal_drop_heights(urdf_path, dt, 0.6, 0.05) for dt in (2e-4, 1e-4, 5e-5)]
+    changes = [float(np.linalg.norm(b - a, axis=1).max()) for a, b in zip(runs, runs[1:])]
+    # measured: 1.1e-4 then 3.7e-5 m (the fixed 4e4 N s/m: 3.3e-4 then 6.0e-4 m)
+    assert changes[1] < 0.6 * changes[0], changes
+    assert changes[1] < 1e-4, changes
+    assert 0.45 < runs[-1][-1][2] < 0.52  # standing
+
+
 def test_joint_driven_past_its_limit_stops_at_the_limit(assets_dir):
     """assets/urdf/arm.urdf: shoulder_pitch has limits [-2, 2] rad; a PD target of 3 rad stops at 2."""
     scene = _scene(enable_collision=False)

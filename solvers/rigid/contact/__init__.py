@@ -8,6 +8,12 @@ of the step (u' the velocity after it):
     normal     f_n = k delta softplus(d' / delta) + (c / h) delta (softplus(d' / delta) - softplus(d / delta))
     friction   f_t = -mu f_n u_t' / sqrt(|v|^2 + eps^2)        mu = max(mu_a, mu_b)
 
+The damper c is the pair's critical damping times RigidOptions.contact_damping_ratio (1 by default),
+c = 2 zeta sqrt(k m_eff), m_eff the reduced mass of the two links (a static side infinitely heavy), so
+the contact's fastest time scale, sqrt(m_eff / k) / (2 zeta), is one a practical step resolves and the
+trajectory converges as dt shrinks (a fixed 4e4 N s/m, the default before, gave a 0.3 kg foot 1e-5 s:
+the quadruped drop's stance height changed by ~1e-3 m at every halving of dt down to 1.25e-5 s, issue
+#24); RigidOptions.contact_damping sets a fixed c (N s/m) instead.
 The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
 step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
 spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.

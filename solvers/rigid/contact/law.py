@@ -7,14 +7,23 @@ from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE, 
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
-# a pair whose effective mass m_eff is above HEAVY_MASS (kg) gets its contact stiffness and damping
-# scaled by m_eff / HEAVY_MASS (func_heavy_scale): the options' k and c are per contact point, in N/m,
-# which holds a body of tens of kg within millimetres but lets a 400 t box sink 0.76 m. Scaling k and c
-# by the mass keeps the contact's time constant sqrt(m / k) and damping ratio c / (2 sqrt(k m)) those of
-# a HEAVY_MASS body, as MuJoCo's solref does for every body (its constraint stiffness follows the
-# effective mass: 0.11 mm for the 400 t box). Below HEAVY_MASS the forces are the options' N/m law's,
-# bit for bit: robots' links, tools and props keep it.
+# a pair whose effective mass m_eff is above HEAVY_MASS (kg) gets its contact stiffness (and a fixed
+# damping) scaled by m_eff / HEAVY_MASS (func_heavy_scale): the options' k is per contact point, in N/m,
+# which holds a body of tens of kg within millimetres but lets a 400 t box sink 0.76 m. Scaling k by the
+# mass keeps the contact's time constant sqrt(m / k) that of a HEAVY_MASS body, as MuJoCo's solref does
+# for every body (its constraint stiffness follows the effective mass: 0.11 mm for the 400 t box). Below
+# HEAVY_MASS the stiffness is the options' N/m: robots' links, tools and props keep it. The damping is
+# mass-relative for every pair by default (critical times RigidOptions.contact_damping_ratio, see
+# func_normal_law), or the fixed RigidOptions.contact_damping when that is set.
 HEAVY_MASS = 100.0
+# the default (mass-relative) damping is at least STEP_DAMPING k h: the damper's time constant c / k
+# spans at least STEP_DAMPING steps. At a coarse step (h well above the contact's sqrt(m_eff / k)) the
+# implicit step of a critically damped hinge spring chatters (a box resting on another at dt = 10 ms
+# alternated 11 um in depth every other step and was thrown off after 0.7 s); this floor keeps such
+# steps as damped as the fixed 4e4 N s/m was at the default dt = 10 ms (4 * 1e6 * 0.01), and fades
+# as h shrinks, leaving the dt-independent critical law once h < zeta sqrt(m_eff / k) / 2 (MuJoCo
+# keeps its constraints' time constant at least 2 dt, solref's safety clamp, for the same reason)
+STEP_DAMPING = 4.0
 # a link lighter than this (a massless frame) counts as this heavy in m_eff: 1 / 0 has no adjoint
 MIN_LINK_MASS = 1e-9
 
@@ -56,8 +65,8 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
     depth predicted for the end of the step, and the force of the current state alone (the spring on
     the current depth and the damper on the current approach). heavy, scale, inv: func_heavy_scale's.
     The stiffness is c.k, times `scale` for a heavy pair. The damping is the pair's critical damping
-    times c.zeta (RigidOptions.contact_damping_ratio), 2 zeta sqrt(k m_eff), when c.zeta > 0 (the
-    default), else the fixed c.d (RigidOptions.contact_damping) times `scale`; each side of the kink
+    times c.zeta (RigidOptions.contact_damping_ratio), 2 zeta sqrt(k m_eff), or STEP_DAMPING h k if more,
+    when c.zeta > 0 (the default), else the fixed c.d (RigidOptions.contact_damping) times `scale`; each side of the kink
     is its own branch (ti.select), exact on its side."""
     z = depth / c.delta
     zp = depth_end / c.delta
@@ -74,7 +83,7 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
         # 4e4 N s/m gave a 0.3 kg foot 1e-5 s, which no practical step resolves: the quadruped drop did
         # not converge as dt shrank, issue #24)
         k = c.k * scale
-        d = (2.0 * c.zeta) * ti.sqrt(k / ti.max(inv, 1e-30))
+        d = ti.max((2.0 * c.zeta) * ti.sqrt(k / ti.max(inv, 1e-30)), STEP_DAMPING * h * k)
         chs = d / h
         fn = (k + chs) * c.delta * spp - chs * c.delta * sp
         wn = h * (d + h * k) * sg

@@ -122,7 +122,7 @@ def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gai
     todo = ("use a smaller dt or more substeps (SimOptions.substeps), or raise RigidOptions.contact_stiffness"
             if fast else
             f"raise RigidOptions.contact_stiffness (penetration ~ load / stiffness; {plan.k:g} N/m now) and "
-            "contact_damping, or lighten the body")
+            "(with a fixed RigidOptions.contact_damping) the damping, or lighten the body")
     return (f"contact between {geoms.names[ga]} and {geoms.names[gb]}{env}: at step {step} it ended "
             f"{depth:.3g} m deep, more than {lim:.3g} m ({DEEP_FRACTION:g} of the thinner geom's half thickness): "
             f"the body is sinking into or passing through the other; {why}. To fix: {todo}. "
