@@ -1192,7 +1192,8 @@ def test_negative_friction_is_an_error():
 
 @pytest.mark.parametrize("name,value", [("contact_stiffness", -1.0), ("contact_damping", -1.0),
                                         ("contact_smoothing", 0.0), ("friction_smoothing", -1e-3),
-                                        ("max_mesh_contact_points", 2), ("contact_stiffness", float("inf"))])
+                                        ("max_mesh_contact_points", 2), ("contact_stiffness", float("inf")),
+                                        ("contact_damping_ratio", 0.0), ("contact_damping_ratio", float("nan"))])
 def test_bad_contact_options_are_errors(name, value):
     with pytest.raises(ValueError, match=name):
         gs.options.RigidOptions(**{name: value})
