@@ -255,8 +255,8 @@ def _mj_build_box(files, integrator, dt):
 
 # quadruped dropped on the ground --------------------------------------------------------------------------------
 
-QUAD_REF = ("RK4", 2.5e-5)
-QUAD_REF_CHECK = ("RK4", 5e-5)
+QUAD_REF = ("RK4", 1e-4)
+QUAD_REF_CHECK = ("RK4", 2e-4)
 
 
 def _quad_files(tmp):

@@ -96,13 +96,13 @@ class SimOptions(_Options):
 class RigidOptions(_Options):
     """integrator: gs.integrator.Euler | implicitfast | RK4. enable_collision / enable_joint_limit
     switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
-    collide. contact_stiffness (N/m per contact point) sets the penalty model's spring (scaled up for
-    pairs heavier than 100 kg); its damper is critical times contact_damping_ratio for each pair,
-    2 ratio sqrt(k m_eff) with m_eff the reduced mass of the two links in contact (so the contact's
-    fastest time scale follows the mass and a practical step resolves it: the trajectory converges as dt
-    shrinks), unless contact_damping (N s/m per contact point) fixes it for every pair (the law before
-    issue #24's change; 4e4 then was the default). joint_limit_stiffness / joint_limit_damping set the
-    limit springs.
+    collide. contact_stiffness (N/m per contact point) and contact_damping (N s/m per contact point) set
+    the penalty model (the stiffness scaled up for pairs heavier than 100 kg); joint_limit_stiffness /
+    joint_limit_damping the limit springs. contact_damping_ratio (None by default) makes the damper
+    mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the
+    reduced mass of the two links, and at least 4 k h (h the step). A legged landing then converges as dt
+    shrinks, which it does not with the fixed damper (a light foot's m / c ~ 1e-5 s); it is not the
+    default because a sliding box's friction is less accurate with it at steps below ~2.5 ms (issue #24).
 
     Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which
@@ -129,8 +129,8 @@ class RigidOptions(_Options):
     enable_joint_limit: bool = True
     enable_self_collision: bool = False
     contact_stiffness: float = 1e6
-    contact_damping: Optional[float] = None
-    contact_damping_ratio: float = 1.0
+    contact_damping: float = 4e4
+    contact_damping_ratio: Optional[float] = None
     joint_limit_stiffness: float = 1e4
     joint_limit_damping: float = 1e2
     enable_mimic: bool = True
@@ -188,12 +188,12 @@ class RigidOptions(_Options):
             self._err("integrator", self.integrator, "use gs.integrator.Euler, implicitfast or RK4")
         for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping"):
             v = getattr(self, name)
-            if name == "contact_damping" and v is None:
-                continue
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
                 self._err(name, v, "must be a finite number >= 0")
         for name in ("contact_smoothing", "friction_smoothing", "contact_damping_ratio"):
             v = getattr(self, name)
+            if name == "contact_damping_ratio" and v is None:
+                continue
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 self._err(name, v, "must be a finite number > 0")
         m = self.max_mesh_contact_points

@@ -202,14 +202,14 @@ def _anymal_drop_heights(urdf_path, dt, t_end, every, **rigid):
     return np.array(out)
 
 
-def test_quadruped_drop_converges_as_dt_shrinks(urdf_path):
-    """Issue #24: the legged landing converges as the step shrinks, with the default contact law.
-    ANYmal dropped from 0.62 m (impact ~1 m/s, feet sliding as the legs take the load), then standing:
-    the base positions over 0.6 s change less and less as dt halves, as a first-order method's should.
-    With the old fixed contact damping (4e4 N s/m per point, RigidOptions(contact_damping=4e4)) the
-    change grew as dt halved (1.9e-4, 3.3e-4, 6.0e-4 m from 4e-4 s down: a light foot's damping time
-    m / c ~ 1e-5 s, which no practical step resolves), and this test fails."""
-    runs = [_anymal_drop_heights(urdf_path, dt, 0.6, 0.05) for dt in (2e-4, 1e-4, 5e-5)]
+def test_quadruped_drop_converges_as_dt_shrinks_with_mass_relative_damping(urdf_path):
+    """Issue #24: with RigidOptions(contact_damping_ratio=1) (the damper critical per pair) the legged
+    landing converges as the step shrinks. ANYmal dropped from 0.62 m (impact ~1 m/s, feet sliding as
+    the legs take the load), then standing: the base positions over 0.6 s change less and less as dt
+    halves, as a first-order method's should. With the default fixed damper (4e4 N s/m per point) the
+    change grows as dt halves (measured: 1.9e-4, 3.3e-4, 6.0e-4 m from 4e-4 s down: a light foot's
+    damping time m / c ~ 1e-5 s, which no practical step resolves), and this check fails."""
+    runs = [_anymal_drop_heights(urdf_path, dt, 0.6, 0.05, contact_damping_ratio=1.0) for dt in (2e-4, 1e-4, 5e-5)]
     changes = [float(np.linalg.norm(b - a, axis=1).max()) for a, b in zip(runs, runs[1:])]
     # measured: 1.1e-4 then 3.7e-5 m (the fixed 4e4 N s/m: 3.3e-4 then 6.0e-4 m)
     assert changes[1] < 0.6 * changes[0], changes
@@ -1156,12 +1156,13 @@ def test_grad_through_a_sliding_landing():
 
 
 def test_grad_through_a_landing_with_mass_relative_damping():
-    """The default contact damper is critical per pair, 2 sqrt(k m_eff), where that exceeds its floor
-    4 k h: at dt = 1 ms for this 6 kg box. Its landing, sliding and turning after a drop, then depends on
+    """The mass-relative contact damper (contact_damping_ratio = 1) is critical per pair, 2 sqrt(k m_eff),
+    where that exceeds its floor 4 k h: at dt = 1 ms for this 6 kg box. Its landing, sliding and turning after a drop, then depends on
     the mass through the damper as well as through the dynamics: the position 0.12 s later against
     mass, mu, velocity and height, against central differences in float64. (With the same damper fixed,
     contact_damping = 2 sqrt(k m0), the mass gradient is 3.71e-4 against 4.56e-4: the damper's share.)"""
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, requires_grad=True))
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, requires_grad=True),
+                     rigid_options=gs.options.RigidOptions(contact_damping_ratio=1.0))
     scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.0))
     box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.2, 0.1), pos=(0, 0, 0.06), quat=(0.999, 0.02, 0.03, 0.01)),
                            material=gs.materials.Rigid(rho=1000.0))

@@ -8,12 +8,14 @@ of the step (u' the velocity after it):
     normal     f_n = k delta softplus(d' / delta) + (c / h) delta (softplus(d' / delta) - softplus(d / delta))
     friction   f_t = -mu f_n u_t' / sqrt(|v|^2 + eps^2)        mu = max(mu_a, mu_b)
 
-The damper c is the pair's critical damping times RigidOptions.contact_damping_ratio (1 by default),
-c = 2 zeta sqrt(k m_eff), m_eff the reduced mass of the two links (a static side infinitely heavy), so
-the contact's fastest time scale, sqrt(m_eff / k) / (2 zeta), is one a practical step resolves and the
-trajectory converges as dt shrinks (a fixed 4e4 N s/m, the default before, gave a 0.3 kg foot 1e-5 s:
-the quadruped drop's stance height changed by ~1e-3 m at every halving of dt down to 1.25e-5 s, issue
-#24); RigidOptions.contact_damping sets a fixed c (N s/m) instead.
+The damper c is RigidOptions.contact_damping (4e4 N s/m per point), or, with
+RigidOptions.contact_damping_ratio set, the pair's critical damping times the ratio, 2 zeta sqrt(k m_eff)
+(m_eff the reduced mass of the two links, a static side infinitely heavy; at least 4 k h). The fixed
+damper gives a 0.3 kg foot a damping time m / c ~ 1e-5 s that no practical step resolves: the quadruped
+drop's stance height changed by ~1e-3 m at every halving of dt down to 12.5 us; the mass-relative one
+converges (issue #24, benchmarks/results/quadruped_convergence.md) but biases a sliding box's friction
+at steps below ~2.5 ms (friction takes its bound from the frictionless solve's normal forces, step 3
+below), so it is not the default.
 The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
 step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
 spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.

@@ -13,10 +13,10 @@ MARGIN_WIDTHS = 20.0
 # mass keeps the contact's time constant sqrt(m / k) that of a HEAVY_MASS body, as MuJoCo's solref does
 # for every body (its constraint stiffness follows the effective mass: 0.11 mm for the 400 t box). Below
 # HEAVY_MASS the stiffness is the options' N/m: robots' links, tools and props keep it. The damping is
-# mass-relative for every pair by default (critical times RigidOptions.contact_damping_ratio, see
-# func_normal_law), or the fixed RigidOptions.contact_damping when that is set.
+# the fixed RigidOptions.contact_damping (scaled like k for a heavy pair), or mass-relative for every
+# pair when RigidOptions.contact_damping_ratio is set (critical times the ratio, see func_normal_law).
 HEAVY_MASS = 100.0
-# the default (mass-relative) damping is at least STEP_DAMPING k h: the damper's time constant c / k
+# the mass-relative damping (contact_damping_ratio set) is at least STEP_DAMPING k h: the damper's time constant c / k
 # spans at least STEP_DAMPING steps. At a coarse step (h well above the contact's sqrt(m_eff / k)) the
 # implicit step of a critically damped hinge spring chatters (a box resting on another at dt = 10 ms
 # alternated 11 um in depth every other step and was thrown off after 0.7 s); this floor keeps such
@@ -66,8 +66,9 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
     the current depth and the damper on the current approach). heavy, scale, inv: func_heavy_scale's.
     The stiffness is c.k, times `scale` for a heavy pair. The damping is the pair's critical damping
     times c.zeta (RigidOptions.contact_damping_ratio), 2 zeta sqrt(k m_eff), or STEP_DAMPING h k if more,
-    when c.zeta > 0 (the default), else the fixed c.d (RigidOptions.contact_damping) times `scale`; each side of the kink
-    is its own branch (ti.select), exact on its side."""
+    when c.zeta > 0 (contact_damping_ratio set), else the fixed c.d (the default,
+    RigidOptions.contact_damping) times `scale`; each side of the kink is its own branch (ti.select),
+    exact on its side."""
     z = depth / c.delta
     zp = depth_end / c.delta
     # clamped so that exp stays finite in the adjoint (the force is ~0 below -MARGIN_WIDTHS anyway)

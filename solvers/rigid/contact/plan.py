@@ -43,11 +43,11 @@ class ContactPlan:
         self.n_links = flat.n_links
         self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
         self.k = float(options.contact_stiffness)
-        # the damping: a damping ratio for every pair (contact_damping None, the default), or a fixed
-        # N s/m (then zeta = 0)
-        fixed = getattr(options, "contact_damping", None)
-        self.zeta = 0.0 if fixed is not None else float(options.contact_damping_ratio)
-        self.d = float(fixed) if fixed is not None else 0.0
+        # the damping: a fixed N s/m (the default), or a damping ratio for every pair when
+        # contact_damping_ratio is set (then zeta > 0 and the fixed value is unused)
+        ratio = getattr(options, "contact_damping_ratio", None)
+        self.zeta = float(ratio) if ratio is not None else 0.0
+        self.d = float(options.contact_damping)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
         self.margin = MARGIN_WIDTHS * self.delta
