@@ -183,7 +183,8 @@ def test_quadruped_held_by_pd_stands_10s(urdf_path):
 
 
 def _anymal_drop_heights(urdf_path, dt, t_end, every, **rigid):
-    """Base heights of ANYmal dropped from 0.62 m and held by PD, sampled every `every` s (defaults but dt)."""
+    """Base positions of ANYmal dropped from 0.62 m and held by PD, sampled every `every` s (default
+    options but dt and the RigidOptions fields in `rigid`)."""
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), rigid_options=gs.options.RigidOptions(**rigid))
     scene.add_entity(gs.morphs.Plane())
     robot = scene.add_entity(gs.morphs.URDF(file=str(urdf_path("anymal")), fixed=False, pos=(0.0, 0.0, 0.62)))
@@ -1120,17 +1121,15 @@ def test_grad_crossed_edges_rest_height_wrt_mass():
     assert float(rep.autograd[0]) < 0
 
 
-# slow (suite time, ~70 s): the gradient matrix's slide_land cases check a sliding landing's gradients by default
-@pytest.mark.slow
-def _landing_loss(scene, box, steps, with_mass=False):
+def _landing_loss(scene, box, steps):
     """A loss on the box's position `steps` steps after it is placed at height z with velocity v and
-    friction mu (and link mass m first, with_mass): its sliding landing on the frictionless plane."""
+    friction mu (and link mass m, when given first): its sliding landing on the frictionless plane."""
 
     def loss(*args):
-        m, (mu, v, z) = (args[0], args[1:]) if with_mass else (None, args)
+        *m, mu, v, z = args
         scene.reset()
-        if m is not None:
-            box.set_links_mass(m.reshape(1))
+        if m:
+            box.set_links_mass(m[0].reshape(1))
         box.set_friction(mu)
         box.set_pos(torch.cat([torch.zeros(2, dtype=F64), z.reshape(1)]))
         box.set_dofs_velocity(torch.cat([v, torch.zeros(3, dtype=F64)]))
@@ -1142,6 +1141,8 @@ def _landing_loss(scene, box, steps, with_mass=False):
     return loss
 
 
+# slow (suite time, ~70 s): the gradient matrix's slide_land cases check a sliding landing's gradients by default
+@pytest.mark.slow
 def test_grad_through_a_sliding_landing():
     """A box dropped while sliding (the friction passes of the solve at work): its position 0.3 s later
     against mu, the initial velocity and the drop height, exact against finite differences."""
@@ -1157,9 +1158,9 @@ def test_grad_through_a_sliding_landing():
 
 def test_grad_through_a_landing_with_mass_relative_damping():
     """The mass-relative contact damper (contact_damping_ratio = 1) is critical per pair, 2 sqrt(k m_eff),
-    where that exceeds its floor 4 k h: at dt = 1 ms for this 6 kg box. Its landing, sliding and turning after a drop, then depends on
-    the mass through the damper as well as through the dynamics: the position 0.12 s later against
-    mass, mu, velocity and height, against central differences in float64. (With the same damper fixed,
+    where that exceeds its floor 4 k h: at dt = 1 ms for this 6 kg box. Its landing, sliding and turning
+    after a drop, then depends on the mass through the damper as well as through the dynamics: the
+    position 0.12 s later against mass, mu, velocity and height, against central differences in float64. (With the same damper fixed,
     contact_damping = 2 sqrt(k m0), the mass gradient is 3.71e-4 against 4.56e-4: the damper's share.)"""
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, requires_grad=True),
                      rigid_options=gs.options.RigidOptions(contact_damping_ratio=1.0))
@@ -1169,7 +1170,7 @@ def test_grad_through_a_landing_with_mass_relative_damping():
     scene.build()
     m0 = float(box.get_mass())
     assert 2 * np.sqrt(1e6 * m0) > 4 * 1e6 * 1e-3  # the critical branch, not the floor
-    rep = gs.grad.check(_landing_loss(scene, box, 120, with_mass=True),
+    rep = gs.grad.check(_landing_loss(scene, box, 120),
                         {"mass": _t(m0), "mu": _t(0.3), "v": _t([1.0, 0.3, -0.5]), "z": _t(0.06)}, tol=1e-5)
     assert rep.ok, str(rep)
     assert all(float(g.norm()) > 1e-6 for g in rep.autograd)

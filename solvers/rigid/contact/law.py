@@ -77,7 +77,6 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
     sp = func_softplus(z, zc)
     spp = func_softplus(zp, zpc)
     sg = 1.0 / (1.0 + ti.exp(-zpc))
-    fn, wn, fn_now = 0.0 * sp, 0.0 * sp, 0.0 * sp
     if ti.static(c.zeta > 0.0):
         # mass-relative damping: the contact's damping ratio is zeta for every pair, light or heavy, so
         # its fastest time scale is sqrt(m_eff / k) / (2 zeta) whatever the mass (a fixed damper of
@@ -85,27 +84,26 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
         # not converge as dt shrank, issue #24)
         k = c.k * scale
         d = ti.max((2.0 * c.zeta) * ti.sqrt(k / ti.max(inv, 1e-30)), STEP_DAMPING * h * k)
-        chs = d / h
-        fn = (k + chs) * c.delta * spp - chs * c.delta * sp
-        wn = h * (d + h * k) * sg
-        fn_now = k * c.delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
+        return func_spring_damper(c.delta, k, d, h, sp, spp, sg, zc, depth, depth_end)
     else:
-        ch = c.d / h
-        fl = (c.k + ch) * c.delta * spp - ch * c.delta * sp
-        wl = h * (c.d + h * c.k) * sg
-        fl_now = c.k * c.delta * sp - c.d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
         # the heavy law spelled out with its own k and c, not as scale * fn: LLVM's fast math folds
         # select(heavy, scale * fn, fn) into fn * select(heavy, scale, 1) and regroups that product with
         # fn's terms, which moved the light law's rounding (a contact scene's gradient build left main's
         # trajectory by 1e-19 m in its first steps). Spelled out, a light pair's forces are the options'
         # law's to the bit; its gradients move at rounding level (the adjoint sums are regrouped)
-        k = c.k * scale
-        d = c.d * scale
-        chs = d / h
-        fh = (k + chs) * c.delta * spp - chs * c.delta * sp
-        wh = h * (d + h * k) * sg
-        fh_now = k * c.delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
-        fn, wn, fn_now = ti.select(heavy, fh, fl), ti.select(heavy, wh, wl), ti.select(heavy, fh_now, fl_now)
+        fl, wl, fl_now = func_spring_damper(c.delta, c.k, c.d, h, sp, spp, sg, zc, depth, depth_end)
+        fh, wh, fh_now = func_spring_damper(c.delta, c.k * scale, c.d * scale, h, sp, spp, sg, zc, depth, depth_end)
+        return ti.select(heavy, fh, fl), ti.select(heavy, wh, wl), ti.select(heavy, fh_now, fl_now)
+
+
+@ti.func
+def func_spring_damper(delta, k, d, h, sp, spp, sg, zc, depth, depth_end):
+    """func_normal_law's three values for stiffness k and damping d, given the softplus of the depth now
+    (sp) and at the end of the step (spp), the sigmoid of the latter (sg) and the clamped z (zc)."""
+    ch = d / h
+    fn = (k + ch) * delta * spp - ch * delta * sp
+    wn = h * (d + h * k) * sg
+    fn_now = k * delta * sp - d / (1.0 + ti.exp(-zc)) * (depth - depth_end) / h
     return fn, wn, fn_now
 
 

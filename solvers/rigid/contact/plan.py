@@ -44,10 +44,10 @@ class ContactPlan:
         self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
         self.k = float(options.contact_stiffness)
         # the damping: a fixed N s/m (the default), or a damping ratio for every pair when
-        # contact_damping_ratio is set (then zeta > 0 and the fixed value is unused)
+        # contact_damping_ratio is set (then zeta > 0, and d = 0: unused, and not a class of its own)
         ratio = getattr(options, "contact_damping_ratio", None)
         self.zeta = float(ratio) if ratio is not None else 0.0
-        self.d = float(options.contact_damping)
+        self.d = 0.0 if ratio is not None else float(options.contact_damping)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
         self.margin = MARGIN_WIDTHS * self.delta
