@@ -3,7 +3,7 @@ linalg.py and the passes of passes.py in order; see the package docstring's step
 import taichi as ti
 
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
-from .linalg import func_any_solve, func_factor_into, func_factor_solve_dense
+from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
 from .passes import COULOMB_PASS, func_link_motion, func_relinearise_listed, func_coulomb_listed
 from .report import func_contact_report
 
@@ -11,13 +11,13 @@ from .report import func_contact_report
 @ti.func
 def func_solve_candidates(s: ti.template(), i_b):
     """qacc_candidates: the system with every candidate normal contact."""
-    func_factor_into(s, i_b, s.contact.factor_candidates, s.contact.qacc_candidates)
+    func_factor_into(s, i_b, s.contact.factor_candidates, ENV_CANDIDATES, s.contact.qacc_candidates)
 
 
 @ti.func
 def func_solve_normal(s: ti.template(), i_b):
     """qacc_normal: the normal system without the contacts that pulled in the first."""
-    func_factor_into(s, i_b, s.contact.factor_normal, s.contact.qacc_normal)
+    func_factor_into(s, i_b, s.contact.factor_normal, ENV_NORMAL, s.contact.qacc_normal)
 
 
 @ti.func
@@ -27,7 +27,7 @@ def func_solve_coulomb(s: ti.template(), i_b):
     c = s.contact
     for i in range(s.n_dofs):
         c.dqacc_coulomb[0, i_b, i] = c.force_coulomb[i_b, i]
-    func_any_solve(s, c.factor_normal, i_b, c.dqacc_coulomb, 0)
+    func_any_solve(s, c.factor_normal, ENV_NORMAL, i_b, c.dqacc_coulomb, 0)
 
 
 @ti.func
@@ -57,10 +57,10 @@ def func_contact_solve(s: ti.template(), i_b, e):
         func_contact_solve_rounds(s, i_b, e)
     else:
         if c.n_on[i_b] > 0:
-            func_factor_into(s, i_b, c.factor_normal, c.qacc_normal)
+            func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
             func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
             if func_relinearise_listed(s, i_b):
-                func_factor_into(s, i_b, c.factor_normal, c.qacc_normal)
+                func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
                 func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
             func_coulomb_listed(s, i_b)
             func_solve_coulomb(s, i_b)

@@ -11,7 +11,7 @@ from ..kinematics import LINK_STATE
 from ..layout import FieldTree
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
-from .linalg import func_solve_adjoint
+from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_solve_adjoint
 from .passes import (COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, FRICTION_PASS_LISTED, FRICTION_PASS_LISTED_CROSS,
                      RELINEARISE_PASS, RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS)
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
@@ -148,6 +148,9 @@ class ContactSolver:
         self.cross_fac = F(max(n_cross, 1), False)
         if self.dense:
             self.mass_cross = F((B, D, D))
+            # the envelopes of the three dense factors (linalg.ENV_*): each row's first nonzero column, and
+            # each column's last row that reaches it
+            self.env_first, self.env_last = I((B, 3, D)), I((B, 3, D))
         # outputs of the last evaluation (read by the entity API; no gradient)
         self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
         self.c_depth, self.c_fn = F((B, S), False), F((B, S), False)
@@ -362,11 +365,11 @@ class ContactSolver:
         for i_b in range(s.cap_envs):
             if i_b < s.n_envs:
                 if ti.static(which == 0):
-                    func_solve_adjoint(s, self.factor_candidates, i_b, self.qacc_candidates, self.qacc_candidates.grad, 0, s.force.grad)
+                    func_solve_adjoint(s, self.factor_candidates, ENV_CANDIDATES, i_b, self.qacc_candidates, self.qacc_candidates.grad, 0, s.force.grad)
                 elif ti.static(which == 1):
-                    func_solve_adjoint(s, self.factor_normal, i_b, self.qacc_normal, self.qacc_normal.grad, 0, s.force.grad)
+                    func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.qacc_normal, self.qacc_normal.grad, 0, s.force.grad)
                 else:
-                    func_solve_adjoint(s, self.factor_normal, i_b, self.dqacc_coulomb, self.dqacc_coulomb.grad, 0, self.force_coulomb.grad)
+                    func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.dqacc_coulomb, self.dqacc_coulomb.grad, 0, self.force_coulomb.grad)
 
     @ti.kernel
     def kernel_clear_scratch_grads(self, s: ti.template()):

@@ -1,0 +1,59 @@
+"""Worker of tests/test_many_bodies.py: a pile of long planks, capsules, cylinders and spheres thrown at
+each other and at the ground (random poses, 2 m/s, 6 rad/s), 100 steps in float64, default options.
+With the argument `spheres`, the broad phase's bounding-box test (collision/narrow.py: func_gap_boxes)
+is replaced by one that never separates a pair, before anything is compiled (the bounding spheres
+alone, as before the test existed). Prints one JSON line: the sha256 of the trajectory's float64
+bytes and the number of pair activations over the steps."""
+import hashlib
+import json
+import sys
+
+import numpy as np
+import taichi as ti
+
+if sys.argv[1] == "spheres":
+    from solvers.rigid.collision import narrow
+
+    @ti.func
+    def _never_apart(c: ti.template(), ga, gb, Ra, Rb, ca, cb, branch: ti.template()):
+        return -1e30
+
+    narrow.func_gap_boxes = _never_apart
+
+import genesis_lite as gs  # noqa: E402
+
+gs.init(backend=gs.cpu, precision="64", logging_level="warning")
+rng = np.random.default_rng(7)
+scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+scene.add_entity(gs.morphs.Plane())
+bodies = []
+for i in range(14):
+    # one above the other (no overlap at the start), turned about z and tilted a little
+    pos = (*rng.uniform(-0.4, 0.4, 2), 0.15 + 0.2 * i)
+    yaw, tilt = rng.uniform(0, np.pi), rng.uniform(-0.15, 0.15)
+    quat = (np.cos(yaw / 2) * np.cos(tilt / 2), np.sin(tilt / 2) * np.cos(yaw / 2), np.sin(tilt / 2) * np.sin(yaw / 2), np.sin(yaw / 2) * np.cos(tilt / 2))
+    kind = i % 4
+    if kind == 0:
+        morph = gs.morphs.Box(size=(1.2, 0.15, 0.08), pos=pos, quat=quat)
+    elif kind == 1:
+        morph = gs.morphs.Cylinder(radius=0.06, height=1.0, pos=pos, quat=quat)
+    elif kind == 2:
+        morph = gs.morphs.Box(size=(0.1, 0.9, 0.1), pos=pos, quat=quat)
+    else:
+        morph = gs.morphs.Sphere(radius=0.08, pos=pos)
+    bodies.append(scene.add_entity(morph))
+scene.build()
+for b in bodies:
+    b.set_dofs_velocity(np.concatenate([rng.uniform(-2, 2, 3), rng.uniform(-6, 6, 3)]))
+c = scene.sim.rigid_solver.contact
+n_pairs = c.plan.n_pairs
+states, active = [], 0
+for _ in range(100):
+    scene.step()
+    active += int(c.pair_active.to_numpy()[0, :n_pairs].sum())
+    states.append(np.concatenate([np.concatenate([b.get_qpos().numpy(), b.get_dofs_velocity().numpy()]) for b in bodies]))
+traj = np.asarray(states, dtype=np.float64)
+if len(sys.argv) > 2:
+    np.save(sys.argv[2], traj)
+print(json.dumps({"sha": hashlib.sha256(traj.tobytes()).hexdigest(), "active": active, "pairs": n_pairs,
+                  "z_min": float(traj[-1, 2::13].min())}))
