@@ -30,4 +30,4 @@ for k in range(horizon):
     if (k + 1) % 25 == 0:
         z = np.array([float(b.get_pos()[2]) for b in boxes]); vz = np.array([float(b.get_vel()[2]) for b in boxes])
         rows.append((k + 1, float(z.max()), float(z[-1]), float(cyl.get_pos()[2]), float(np.abs(vz).max()), float(np.diff(np.sort(z)[::2]).mean())))
-        print(lib, *[f"{v:.4f}" if isinstance(v, float) else v for v in rows[-1]], f"{time.time()-t0:.0f}s", flush=True)
+        print(lib, *[f"{v:.4f}" if isinstance(v, float) else v for v in rows[-1]], f"{time.time()-t0:.1f}s", flush=True)

@@ -196,6 +196,7 @@ def func_bank_cross(s: ti.template(), b: ti.template(), i_b):
 
 @ti.func
 def func_cross_term(s: ti.template(), b: ti.template(), i_b, t):
+    """Entry t of func_bank_cross's list."""
     c = s.contact
     i = c.cross_i[t]
     j = c.cross_j[t]
