@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import genesis_lite as gs
 
@@ -42,16 +43,36 @@ def _log_cabin(order):
                      for i in range(len(specs))])
 
 
+def _row(order):
+    """Six boxes side by side on the ground along x, 1 mm apart, the first pushed into the others at
+    2 m/s, added in `order`; their states after 0.4 s in the row's order."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+    scene.add_entity(gs.morphs.Plane())
+    added = {i: scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.101 * i, 0.0, 0.05))) for i in order}
+    scene.build()
+    added[0].set_dofs_velocity(np.array([2.0, 0.1, 0.0, 0.0, 0.0, 0.3]))
+    for _ in range(40):
+        scene.step()
+    return np.stack([np.concatenate([added[i].get_qpos().numpy(), added[i].get_dofs_velocity().numpy()])
+                     for i in range(len(order))])
+
+
 def test_the_order_bodies_are_added_in_does_not_change_their_motion():
-    """The coupled contact system is factorised over its envelope in dof order: bodies added course by
-    course give a narrow band, a shuffled order a ragged envelope whose rows start out of order. Both
-    must be the same system solved: the same motion to the rounding of the sums' order (the slots'
-    forces are summed in another order too)."""
+    """The coupled contact system is factorised over its envelope, bodies ordered by starting height
+    (contact/plan.py: _dense_order; at one height, in the scene's order). The log cabin added course
+    by course or shuffled: a band either way, in a new order; the row of boxes at one height, added
+    shuffled: a ragged envelope whose rows start out of order. Each must be the same system solved:
+    the same motion to the rounding of the sums' order (the slots' forces are summed in another order
+    too)."""
     stacked = _log_cabin(list(range(10)))
     shuffled = _log_cabin([9, 3, 6, 0, 8, 5, 1, 7, 2, 4])
     # the scene moves: the sphere and the cylinder land, the planks settle
     assert stacked[8, 2] < 0.5 - 0.2 and stacked[9, 2] < 0.62 - 0.05
     np.testing.assert_allclose(shuffled, stacked, rtol=0, atol=1e-9)
+    row = _row(list(range(6)))
+    row_shuffled = _row([3, 0, 5, 1, 4, 2])
+    assert row[0, 0] > 5e-4 and abs(row[1, 0] - 0.101) > 1e-4  # the first two met (see the xfail below)
+    np.testing.assert_allclose(row_shuffled, row, rtol=0, atol=1e-9)
 
 
 def test_the_broad_phase_boxes_change_no_number():
@@ -68,3 +89,21 @@ def test_the_broad_phase_boxes_change_no_number():
     assert out["boxes"]["sha"] == out["spheres"]["sha"], out
     assert out["boxes"]["active"] < 0.7 * out["spheres"]["active"], out
     assert out["boxes"]["z_min"] > 0.0, out  # nothing went through the ground
+
+
+@pytest.mark.xfail(strict=True, reason="known bug, found 2026-11-27 (issue #24): a box pushed into a resting one "
+                   "with a little sideways velocity stops both within a step (head-on it does not)")
+def test_a_box_pushed_into_a_resting_box_keeps_its_momentum_up_to_coulomb_friction():
+    """Two 1 kg boxes on the ground 1 mm apart, the first at 2 m/s towards the second and 0.1 m/s
+    sideways: in one step of 10 ms the ground's friction (mu = 1 at most) can take at most
+    mu (m0 + m1) g h = 0.196 N s of their 2 N s of momentum along x, whatever the collision between them
+    does. Measured: 0.06 N s is left (both boxes stop); head-on (no sideways velocity) 1.80 N s, the
+    Coulomb bound to the digit; a spin of 0.3 rad/s about z instead of the sideways velocity: 0.06."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+    scene.add_entity(gs.morphs.Plane())
+    boxes = [scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.101 * i, 0.0, 0.05))) for i in range(2)]
+    scene.build()
+    boxes[0].set_dofs_velocity(np.array([2.0, 0.1, 0.0, 0.0, 0.0, 0.0]))
+    scene.step()
+    momentum = sum(float(b.get_dofs_velocity()[0]) for b in boxes)  # 1 kg each (1000 kg/m^3)
+    assert momentum >= 2.0 - 0.2, momentum

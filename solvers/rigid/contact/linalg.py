@@ -43,23 +43,29 @@ def func_tree_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), 
 
 @ti.func
 def func_dense_solve(s: ti.template(), Fc: ti.template(), k, i_b, x: ti.template(), e):
-    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with A = L D L^T in Fc (unit lower L, D on the diagonal), its
-    envelope in envelope k (func_factor_dense_to): the terms outside it are exact zeros."""
+    """x[e, i_b, :] <- A^-1 x[e, i_b, :] with A = L D L^T in Fc (unit lower L, D on the diagonal), in the
+    factorisation's order (dense_perm) and over its envelope k (func_factor_dense_to): the terms outside
+    it are exact zeros."""
     c = s.contact
     n = s.n_dofs
+    y = ti.static(c.perm_tmp)
     for i in range(n):
-        acc = x[e, i_b, i]
+        y[i_b, i] = x[e, i_b, c.dense_perm[i]]
+    for i in range(n):
+        acc = y[i_b, i]
         for kk in range(c.env_first[i_b, k, i], i):
-            acc -= Fc[i_b, i, kk] * x[e, i_b, kk]
-        x[e, i_b, i] = acc
+            acc -= Fc[i_b, i, kk] * y[i_b, kk]
+        y[i_b, i] = acc
     for i in range(n):
-        x[e, i_b, i] = x[e, i_b, i] / Fc[i_b, i, i]
+        y[i_b, i] = y[i_b, i] / Fc[i_b, i, i]
     for ii in range(n):
         i = n - 1 - ii
-        acc = x[e, i_b, i]
+        acc = y[i_b, i]
         for kk in range(i + 1, c.env_last[i_b, k, i] + 1):
-            acc -= Fc[i_b, kk, i] * x[e, i_b, kk]
-        x[e, i_b, i] = acc
+            acc -= Fc[i_b, kk, i] * y[i_b, kk]
+        y[i_b, i] = acc
+    for i in range(n):
+        x[e, i_b, c.dense_perm[i]] = y[i_b, i]
 
 
 @ti.func
@@ -70,7 +76,8 @@ def func_factor_dense(s: ti.template(), i_b):
 
 @ti.func
 def func_factor_dense_to(s: ti.template(), i_b, F: ti.template(), k):
-    """func_factor_dense into F (lower triangle only), an envelope (skyline) L D L^T: row i of A is zero
+    """func_factor_dense into F (lower triangle only), an envelope (skyline) L D L^T of A in the order
+    dense_perm (plan._dense_order; F[i, j] = A[perm[i], perm[j]]): row i of that A is zero
     left of its first nonzero column first[i], and so is row i of L (fill-in stays inside the envelope),
     so each sum runs from the later of the two rows' first columns, and column j's rows stop at
     last[j] = max{i : first[i] <= j}. The skipped terms are exact zeros, so this is the dense factor
@@ -83,8 +90,12 @@ def func_factor_dense_to(s: ti.template(), i_b, F: ti.template(), k):
     n = s.n_dofs
     for i in range(n):
         f = i
+        pi = c.dense_perm[i]
         for j in range(i + 1):
-            v = s.mass_mat[i_b, i, j] * s.dof_anc[i, j] + c.mass_cross[i_b, i, j]
+            pj = c.dense_perm[j]
+            a = ti.max(pi, pj)  # A is stored in its lower triangle
+            b = ti.min(pi, pj)
+            v = s.mass_mat[i_b, a, b] * s.dof_anc[a, b] + c.mass_cross[i_b, a, b]
             F[i_b, i, j] = v
             if f == i and v != 0.0:
                 f = j

@@ -3,6 +3,7 @@ flags its kernels are specialised on and the capacities its fields need."""
 import numpy as np
 
 from ..collision import SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG, build_geoms, build_slots, candidate_pairs, link_is_dynamic
+from ..flatten import JTYPE
 from .law import MARGIN_WIDTHS
 
 # run-time sizes of the contact model (indices into ContactSolver.cfg_i): the contact kernels read them
@@ -88,6 +89,7 @@ class ContactPlan:
                     cross.append((i, j, lp, 2.0 if i == j else 1.0))
         self.cross = cross
         self.n_cross = len(cross)
+        self.np_dense_perm = _dense_order(flat) if self.dense else np.zeros(1, dtype=np.int32)
         self.cfg_i = [0] * N_CCFG_I
         self.cfg_i[C_GEOMS], self.cfg_i[C_PAIRS], self.cfg_i[C_SLOTS] = self.n_geoms, self.n_pairs, self.n_slots
         self.cfg_i[C_LP], self.cfg_i[C_CROSS] = self.n_lp, self.n_cross
@@ -104,6 +106,25 @@ class ContactPlan:
                          _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
         self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types,
                       (self.k, self.d, self.zeta, self.delta, self.eps), self.static)
+
+
+def _dense_order(flat):
+    """The order the dense contact system is factorised in (linalg.func_factor_dense_to): position k
+    holds dof perm[k]. The kinematic trees by the starting height of their root (stable: trees at one
+    height keep the scene's order), each tree's dofs in its own order: bodies stacked or heaped touch
+    the ones above and below them, so the system's envelope is a band however the entities were added
+    (the 100-box tower added in a shuffled order: 45 ms a step in scene order, 8 ms in this one)."""
+    parent = flat.np_link_parent
+    height = np.zeros(len(parent))
+    for l, p in enumerate(parent):  # parents come before their children
+        if p >= 0:
+            height[l] = height[p]
+        elif flat.np_link_jtype[l] == JTYPE["free"]:
+            height[l] = flat.np_qpos0[flat.np_link_q_start[l] + 2]
+        else:
+            height[l] = flat.np_link_jpos[l, 2]
+    order = np.argsort(height[flat.np_dof_link], kind="stable")
+    return order.astype(np.int32)
 
 
 def _link_dofs(flat, l):

@@ -151,6 +151,9 @@ class ContactSolver:
             # the envelopes of the three dense factors (linalg.ENV_*): each row's first nonzero column, and
             # each column's last row that reaches it
             self.env_first, self.env_last = I((B, 3, D)), I((B, 3, D))
+            # the order of the dense factorisation (plan._dense_order: position k holds dof dense_perm[k]), and
+            # the solves' right-hand side in that order
+            self.dense_perm, self.perm_tmp = I(D), F((B, D), False)
         # outputs of the last evaluation (read by the entity API; no gradient)
         self.c_pos, self.c_normal, self.c_force = V3((B, S), False), V3((B, S), False), V3((B, S), False)
         self.c_depth, self.c_fn = F((B, S), False), F((B, S), False)
@@ -221,13 +224,15 @@ class ContactSolver:
                          c(np.broadcast_to(geoms.friction, (n_envs, G)), npf), dyn,
                          c([[p[0], p[1], s0] for p, s0 in zip(plan.pairs, pair_s0)], np.int32),
                          c(pair_s0[-1:], np.int32), slot_i, c(slot_f, npf),
-                         c([x[:3] for x in cross], np.int32), c([x[3] for x in cross], npf))
+                         c([x[:3] for x in cross], np.int32), c([x[3] for x in cross], npf),
+                         c(plan.np_dense_perm, np.int32))
 
     @ti.kernel
     def kernel_load(self, cfg_i: ti.types.ndarray(), geom_i: ti.types.ndarray(),
                     geom_f: ti.types.ndarray(), kdop: ti.types.ndarray(), mu: ti.types.ndarray(),
                     dyn: ti.types.ndarray(), pair: ti.types.ndarray(), pair_end: ti.types.ndarray(), slot_i: ti.types.ndarray(),
-                    slot_f: ti.types.ndarray(), cross_i: ti.types.ndarray(), cross_f: ti.types.ndarray()):
+                    slot_f: ti.types.ndarray(), cross_i: ti.types.ndarray(), cross_f: ti.types.ndarray(),
+                    perm: ti.types.ndarray()):
         """A scene's contact model into the fields (one kernel rather than a copy kernel per field). The
         dof vectors of the passes are zeroed over their whole capacity: the link-motion pass reads
         entries past the scene's dofs (multiplied by 0), and an earlier scene may have left NaN there."""
@@ -271,6 +276,11 @@ class ContactSolver:
             self.cross_j[t] = cross_i[t, 1]
             self.cross_lp[t] = cross_i[t, 2]
             self.cross_fac[t] = cross_f[t]
+        if ti.static(self.dense):
+            for k in range(self.dense_perm.shape[0]):
+                self.dense_perm[k] = k  # past the scene's dofs: themselves
+            for k in range(perm.shape[0]):
+                self.dense_perm[k] = perm[k]
         for I in ti.grouped(self.qacc_candidates):
             self.qacc_candidates[I] = 0.0
             self.qacc_normal[I] = 0.0
