@@ -98,7 +98,13 @@ def test_a_box_pushed_into_a_resting_box_keeps_its_momentum_up_to_coulomb_fricti
     sideways: in one step of 10 ms the ground's friction (mu = 1 at most) can take at most
     mu (m0 + m1) g h = 0.196 N s of their 2 N s of momentum along x, whatever the collision between them
     does. Measured: 0.06 N s is left (both boxes stop); head-on (no sideways velocity) 1.80 N s, the
-    Coulomb bound to the digit; a spin of 0.3 rad/s about z instead of the sideways velocity: 0.06."""
+    Coulomb bound to the digit; a spin of 0.3 rad/s about z instead of the sideways velocity: 0.06.
+    Why (contact/__init__.py, steps 3 and 4): the normal solve shares the momentum (1.05 / 0.95 m/s);
+    the Coulomb pass predicts, with the boxes' sticking side friction, a reversed slip at the ground
+    corners on one side (y = -0.05), which therefore stick: a viscosity mu f2 / eps = 491 N s/m with no
+    bound in the final solve, which then lets them slip at ~0.08 m/s and so applies 34 N of friction
+    against a normal force of 2.4 N (f2 = 0.49 N). A pass that re-takes the secant at the final slip
+    where the friction exceeds mu f2 would bound it."""
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
     scene.add_entity(gs.morphs.Plane())
     boxes = [scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.101 * i, 0.0, 0.05))) for i in range(2)]
