@@ -59,9 +59,9 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
     step). A far slot of a fast-turning body can still be a candidate (slots.func_contact_slot: its
     point's speed, not this bound) with an exactly zero force; leaving its pair out then moves the
     step's rounding, as the spheres' test already did (14 bodies thrown at 20 rad/s: 3e-14 m in the
-    first step it happens; tests/test_many_bodies.py checks a pile at 6 rad/s to the bit). Without gradients the plane and pair tests are branches (each pair evaluates
-    its own: a fifth of the stage on ANYmal); with them both are evaluated and selected
-    (single-assignment form)."""
+    first step it happens; tests/test_many_bodies.py checks a pile at 6 rad/s to the bit). Without
+    gradients the plane and pair tests are branches (each pair evaluates its own: a fifth of the stage
+    on ANYmal); with them both are evaluated and selected (single-assignment form)."""
     c = s.contact
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]

@@ -89,10 +89,10 @@ diagonal blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and
 composite inertia (a 6x6 block per link, summed up the tree: AccBank), so it fits the tree sparsity of
 M. The coupling -(J_a^T W J_b + J_b^T W J_a) between two moving links does not: scenes with such contact
 pairs (objects stacked or touching each other, self-collision) accumulate it per link pair into
-`mass_cross` and factor M over its envelope (func_factor_solve_dense: a skyline L D L^T in dof order, whose
-cost follows the band the contacts make, ~24 of the 100-box tower's 606 dofs, not n^3); scenes whose
-contacts all involve a static geom (robots on the ground) keep the tree factorisation. (Dropping the coupling is not an option:
-stacked bodies then close the gap between them twice per step, or half of it when the blocks are
+`mass_cross` and factor M over its envelope (func_factor_solve_dense: a skyline L D L^T, the bodies
+ordered by starting height, whose cost follows the band the contacts make, ~24 of the 100-box tower's
+606 dofs, not n^3); scenes whose contacts all involve a static geom (robots on the ground) keep the
+tree factorisation. (Dropping the coupling is not an option: stacked bodies then close the gap between them twice per step, or half of it when the blocks are
 doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
 
 Dynamics stages (each one loop over elements, see ../core.py): geom poses, broad phase, clear the

@@ -16,8 +16,8 @@ MARGIN_WIDTHS = 20.0
 # the fixed RigidOptions.contact_damping (scaled like k for a heavy pair), or mass-relative for every
 # pair when RigidOptions.contact_damping_ratio is set (critical times the ratio, see func_normal_law).
 HEAVY_MASS = 100.0
-# the mass-relative damping (contact_damping_ratio set) is at least STEP_DAMPING k h: the damper's time constant c / k
-# spans at least STEP_DAMPING steps. At a coarse step (h well above the contact's sqrt(m_eff / k)) the
+# the mass-relative damping (contact_damping_ratio set) is at least STEP_DAMPING k h: the damper's time
+# constant c / k spans at least STEP_DAMPING steps. At a coarse step (h well above the contact's sqrt(m_eff / k)) the
 # implicit step of a critically damped hinge spring chatters (a box resting on another at dt = 10 ms
 # alternated 11 um in depth every other step and was thrown off after 0.7 s); this floor keeps such
 # steps as damped as the fixed 4e4 N s/m was at the default dt = 10 ms (4 * 1e6 * 0.01), and fades

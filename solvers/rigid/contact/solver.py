@@ -279,8 +279,8 @@ class ContactSolver:
         if ti.static(self.dense):
             for k in range(self.dense_perm.shape[0]):
                 self.dense_perm[k] = k  # past the scene's dofs: themselves
-            for k in range(perm.shape[0]):
-                self.dense_perm[k] = perm[k]
+                if k < perm.shape[0]:
+                    self.dense_perm[k] = perm[k]
         for I in ti.grouped(self.qacc_candidates):
             self.qacc_candidates[I] = 0.0
             self.qacc_normal[I] = 0.0
