@@ -53,9 +53,11 @@ def _log_cabin(order):
 
 def _row(order):
     """Six boxes side by side on the ground along x, 1 mm apart, the first pushed into the others at
-    2 m/s (with 0.1 m/s sideways and a 0.3 rad/s spin), added in `order`; their states after 0.4 s."""
+    2 m/s (with 0.1 m/s sideways and a 0.3 rad/s spin), added in `order`; their states after 0.1 s,
+    when the push has gone down the row and the row has stopped (the settling that follows is chaotic:
+    rocking boxes' corners touch down in turn, and two runs 1e-11 apart part by ~10x a step)."""
     specs = [gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.101 * i, 0.0, 0.05)) for i in range(len(order))]
-    return _rollout(specs, order, 40, kick=[2.0, 0.1, 0.0, 0.0, 0.0, 0.3])
+    return _rollout(specs, order, 10, kick=[2.0, 0.1, 0.0, 0.0, 0.0, 0.3])
 
 
 def test_the_order_bodies_are_added_in_does_not_change_their_motion():
@@ -72,7 +74,7 @@ def test_the_order_bodies_are_added_in_does_not_change_their_motion():
     np.testing.assert_allclose(shuffled, stacked, rtol=0, atol=1e-9)
     row = _row(list(range(6)))
     row_shuffled = _row([3, 0, 5, 1, 4, 2])
-    assert row[0, 0] > 5e-4 and abs(row[1, 0] - 0.101) > 1e-4  # the first two met (see the xfail below)
+    assert row[5, 0] - 0.505 > 1e-3  # the push reached the last box
     np.testing.assert_allclose(row_shuffled, row, rtol=0, atol=1e-9)
 
 
@@ -90,27 +92,84 @@ def test_the_broad_phase_boxes_change_no_number():
     assert out["boxes"]["sha"] == out["spheres"]["sha"], out
     assert out["boxes"]["active"] < 0.7 * out["spheres"]["active"], out
     assert out["boxes"]["z_min"] > 0.0, out  # nothing went through the ground
+    assert out["boxes"]["v_max"] < 10.0, out  # nothing blew up (falls of up to 3 m: 7.7 m/s)
 
 
-@pytest.mark.xfail(strict=True, reason="known bug, found 2026-11-27 (issue #24): a box pushed into a resting one "
-                   "with a little sideways velocity stops both within a step (head-on it does not)")
-def test_a_box_pushed_into_a_resting_box_keeps_its_momentum_up_to_coulomb_friction():
-    """Two 1 kg boxes on the ground 1 mm apart, the first at 2 m/s towards the second and 0.1 m/s
-    sideways: in one step of 10 ms the ground's friction (mu = 1 at most) can take at most
-    mu (m0 + m1) g h = 0.196 N s of their 2 N s of momentum along x, whatever the collision between them
-    does. Measured: 0.06 N s is left (both boxes stop); head-on (no sideways velocity) 1.80 N s, the
-    Coulomb bound to the digit; a spin of 0.3 rad/s about z instead of the sideways velocity: 0.06.
-    Why (contact/__init__.py, steps 3 and 4): the normal solve shares the momentum (1.05 / 0.95 m/s);
-    the Coulomb pass predicts, with the boxes' sticking side friction, a reversed slip at the ground
-    corners on one side (y = -0.05), which therefore stick: a viscosity mu f2 / eps = 491 N s/m with no
-    bound in the final solve, which then lets them slip at ~0.08 m/s and so applies 34 N of friction
-    against a normal force of 2.4 N (f2 = 0.49 N). A pass that re-takes the secant at the final slip
-    where the friction exceeds mu f2 would bound it."""
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01))
+@pytest.mark.xfail(strict=True, reason="known bug, found 2026-11-27 (issue #24): piles of thrown bodies blow up "
+                   "in about a third of the seeds")
+def test_a_thrown_pile_stays_bounded():
+    """The broad-phase pile (tests/workers/broad_phase_pile.py: 14 planks, cylinders, boxes and spheres
+    thrown at each other and the ground at up to 2 m/s and 6 rad/s) with seed 20. Measured over 17
+    seeds: 6 blew up (up to 2,283 m/s, or NaN) before the bound rounds (contact/__init__.py, step 5), 9
+    with them, among them this one both times (2,283 m/s at step 39; NaN at step 41). Where a body
+    blows up, a contact's normal force is far larger than stopping it needs (seed 7: 15 kN on a 9 kg
+    box falling at 3 m/s onto a plank that had just landed), from its law linearised at another
+    velocity than the final one."""
+    done = subprocess.run([sys.executable, str(WORKERS / "broad_phase_pile.py"), "boxes", "20"], capture_output=True,
+                          text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["v_max"] < 10.0, out
+
+
+def _pushed_pair(requires_grad=False):
+    """Two 1 kg boxes on the ground 1 mm apart along x (default options, dt = 10 ms)."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=requires_grad))
     scene.add_entity(gs.morphs.Plane())
     boxes = [scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.101 * i, 0.0, 0.05))) for i in range(2)]
     scene.build()
-    boxes[0].set_dofs_velocity(np.array([2.0, 0.1, 0.0, 0.0, 0.0, 0.0]))
+    return scene, boxes
+
+
+@pytest.mark.parametrize("kick", [(2.0, 0.1, 0.0, 0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0, 0.0, 0.3)],
+                         ids=["sideways", "spinning"])
+def test_a_box_pushed_into_a_resting_box_keeps_its_momentum_up_to_coulomb_friction(kick):
+    """The first box at 2 m/s towards the second, with 0.1 m/s sideways (or a 0.3 rad/s spin): in one
+    step of 10 ms the ground's friction (mu = 1) can take at most mu (m0 + m1) g h = 0.196 N s of their
+    2 N s of momentum along x, whatever the collision between them does. Found 2026-11-27 (issue #24):
+    0.06 N s was left in both cases (head-on: 1.80, the Coulomb bound to the digit). The Coulomb pass
+    (contact/__init__.py, step 3) predicted, with the boxes' sticking side friction, a reversed slip
+    at one side's ground corners, which therefore stuck: a viscosity mu f2 / eps = 491 N s/m with no
+    bound in the final solve, 34 N of friction against a normal force of 2.4 N. The bound rounds (step
+    5) take the law's secant at the final slip where the friction exceeds it; measured 1.860 N s (1.854
+    with three rounds, 1.779 with two)."""
+    scene, boxes = _pushed_pair()
+    boxes[0].set_dofs_velocity(np.array(kick))
     scene.step()
     momentum = sum(float(b.get_dofs_velocity()[0]) for b in boxes)  # 1 kg each (1000 kg/m^3)
-    assert momentum >= 2.0 - 0.2, momentum
+    assert 2.0 - 0.2 <= momentum <= 2.0, momentum
+    # the boxes met: the second one moves
+    assert float(boxes[1].get_dofs_velocity()[0]) > 0.5
+
+
+def test_grad_through_the_bound_rounds():
+    """Gradients of the pushed pair's positions after two steps, in the pushing box's initial velocity
+    (all six components) and the second box's friction, against central finite differences: the steps
+    record bound rounds (each a pass and a solve on the tape, with their adjoints)."""
+    import torch
+
+    scene, boxes = _pushed_pair(requires_grad=True)
+    contact = scene.sim.rigid_solver.contact
+    s0 = scene.get_state()
+    rounds = []
+
+    def loss(v, mu):
+        scene.reset(s0)
+        boxes[1].set_friction(mu)
+        boxes[0].set_dofs_velocity(v)
+        for _ in range(2):
+            scene.step()
+            rounds.append(contact.rounds)
+        p0, p1 = boxes[0].get_pos(), boxes[1].get_pos()
+        return p0[0] + 0.7 * p1[0] + 0.3 * p1[1] - 0.2 * p0[1] + 0.5 * boxes[1].get_quat()[3]
+
+    v = torch.tensor([2.0, 0.1, 0.0, 0.0, 0.0, 0.3], dtype=torch.float64)
+    mu = torch.tensor(1.3, dtype=torch.float64)  # the plane's is 1: the box's 1.3 sets the pair's mu
+    # steps: the box starts at rest on the ground, so the vertical and tilting components of v sit
+    # near the contacts' kinks (a difference of 1e-4 crosses them); mu's difference needs 1e-4 to stay
+    # above round-off
+    for fn, inputs, eps in ((lambda x: loss(x, mu), {"v": v}, 1e-6), (lambda x: loss(v, x), {"mu": mu}, 1e-4)):
+        rep = gs.grad.check(fn, inputs, eps=eps, tol=1e-5)
+        assert rep.ok, str(rep)
+        assert float(rep.autograd[0].abs().max()) > 1e-3
+    assert max(rounds) >= 2, rounds  # the rounds ran

@@ -65,7 +65,19 @@ contact's linear force pulls where another contact stops the body first:
     points slip alike; a sticking contact gets eta = mu f2 / eps, the static friction of a stiff
     damper), and drops the speculative contacts whose f2 pulled: A3 = A2 + sum J^T dW J, qacc = A3^-1
     (force + sum J^T dF).
-Steps 1, 2 and 4 factorise, 3 reuses the second factor. Candidates: the linearisation at the
+ 5. bound rounds: the prediction of step 3 can be far off where a stiff contact's Coulomb force
+    overshoots its own small slip (two boxes pressed together at 100 N whose faces slip sideways at
+    0.1 m/s: the predicted reversal turns the boxes and makes the ground corners of one of them
+    "stick"; their viscosity mu f2 / eps then had no bound in the final solve, and a box pushed into
+    a resting one lost 97 % of its momentum in one step, 34 N of friction on 2.4 N of normal force).
+    After the final solve, each contact whose friction at the slip it gives exceeds the law's value
+    there by more than BOUND_TOL (1 %) takes the law's secant at that slip, eta = mu f2 / sqrt(|u_t|^2
+    + eps^2) (continuously: passes.func_bound_eta), and the system is solved again, at most
+    BOUND_ROUNDS (4) times, stopping at the first round that changes nothing (the pushed box keeps
+    1.860 of its 2 N s; the Coulomb floor is 1.804). The viscosities only decrease, so A stays
+    positive definite and friction dissipative. A scene whose friction stays within the law (a box
+    sliding, a robot standing) runs no round.
+Steps 1, 2 and 4 factorise, 3 reuses the second factor, 5 factorises once per round. Candidates: the linearisation at the
 start-of-step velocity misses a gap that closes only because the motion changes within the step (two
 boxes falling together, the lower one stopped: their relative velocity is ~0 at the start). A slot whose
 gap the two bodies' speeds could close within the step is in the system from step 1 with the ~0 force
@@ -73,14 +85,15 @@ and slope of that linearisation; between steps 1 and 2 its law is linearised aga
 the first solve (a Newton step), and it acts if the law pushes there. Contacts acting at the start keep
 their first linearisation (linearising them again too left a 30-link chain on the ground swinging). The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
-solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse). Friction uses the
+solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse; the gradient path
+keeps each bound round's starting solution and factor for its adjoint). Friction uses the
 normal forces of a frictionless solve: where friction carries load (legs, chains), the final normal
 forces differ from f2 and so does the friction bound.
 
 Every term is differentiable in the state and in mu, k and c; the kinks are the contact's on/off (at
 the margin, where the force is below 1e-8 k delta, and where the force of the current and of the
-predicted state both stop pushing: fast separation), and the removals of steps 2 and 4 (continuous,
-see above). Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
+predicted state both stop pushing: fast separation), the removals of steps 2 and 4 (continuous, see
+above) and the bound rounds' tolerance band (continuous, piecewise linear). Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
 tests/test_contact.py checks against finite differences); they approach those of hard contact and
 exact Coulomb friction only as delta, eps and dt go to 0.
 

@@ -11,8 +11,10 @@ import taichi as ti
 from ..inertia import func_factor_to
 
 # which envelope (ContactSolver.env_first / env_last, dense scenes) goes with which factor: the solves'
-# k argument (a tree factor has none and ignores it)
+# k argument (a tree factor has none and ignores it); the gradient path keeps the final factor's
+# envelope before bound round r at ENV_BOUND + r
 ENV_CANDIDATES, ENV_NORMAL, ENV_FINAL = 0, 1, 2
+N_ENV = ENV_BOUND = 3
 
 
 # ------------------------------------------------------------------------------------------------

@@ -9,6 +9,9 @@ Taichi, each stage one loop per env as the dynamics stages.
                them along the slip (step 3), summed into force_coulomb
   friction     after the Coulomb response: friction as a viscosity, and the contacts whose normal-solve
                force pulled leave (step 4); its changes go to bank_friction
+  bound        after the final solve, while a contact's friction exceeds Coulomb's law at its slip:
+               the law's secant there (step 5); its changes go to bank_bound[r] (round r, gradient
+               path) or bank_friction (without gradients)
 """
 import taichi as ti
 
@@ -268,6 +271,7 @@ def func_friction_slot(s: ti.template(), i_b, i_s):
     dW = h * eta * (ti.Matrix.identity(s.dtype, 3) - nn) - drop * c.sl_wn_normal[i_b, i_s] * nn
     func_bank_add(s, c.bank_friction, i_b, i_s, pos, dF, dW)
     c.sl_eta[i_b, i_s] = eta
+    c.sl_eta_now[i_b, i_s] = eta
     c.sl_in_final[i_b, i_s] = ti.select(keep, 1, 0)
 
 
@@ -319,6 +323,140 @@ FRICTION_PASS_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS + (func_frict
 RELINEARISE_SUMS = (func_relinearise_clear, func_relinearise_add_listed, func_relinearise_tree, func_relinearise_dof,
                     func_relinearise_project)
 RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (func_relinearise_cross,)
+# the friction bank's sums (clear, then tree, dof, project)
+FRICTION_SUMS = (func_friction_clear, func_friction_tree, func_friction_dof, func_friction_project)
 FRICTION_PASS_LISTED = (func_friction_clear, func_friction_motion, func_friction_slots_listed, func_friction_tree,
                         func_friction_dof, func_friction_project)
 FRICTION_PASS_LISTED_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS_LISTED + (func_friction_cross,)
+
+
+
+# the bound rounds (after the final solve; step 5 of the package docstring): where a contact's
+# friction at the final slip exceeds Coulomb's law there by more than BOUND_TOL, its viscosity becomes
+# the law's secant at that slip and the system is solved again, at most BOUND_ROUNDS times
+BOUND_ROUNDS = 4
+BOUND_TOL = 0.01
+
+
+@ti.func
+def func_bound_eta(eta, sec):
+    """The viscosity after a bound round: eta while eta <= (1 + BOUND_TOL) sec (sec: the law's secant
+    at the slip the last solve gave), sec from (1 + 2 BOUND_TOL) sec on, linear between (continuous in
+    both, so the round is continuous and a contact near the tolerance cannot make it jump)."""
+    return ti.select(eta <= (1.0 + BOUND_TOL) * sec, eta, ti.max(sec, (2.0 + 2.0 * BOUND_TOL) * sec - eta))
+
+
+def _distinct(a, b) -> bool:
+    """Whether two template arguments are different objects (Taichi's scope has no `is`)."""
+    return a is not b
+
+
+@ti.func
+def func_bound_secant(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
+    """Coulomb's law's secant mu f2 / sqrt(|u_t|^2 + eps^2) at slot i_s's slip u_t for the link motion
+    (lw, lv) of a solve (the viscosity that gives the law's force at that slip)."""
+    c = s.contact
+    n = c.sl_n[i_b, i_s]
+    u3 = c.sl_u[i_b, i_s] + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
+    u3t = u3 - u3.dot(n) * n
+    return c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+
+
+@ti.func
+def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), src: ti.template(),
+                    dst: ti.template(), bank: ti.template()):
+    """A bound round for slot i_s (in the final system) at the link motion (lw, lv) of the last solve:
+    its viscosity src -> dst (func_bound_eta), the change added onto `bank` and recorded in sl_eta_now.
+    Returns 1 if the viscosity changed."""
+    c = s.contact
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    eta = src[i_b, i_s]
+    eta2 = func_bound_eta(eta, func_bound_secant(s, i_b, i_s, lw, lv))
+    de = eta2 - eta
+    nn = n.outer_product(n)
+    u0t = u0 - u0.dot(n) * n
+    func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -de * u0t,
+                  c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn))
+    if ti.static(_distinct(dst, src)):
+        dst[i_b, i_s] = eta2
+    c.sl_eta_now[i_b, i_s] = eta2
+    return ti.select(eta2 < eta, 1, 0)
+
+
+@ti.func
+def func_bound_listed(s: ti.template(), i_b, e):
+    """A bound round without gradients over the listed slots, at the solution qacc[e]; where a viscosity
+    changed, the changes are summed into the system (bank_friction's fields reused: the friction pass's
+    sums are in the system already). Returns whether one did (then the caller solves again)."""
+    c = s.contact
+    func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
+    func_friction_clear(s, i_b)
+    if ti.static(c.dense):
+        func_friction_clear_pairs(s, i_b)
+    changed = 0
+    for k in range(c.n_on[i_b]):
+        i_s = c.sl_list[i_b, k]
+        if c.sl_in_final[i_b, i_s] == 1:
+            changed |= func_bound_slot(s, i_b, i_s, c.link_w_report, c.link_v_report, c.sl_eta_now, c.sl_eta_now,
+                                       c.bank_friction)
+    if changed:
+        for stage in ti.static(FRICTION_SUMS[1:]):
+            stage(s, i_b)
+        if ti.static(c.dense):
+            func_friction_cross(s, i_b)
+    return changed
+
+
+@ti.func
+def func_bound_count(s: ti.template(), i_b, e):
+    """How many of env i_b's slots a bound round at qacc[e] would change (the gradient path's check
+    before it records a round; it writes only the scratch link motion link_w_report / link_v_report)."""
+    c = s.contact
+    func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
+    n = 0
+    for i_s in range(c.n_slots):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
+            eta = c.sl_eta_now[i_b, i_s]
+            sec = func_bound_secant(s, i_b, i_s, c.link_w_report, c.link_v_report)
+            n += ti.select(func_bound_eta(eta, sec) < eta, 1, 0)
+    return n
+
+
+def _round_source(c, r: int):
+    """The viscosities bound round r starts from: the friction pass's, or round r - 1's."""
+    return c.sl_eta if r == 0 else c.bnd_eta[r - 1]
+
+
+def bound_round(r: int, n_lp: int):
+    """The stages of bound round r on the gradient path (ContactSolver.steps["bound<r>"]): the link motion
+    of the solution that round r - 1 (or the friction system) gave, kept in bnd_x[r]; per slot in the
+    final system the viscosity from the last round's (sl_eta for r = 0) to bnd_eta[r]; the changes'
+    sums onto the system from the round's own bank."""
+
+    @ti.func
+    def func_round_clear(s: ti.template(), i_b):
+        b = s.contact.bank_bound[r]
+        func_bank_clear(s, b, i_b)
+        if ti.static(b.pairs):
+            func_bank_clear_pairs(s, b, i_b)
+
+    @ti.func
+    def func_round_motion(s: ti.template(), i_b):
+        c = s.contact
+        func_link_motion(s, c.bnd_x[r], 0, i_b, c.bnd_w[r], c.bnd_v[r])
+
+    @ti.func
+    def func_round_slots(s: ti.template(), i_b):
+        c = s.contact
+        src = ti.static(_round_source(c, r))
+        for i_s in range(c.n_slots):
+            if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
+                func_bound_slot(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r], src, c.bnd_eta[r], c.bank_bound[r])
+
+    # each sum one stage (one top-level loop over envs), as in the passes: Taichi's adjoint of several
+    # dependent loops inside one env loop
+    sums = tuple(bank_stage(op, f"bound{r}") for op in (func_bank_tree, func_bank_dof, func_bank_project))
+    if n_lp > 0:
+        sums += (bank_stage(func_bank_cross, f"bound{r}"),)
+    return (func_round_clear, func_round_motion, func_round_slots) + sums

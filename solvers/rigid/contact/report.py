@@ -53,7 +53,7 @@ def func_report_slot(s: ti.template(), i_b, i_s):
     u3 = u0 + func_rel_motion(s, i_b, i_s, pos, c.link_w_report, c.link_v_report)
     f3 = func_normal_after(c, i_b, i_s, u0, u3, n)
     c.c_fn[i_b, i_s] = ti.max(f3, 0.0)
-    c.c_force[i_b, i_s] = f3 * n - c.sl_eta[i_b, i_s] * (u3 - u3.dot(n) * n)
+    c.c_force[i_b, i_s] = f3 * n - c.sl_eta_now[i_b, i_s] * (u3 - u3.dot(n) * n)
     # the depth the step ends at (the linear prediction with the final velocity): far past the
     # surface, the contact has not stopped the body. Per env, the first evaluation with such a
     # contact is recorded (its deepest one relative to the limit) for watch()

@@ -4,7 +4,7 @@ import taichi as ti
 
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
-from .passes import COULOMB_PASS, func_link_motion, func_relinearise_listed, func_coulomb_listed
+from .passes import BOUND_ROUNDS, COULOMB_PASS, func_bound_listed, func_coulomb_listed, func_link_motion, func_relinearise_listed
 from .report import func_contact_report
 
 
@@ -41,7 +41,9 @@ def func_contact_solve(s: ti.template(), i_b, e):
       link_v_normal; when the relinearise pass changes nothing (no candidate, no dropped contact: its
       sums are exact zeros, A2 == A1 and force unchanged) those are the second solve's and its motion,
       and the relinearise pass's sums, the second factorisation and solve and the Coulomb pass's link
-      motion are skipped."""
+      motion are skipped;
+    - the bound rounds stop at the first that changes no viscosity (it added exact zeros: solving
+      again would give the same qacc), as on the gradient path (ContactSolver.factor_solve)."""
     c = s.contact
     if ti.static(s.requires_grad):
         func_solve_candidates(s, i_b)
@@ -66,11 +68,27 @@ def func_contact_solve(s: ti.template(), i_b, e):
             func_solve_coulomb(s, i_b)
             for stage in ti.static(c.friction_pass_listed):
                 stage(s, i_b)
-    if ti.static(c.dense):
-        func_factor_solve_dense(s, i_b, e)
-    elif ti.static(not s.unrolled):  # an unrolled core has no gradients; its rounds did the final solve
-        func_factor_solve(s, i_b, e)
+    if ti.static(c.dense or not s.unrolled):  # an unrolled tree core's rounds did the final solve
+        func_final_solve(s, i_b, e)
+        if ti.static(not s.requires_grad):  # (a core with gradients never runs the fused step)
+            if c.n_on[i_b] > 0:
+                rounds = 0
+                while rounds < BOUND_ROUNDS:
+                    rounds += 1
+                    if func_bound_listed(s, i_b, e):
+                        func_final_solve(s, i_b, e)
+                    else:
+                        rounds = BOUND_ROUNDS
     func_contact_report(s, i_b, e)
+
+
+@ti.func
+def func_final_solve(s: ti.template(), i_b, e):
+    """qacc[e] = A^-1 force for the system as it stands (the final solve, and each bound round's)."""
+    if ti.static(s.contact.dense):
+        func_factor_solve_dense(s, i_b, e)
+    else:
+        func_factor_solve(s, i_b, e)
 
 
 @ti.func
@@ -81,10 +99,12 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
     grows by a third of what inlining each would cost). The factor stays a local between rounds:
     round 0 factors A1 and solves into qacc_normal; round 1 (only when the relinearise pass changed
     something) A2, into qacc_normal; round 2 solves the Coulomb response dqacc_coulomb with the last
-    factor; round 3 factors A3 and solves into qacc[e]."""
+    factor; round 3 factors A3 and solves into qacc[e], and again after each bound round that changed
+    the system (at most BOUND_ROUNDS)."""
     c = s.contact
     L = ti.Vector.zero(s.dtype, s.static_tree.n_lower)
     rnd = 0
+    rounds = 0
     if c.n_on[i_b] == 0:
         rnd = 3
     while rnd < 4:
@@ -98,6 +118,10 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
         if rnd == 3:
             func_static_store(s, y, s.qacc, e, i_b)
             rnd = 4
+            if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
+                rounds += 1
+                if func_bound_listed(s, i_b, e):
+                    rnd = 3
         elif rnd == 2:
             func_static_store(s, y, c.dqacc_coulomb, 0, i_b)
             for stage in ti.static(c.friction_pass_listed):

@@ -11,9 +11,10 @@ from ..kinematics import LINK_STATE
 from ..layout import FieldTree
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
-from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_solve_adjoint
-from .passes import (COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, FRICTION_PASS_LISTED, FRICTION_PASS_LISTED_CROSS,
-                     RELINEARISE_PASS, RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS)
+from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
+from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, FRICTION_PASS_LISTED, FRICTION_PASS_LISTED_CROSS,
+                     RELINEARISE_PASS, RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round,
+                     func_bound_count)
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report, geom_half_thickness
 from .slots import CONTACT_STAGES, CROSS_STAGES
@@ -139,7 +140,20 @@ class ContactSolver:
         self.link_w_normal, self.link_v_normal = V3((B, L)), V3((B, L))
         self.link_w_coulomb, self.link_v_coulomb = V3((B, L)), V3((B, L))
         self.factor_candidates, self.factor_normal = F((B, D, D), False), F((B, D, D), False)
-        self.sl_eta, self.sl_in_final = F((B, S), False), I((B, S))
+        # sl_eta: the friction pass's viscosities; sl_eta_now: those in the system now (after the bound
+        # rounds: the report's)
+        self.sl_eta, self.sl_eta_now, self.sl_in_final = F((B, S)), F((B, S), False), I((B, S))
+        # the bound rounds on the gradient path (passes.bound_round): round r's starting solution, the
+        # factor it was solved with, its link motion, its viscosities and its bank (without gradients the
+        # rounds reuse the report's link motion and bank_friction)
+        K = BOUND_ROUNDS if g else 0
+        self.bnd_x = [F((1, B, D)) for _ in range(K)]
+        self.bnd_fac = [F((B, D, D), False) for _ in range(K)]
+        self.bnd_w, self.bnd_v = [V3((B, L)) for _ in range(K)], [V3((B, L)) for _ in range(K)]
+        self.bnd_eta = [F((B, S)) for _ in range(K)]
+        self.bank_bound = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(K)]
+        self.rounds = 0  # the bound rounds the last factor_solve recorded
+        self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
         self.link_w_report, self.link_v_report = V3((B, L), False), V3((B, L), False)
         self.solve_tmp = F((1, B, D), False)
         # placeholders where the scene has no pairs of moving links (kernel_load's arguments)
@@ -150,7 +164,7 @@ class ContactSolver:
             self.mass_cross = F((B, D, D))
             # the envelopes of the three dense factors (linalg.ENV_*): each row's first nonzero column, and
             # each column's last row that reaches it
-            self.env_first, self.env_last = I((B, 3, D)), I((B, 3, D))
+            self.env_first, self.env_last = I((B, N_ENV + K, D)), I((B, N_ENV + K, D))
             # the order of the dense factorisation (plan._dense_order: position k holds dof dense_perm[k]), and
             # the solves' right-hand side in that order
             self.dense_perm, self.perm_tmp = I(D), F((B, D), False)
@@ -176,7 +190,9 @@ class ContactSolver:
                                      self.link_v_candidates, self.link_w_normal, self.link_v_normal,
                                      self.link_w_coulomb, self.link_v_coulomb]
                                     + self.bank_relinearise.grad_fields + self.bank_coulomb.grad_fields
-                                    + self.bank_friction.grad_fields) if g else []
+                                    + self.bank_friction.grad_fields + [self.sl_eta] + self.bnd_x + self.bnd_w
+                                    + self.bnd_v + self.bnd_eta + [x for b in self.bank_bound for x in b.grad_fields]
+                                    ) if g else []
         # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
         # are zeroed before every solve's adjoint instead
         self.grad_fields = ([self.geom_mu, self.geom_xpos, self.geom_xR] + self.bank_normal.grad_fields) if g else []
@@ -190,6 +206,7 @@ class ContactSolver:
         self.steps = {"solve_candidates": (func_solve_candidates,), "relinearise_pass": self.relinearise_pass,
                       "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
                       "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
+        self.steps.update({f"bound{r}": bound_round(r, n_lp) for r in range(K)})
 
     def fits(self, plan: ContactPlan) -> bool:
         """Whether a scene's plan can run on this solver's fields and kernels."""
@@ -309,24 +326,64 @@ class ContactSolver:
     # the matrix adjoint accumulated by the solves after it. Backward: the hand-written adjoints of the
     # solves and Taichi's of the passes, in reverse order.
     def factor_solve(self, s, e: int):
-        """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule)."""
+        """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule). The
+        bound rounds are recorded while one would change a viscosity (kernel_bound_count; a round that
+        changes none adds exact zeros and solves the same system again, so stopping there changes no
+        number, and the fused step stops at the same round)."""
         for which in ("solve_candidates", "relinearise_pass", "solve_normal", "coulomb_pass", "solve_coulomb",
                       "friction_pass"):
             self.kernel_run(s, which)
         s.kernel_mass_solve(e, False)
+        self.rounds = 0
+        while self.rounds < len(self.bnd_x) and self.kernel_bound_count(s, e) > 0:
+            self.kernel_bound_keep(s, e, self.rounds)
+            self.kernel_run(s, f"bound{self.rounds}")
+            s.kernel_mass_solve(e, False)
+            self.rounds += 1
         self.kernel_report(s, e)
 
     def solve_grad(self, s, e: int):
-        """Adjoint of factor_solve, with its forward values in the fields."""
+        """Adjoint of factor_solve, with its forward values in the fields (its last run's rounds)."""
         if self.scratch_grad_fields:
             self.kernel_clear_scratch_grads(s)
         s.kernel_mass_solve(e, True)
+        for r in reversed(range(self.rounds)):
+            self.kernel_run.grad(s, f"bound{r}")
+            self.kernel_adjoint_solve(s, 3 + r)
         self.kernel_run.grad(s, "friction_pass")
         self.kernel_adjoint_solve(s, 2)
         self.kernel_run.grad(s, "coulomb_pass")
         self.kernel_adjoint_solve(s, 1)
         self.kernel_run.grad(s, "relinearise_pass")
         self.kernel_adjoint_solve(s, 0)
+
+    @ti.kernel
+    def kernel_bound_count(self, s: ti.template(), e: ti.i32) -> ti.i32:
+        """How many slots, over the envs, a bound round at qacc[e] would change (passes.func_bound_count)."""
+        n = 0
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                n += func_bound_count(s, i_b, e)
+        return n
+
+    @ti.kernel
+    def kernel_bound_keep(self, s: ti.template(), e: ti.i32, r: ti.template()):
+        """Round r's inputs, before its pass changes the system and the next solve overwrites them: the
+        solution qacc[e] (bnd_x[r]), its factor (bnd_fac[r]) and, in dense scenes, that factor's
+        envelope (ENV_BOUND + r)."""
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                for i in range(s.n_dofs):
+                    self.bnd_x[r][0, i_b, i] = s.qacc[e, i_b, i]
+                    for j in range(i + 1):
+                        self.bnd_fac[r][i_b, i, j] = s.mass_fac[i_b, i, j]
+                    if ti.static(self.dense):
+                        self.env_first[i_b, ENV_BOUND + r, i] = self.env_first[i_b, ENV_FINAL, i]
+                        self.env_last[i_b, ENV_BOUND + r, i] = self.env_last[i_b, ENV_FINAL, i]
 
     # Env loops over the core's env capacity with a guard, as core.RigidCore explains (a loop bound
     # read from a field in a kernel of several loops broke Taichi's adjoint).
@@ -369,7 +426,8 @@ class ContactSolver:
     @ti.kernel
     def kernel_adjoint_solve(self, s: ti.template(), which: ti.template()):
         """Adjoint of one of the solves before the final one: 0 the first (qacc_candidates = A1^-1 force), 1 the
-        second (qacc_normal = A2^-1 force), 2 the Coulomb response (dqacc_coulomb = A2^-1 force_coulomb)."""
+        second (qacc_normal = A2^-1 force), 2 the Coulomb response (dqacc_coulomb = A2^-1 force_coulomb),
+        3 + r the solve before bound round r (bnd_x[r] = A^-1 force, its factor kept in bnd_fac[r])."""
         if ti.static(s.serial):
             ti.loop_config(serialize=True)
         for i_b in range(s.cap_envs):
@@ -378,8 +436,11 @@ class ContactSolver:
                     func_solve_adjoint(s, self.factor_candidates, ENV_CANDIDATES, i_b, self.qacc_candidates, self.qacc_candidates.grad, 0, s.force.grad)
                 elif ti.static(which == 1):
                     func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.qacc_normal, self.qacc_normal.grad, 0, s.force.grad)
-                else:
+                elif ti.static(which == 2):
                     func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.dqacc_coulomb, self.dqacc_coulomb.grad, 0, self.force_coulomb.grad)
+                else:
+                    r = ti.static(which - 3)
+                    func_solve_adjoint(s, self.bnd_fac[r], ENV_BOUND + r, i_b, self.bnd_x[r], self.bnd_x[r].grad, 0, s.force.grad)
 
     @ti.kernel
     def kernel_clear_scratch_grads(self, s: ti.template()):
