@@ -146,20 +146,21 @@ def test_heavy_load_on_a_light_box_warns_about_contact_stiffness():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known bug (issue #21, item 4): a point of one box beside the edge of the "
-                   "other, level with its face, gets a speculative contact along the side face's normal")
 def test_box_sliding_over_an_edge_stays_in_the_friction_cone():
     """The reported setup (dt = 1e-3): a box (0.12 x 0.1 x 0.08 m, 0.19 kg) sliding and turning on a fixed
     box (0.2 x 0.2 x 0.1 m) over its edge. In every step whose contacts are all face contacts (vertical
     normals), the contact force on the sliding box (from its momentum change, gravity removed) obeys
     Coulomb: |horizontal| <= mu * vertical (mu = 1, 5 % and 0.05 N for the smoothing).
 
-    Fails today: the lower box's top edge, level with the sliding box's bottom face (1 um gap), is tested
-    against the sliding box's SDF, whose nearest feature there is its side face; the step's linear
-    prediction along that face's normal (the box slides towards the edge at 0.8 m/s, 0.8 mm per step,
-    against a 0.18 mm gap) closes a gap that never closes (the edge passes under the face), so a
-    horizontal speculative force of ~100 N (k + c / h = 4.1e7 N/m at dt = 1e-3) and its sticking friction
-    kick the box, which then rocks: steps later its horizontal force is 1.7-3x its vertical one."""
+    A strict xfail until 2026-11-27 (issue #21, item 4): the lower box's top edge, level with the sliding
+    box's bottom face (1 um gap), is tested against the sliding box's SDF, whose nearest feature there is
+    its side face; the step's linear prediction along that face's normal (the box slides towards the
+    edge at 0.8 m/s, 0.8 mm per step, against a 0.18 mm gap) closes a gap that never closes, so a
+    horizontal speculative force of ~100 N kicks the box, and its sticking friction, unbounded in the
+    final solve, then made the box rock: steps later its horizontal force was 1.7-3x its vertical one.
+    The bound rounds (contact/__init__.py, step 5) keep that friction within the law; the speculative
+    kick itself remains (the package docstring's known gap; its steps have a horizontal normal and are
+    not checked here)."""
     dt = 1e-3
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt))
     scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.1), pos=(0.0, 0.0, 0.051), fixed=True))

@@ -38,8 +38,8 @@ then every 16th), naming the geoms, the step and the remedy (smaller dt or more 
 body, a larger contact_stiffness for a heavy one; with 1e10 N/m the 400 t box rests within 0.1 mm).
 Known gap: a point of one box beside an edge of another box, level with its face (a box sliding over
 the edge of the one below it), is tested against the side face (the nearest feature), and the step's
-linear prediction along that face's normal closes a gap that never closes: a horizontal kick that
-breaks Coulomb's bound (tests/test_faults_contact.py, xfail).
+linear prediction along that face's normal closes a gap that never closes: a horizontal kick (whose
+aftermath broke Coulomb's bound until the bound rounds, step 5 below: tests/test_faults_contact.py).
 
 Time stepping. The forces are linearly implicit (backward Euler on the linearised force, as the
 joint-limit springs): f_n is linearised about the predicted depth d - h (u . n), which makes it
