@@ -319,16 +319,10 @@ FRICTION_PASS = (func_friction_clear, func_friction_motion, func_friction_slots,
                  func_friction_project)
 FRICTION_PASS_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS + (func_friction_cross,)
 # the fused step without gradients (func_contact_solve): the relinearise pass's sums once its slots are
-# known to change the system, and the friction pass over the listed slots
+# known to change the system (the friction pass over the listed slots: func_friction_or_bound)
 RELINEARISE_SUMS = (func_relinearise_clear, func_relinearise_add_listed, func_relinearise_tree, func_relinearise_dof,
                     func_relinearise_project)
 RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (func_relinearise_cross,)
-# the friction bank's sums (clear, then tree, dof, project)
-FRICTION_SUMS = (func_friction_clear, func_friction_tree, func_friction_dof, func_friction_project)
-FRICTION_PASS_LISTED = (func_friction_clear, func_friction_motion, func_friction_slots_listed, func_friction_tree,
-                        func_friction_dof, func_friction_project)
-FRICTION_PASS_LISTED_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS_LISTED + (func_friction_cross,)
-
 
 
 # the bound rounds (after the final solve; step 5 of the package docstring): where a contact's
@@ -385,27 +379,48 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
 
 
 @ti.func
-def func_bound_listed(s: ti.template(), i_b, e):
-    """A bound round without gradients over the listed slots, at the solution qacc[e]; where a viscosity
-    changed, the changes are summed into the system (bank_friction's fields reused: the friction pass's
-    sums are in the system already). Returns whether one did (then the caller solves again)."""
+def func_keep_for_bound(s: ti.template(), i_b, e):
+    """dqacc_coulomb[0] <- qacc[e] (without gradients), so that a bound round reads the last solution's
+    link motion through the friction pass's stage (func_friction_or_bound): the Coulomb response is not
+    read after the friction pass."""
     c = s.contact
-    func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
-    func_friction_clear(s, i_b)
-    if ti.static(c.dense):
-        func_friction_clear_pairs(s, i_b)
-    changed = 0
-    for k in range(c.n_on[i_b]):
-        i_s = c.sl_list[i_b, k]
-        if c.sl_in_final[i_b, i_s] == 1:
-            changed |= func_bound_slot(s, i_b, i_s, c.link_w_report, c.link_v_report, c.sl_eta_now, c.sl_eta_now,
-                                       c.bank_friction)
-    if changed:
-        for stage in ti.static(FRICTION_SUMS[1:]):
-            stage(s, i_b)
+    for i in range(s.n_dofs):
+        c.dqacc_coulomb[0, i_b, i] = s.qacc[e, i_b, i]
+
+
+@ti.func
+def func_friction_or_bound(s: ti.template(), i_b, phase):
+    """Without gradients, over the listed slots: the friction pass (phase 1, at the Coulomb response in
+    dqacc_coulomb) or a bound round (phase 2, at the last solution, kept in dqacc_coulomb by
+    func_keep_for_bound), with one copy of their bank stages (the fused kernel's compile time); phase 0
+    does nothing. Returns 1 if the system is to be solved (again): after the friction pass or phase 0
+    always, after a bound round if it changed a viscosity (else it added exact zeros: solving again
+    would give the same qacc)."""
+    c = s.contact
+    solve = 1
+    if phase > 0:
+        func_friction_clear(s, i_b)
         if ti.static(c.dense):
-            func_friction_cross(s, i_b)
-    return changed
+            func_friction_clear_pairs(s, i_b)
+        func_friction_motion(s, i_b)
+        changed = 1
+        if phase == 1:
+            func_friction_slots_listed(s, i_b)
+        else:
+            changed = 0
+            for k in range(c.n_on[i_b]):
+                i_s = c.sl_list[i_b, k]
+                if c.sl_in_final[i_b, i_s] == 1:
+                    changed |= func_bound_slot(s, i_b, i_s, c.link_w_coulomb, c.link_v_coulomb, c.sl_eta_now,
+                                               c.sl_eta_now, c.bank_friction)
+        solve = changed
+        if changed == 1:
+            func_friction_tree(s, i_b)
+            func_friction_dof(s, i_b)
+            func_friction_project(s, i_b)
+            if ti.static(c.dense):
+                func_friction_cross(s, i_b)
+    return solve
 
 
 @ti.func

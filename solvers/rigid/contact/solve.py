@@ -4,7 +4,8 @@ import taichi as ti
 
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
-from .passes import BOUND_ROUNDS, COULOMB_PASS, func_bound_listed, func_coulomb_listed, func_link_motion, func_relinearise_listed
+from .passes import (BOUND_ROUNDS, COULOMB_PASS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
+                     func_link_motion, func_relinearise_listed)
 from .report import func_contact_report
 
 
@@ -58,6 +59,7 @@ def func_contact_solve(s: ti.template(), i_b, e):
     elif ti.static(s.unrolled and not c.dense):
         func_contact_solve_rounds(s, i_b, e)
     else:
+        phase = 0
         if c.n_on[i_b] > 0:
             func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
             func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
@@ -66,19 +68,22 @@ def func_contact_solve(s: ti.template(), i_b, e):
                 func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
             func_coulomb_listed(s, i_b)
             func_solve_coulomb(s, i_b)
-            for stage in ti.static(c.friction_pass_listed):
-                stage(s, i_b)
-    if ti.static(c.dense or not s.unrolled):  # an unrolled tree core's rounds did the final solve
-        func_final_solve(s, i_b, e)
-        if ti.static(not s.requires_grad):  # (a core with gradients never runs the fused step)
-            if c.n_on[i_b] > 0:
-                rounds = 0
-                while rounds < BOUND_ROUNDS:
+            phase = 1
+        # the friction pass (phase 1), then the final solve, then bound rounds (phase 2) while one
+        # changes the system: one loop, so that the two passes share one copy of their sums and the
+        # final solve is compiled once
+        rounds = 0
+        go = 1
+        while go == 1:
+            solve = func_friction_or_bound(s, i_b, phase)
+            go = 0
+            if solve == 1:
+                func_final_solve(s, i_b, e)
+                if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
                     rounds += 1
-                    if func_bound_listed(s, i_b, e):
-                        func_final_solve(s, i_b, e)
-                    else:
-                        rounds = BOUND_ROUNDS
+                    func_keep_for_bound(s, i_b, e)
+                    phase = 2
+                    go = 1
     func_contact_report(s, i_b, e)
 
 
@@ -115,18 +120,17 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
             L = func_static_factor(s, i_b)
             b = func_static_vec(s, s.force, i_b)
         y = func_static_solve(s, L, b)
+        phase = 0
         if rnd == 3:
             func_static_store(s, y, s.qacc, e, i_b)
             rnd = 4
             if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
                 rounds += 1
-                if func_bound_listed(s, i_b, e):
-                    rnd = 3
+                func_keep_for_bound(s, i_b, e)
+                phase = 2
         elif rnd == 2:
             func_static_store(s, y, c.dqacc_coulomb, 0, i_b)
-            for stage in ti.static(c.friction_pass_listed):
-                stage(s, i_b)
-            rnd = 3
+            phase = 1
         else:
             func_static_store(s, y, c.qacc_normal, 0, i_b)
             func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
@@ -137,3 +141,6 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
             if nxt == 2:
                 func_coulomb_listed(s, i_b)
             rnd = nxt
+        if phase > 0:
+            if func_friction_or_bound(s, i_b, phase) == 1:
+                rnd = 3

@@ -12,9 +12,8 @@ from ..layout import FieldTree
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
 from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
-from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, FRICTION_PASS_LISTED, FRICTION_PASS_LISTED_CROSS,
-                     RELINEARISE_PASS, RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round,
-                     func_bound_count)
+from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
+                     RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round, func_bound_count)
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report, geom_half_thickness
 from .slots import CONTACT_STAGES, CROSS_STAGES
@@ -181,7 +180,7 @@ class ContactSolver:
 
         self.stages = CONTACT_STAGES
         self.relinearise_pass, self.friction_pass = RELINEARISE_PASS, FRICTION_PASS
-        self.relinearise_sums, self.friction_pass_listed = RELINEARISE_SUMS, FRICTION_PASS_LISTED
+        self.relinearise_sums = RELINEARISE_SUMS
         # adjoints cleared before each solve's backward (read from the passes' backward onwards)
         self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u_normal, self.sl_Fn, self.sl_depth,
                                      self.sl_corr, self.sl_Fn_normal, self.sl_wn_normal,
@@ -199,7 +198,7 @@ class ContactSolver:
         if self.dense:
             self.stages = CROSS_STAGES
             self.relinearise_pass, self.friction_pass = RELINEARISE_PASS_CROSS, FRICTION_PASS_CROSS
-            self.relinearise_sums, self.friction_pass_listed = RELINEARISE_SUMS_CROSS, FRICTION_PASS_LISTED_CROSS
+            self.relinearise_sums = RELINEARISE_SUMS_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
         # the launches of the solve op on the gradient path (factor_solve), by name: kernel_run(s, name)
