@@ -1289,12 +1289,16 @@ def test_grad_through_mesh_against_mesh_contact(mesh_files, moving):
         out = p[0] + 0.3 * p[1] + 2 * p[2]
         return out + lower.get_pos()[0] - 0.5 * lower.get_pos()[1] if moving else out
 
-    # steps of 1e-5: with the moving box, most steps run bound rounds (contact/__init__.py, step 5), and
-    # differences over 1e-6 are off by ~1e-5 relative (the mass: 4.45638e-4 at 1e-6; 4.456427e-4,
-    # 4.456438e-4 at 3e-5 and 1e-5, converging on autograd's 4.456451e-4)
-    rep = gs.grad.check(loss, {"mass": _t(0.7), "mu": _t(0.6), "v": _t([0.4, 0.2, -0.5])}, eps=1e-5, tol=1e-5)
-    assert rep.ok, str(rep)
-    assert all(float(g.norm()) > 1e-4 for g in rep.autograd)
+    # with the moving box, some steps run bound rounds (contact/__init__.py, step 5), whose tolerance band
+    # is piecewise linear: the mass's differences need steps of 1e-5 (over 1e-6 they were off by ~1e-5
+    # relative, round-off), the velocity's 1e-6 (over 1e-5 its second component is off by 2.9e-4
+    # relative, converging on autograd's as the step shrinks: -0.0090891, -0.0090917, -0.00909176)
+    m, mu, v = _t(0.7), _t(0.6), _t([0.4, 0.2, -0.5])
+    for fn, inputs, eps in ((lambda a, b: loss(a, b, v), {"mass": m, "mu": mu}, 1e-5),
+                            (lambda x: loss(m, mu, x), {"v": v}, 1e-6)):
+        rep = gs.grad.check(fn, inputs, eps=eps, tol=1e-5)
+        assert rep.ok, str(rep)
+        assert all(float(g.norm()) > 1e-4 for g in rep.autograd)
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # trimesh dividing by the flat mesh's zero volume

@@ -70,13 +70,14 @@ contact's linear force pulls where another contact stops the body first:
     0.1 m/s: the predicted reversal turns the boxes and makes the ground corners of one of them
     "stick"; their viscosity mu f2 / eps then had no bound in the final solve, and a box pushed into
     a resting one lost 97 % of its momentum in one step, 34 N of friction on 2.4 N of normal force).
-    After the final solve, each contact whose friction at the slip it gives exceeds the law's value
-    there by more than BOUND_TOL (1 %) takes the law's secant at that slip, eta = mu f2 / sqrt(|u_t|^2
-    + eps^2) (continuously: passes.func_bound_eta), and the system is solved again, at most
-    BOUND_ROUNDS (4) times, stopping at the first round that changes nothing (the pushed box keeps
-    1.860 of its 2 N s; the Coulomb floor is 1.804). The viscosities only decrease, so A stays
-    positive definite and friction dissipative. A scene whose friction stays within the law (a box
-    sliding, a robot standing) runs no round.
+    After the final solve, each contact whose friction at the slip it gives, eta |u_t|, exceeds
+    Coulomb's bound mu f2 by more than BOUND_TOL (1 %) takes the law's secant at that slip, eta =
+    mu f2 / sqrt(|u_t|^2 + eps^2) (continuously: passes.func_bound_eta), and the system is solved
+    again, at most BOUND_ROUNDS (4) times, stopping at the first round that changes nothing (the
+    pushed box keeps 1.860 of its 2 N s; the Coulomb floor is 1.804). The viscosities only decrease,
+    so A stays positive definite and friction dissipative. A contact within the bound keeps its
+    viscosity, however far from the smoothed law (the viscous creep of a sticking foot below eps):
+    ANYmal standing runs a round in 1 of 1,385 evaluations, a box sliding in none.
 Steps 1, 2 and 4 factorise, 3 reuses the second factor, 5 factorises once per round. Candidates: the linearisation at the
 start-of-step velocity misses a gap that closes only because the motion changes within the step (two
 boxes falling together, the lower one stopped: their relative velocity is ~0 at the start). A slot whose

@@ -326,18 +326,22 @@ RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (f
 
 
 # the bound rounds (after the final solve; step 5 of the package docstring): where a contact's
-# friction at the final slip exceeds Coulomb's law there by more than BOUND_TOL, its viscosity becomes
+# friction at the final slip exceeds Coulomb's bound mu f2 by more than BOUND_TOL, its viscosity becomes
 # the law's secant at that slip and the system is solved again, at most BOUND_ROUNDS times
 BOUND_ROUNDS = 4
 BOUND_TOL = 0.01
 
 
 @ti.func
-def func_bound_eta(eta, sec):
-    """The viscosity after a bound round: eta while eta <= (1 + BOUND_TOL) sec (sec: the law's secant
-    at the slip the last solve gave), sec from (1 + 2 BOUND_TOL) sec on, linear between (continuous in
-    both, so the round is continuous and a contact near the tolerance cannot make it jump)."""
-    return ti.select(eta <= (1.0 + BOUND_TOL) * sec, eta, ti.max(sec, (2.0 + 2.0 * BOUND_TOL) * sec - eta))
+def func_bound_eta(eta, speed, bound, sec):
+    """The viscosity after a bound round, for a contact of viscosity eta slipping at `speed` after the
+    last solve, so applying eta * speed of friction, against Coulomb's bound mu f2 (`bound`): eta while
+    that friction is within (1 + BOUND_TOL) bound; the smoothed law's secant at that slip (`sec`, at most
+    bound / speed) from (1 + 2 BOUND_TOL) bound on; linear between (continuous, so that the round is, and
+    a contact near the tolerance cannot make it jump). A contact within Coulomb's bound keeps its
+    viscosity, however far from the smoothed law (a sticking contact's viscous creep below eps)."""
+    w = ti.min(ti.max((eta * speed - (1.0 + BOUND_TOL) * bound) / ti.max(BOUND_TOL * bound, 1e-30), 0.0), 1.0)
+    return eta + w * (sec - eta)
 
 
 def _distinct(a, b) -> bool:
@@ -346,14 +350,17 @@ def _distinct(a, b) -> bool:
 
 
 @ti.func
-def func_bound_secant(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
-    """Coulomb's law's secant mu f2 / sqrt(|u_t|^2 + eps^2) at slot i_s's slip u_t for the link motion
-    (lw, lv) of a solve (the viscosity that gives the law's force at that slip)."""
+def func_bound_next(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), eta):
+    """func_bound_eta for slot i_s of viscosity eta at the link motion (lw, lv) of a solve: its slip
+    speed there (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at
+    rest), Coulomb's bound mu f2 and the law's secant mu f2 / sqrt(|u_t|^2 + eps^2)."""
     c = s.contact
     n = c.sl_n[i_b, i_s]
     u3 = c.sl_u[i_b, i_s] + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
     u3t = u3 - u3.dot(n) * n
-    return c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+    bound = c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0)
+    speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * c.eps * c.eps)
+    return func_bound_eta(eta, speed, bound, bound / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps))
 
 
 @ti.func
@@ -366,7 +373,7 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
     n = c.sl_n[i_b, i_s]
     u0 = c.sl_u[i_b, i_s]
     eta = src[i_b, i_s]
-    eta2 = func_bound_eta(eta, func_bound_secant(s, i_b, i_s, lw, lv))
+    eta2 = func_bound_next(s, i_b, i_s, lw, lv, eta)
     de = eta2 - eta
     nn = n.outer_product(n)
     u0t = u0 - u0.dot(n) * n
@@ -433,8 +440,7 @@ def func_bound_count(s: ti.template(), i_b, e):
     for i_s in range(c.n_slots):
         if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
             eta = c.sl_eta_now[i_b, i_s]
-            sec = func_bound_secant(s, i_b, i_s, c.link_w_report, c.link_v_report)
-            n += ti.select(func_bound_eta(eta, sec) < eta, 1, 0)
+            n += ti.select(func_bound_next(s, i_b, i_s, c.link_w_report, c.link_v_report, eta) < eta, 1, 0)
     return n
 
 
