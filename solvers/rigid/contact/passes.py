@@ -475,8 +475,9 @@ def bound_round(r: int, n_lp: int):
             if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
                 func_bound_slot(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r], src, c.bnd_eta[r], c.bank_bound[r])
 
-    # each sum one stage (one top-level loop over envs), as in the passes: Taichi's adjoint of several
-    # dependent loops inside one env loop
+    # each sum one stage (one top-level loop over envs), as in the passes: with tree, dof and project in
+    # one stage, Taichi's adjoint of the round was wrong (a gradient off by a factor 37, against finite
+    # differences)
     sums = tuple(bank_stage(op, f"bound{r}") for op in (func_bank_tree, func_bank_dof, func_bank_project))
     if n_lp > 0:
         sums += (bank_stage(func_bank_cross, f"bound{r}"),)
