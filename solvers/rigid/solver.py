@@ -290,7 +290,7 @@ class RigidSolver:
         """One step without gradient bookkeeping: the state moves from slot 0 to slot 0."""
         self._scratch = None
         n = self._fused(step, 0, self.n_ops, 1)
-        if self._watch_clock is not None and self._watch_clock.due():  # a contact deep inside a body warns once
+        if self._watch_clock is not None and self._watch_clock.due():  # a contact deep inside a body warns (once a pair)
             self.contact.watch(step, self.n_evals, self.dt / self.substeps)
         return n
 

@@ -12,6 +12,8 @@ from .passes import func_link_motion, func_normal_after, func_rel_motion
 # thinner body's middle has reached the other's surface, past which its normal can flip. (A quarter
 # warned on ANYmal's ordinary 1.6 m/s foot landing at dt = 0.01 s: 5.6 mm into a 15 mm shank.)
 DEEP_FRACTION = 0.5
+# the watch warns once per pair of geoms, for at most this many pairs a scene (ContactSolver.watch)
+MAX_DEEP_WARNINGS = 3
 
 
 class ContactPenetrationWarning(UserWarning):
@@ -59,7 +61,7 @@ def func_report_slot(s: ti.template(), i_b, i_s):
     # contact is recorded (its deepest one relative to the limit) for watch()
     depth_end = c.sl_depth[i_b, i_s] - c.sl_corr[i_b, i_s] - c.eval_h[i_b] * u3.dot(n)
     lim = DEEP_FRACTION * ti.min(c.geom_thick[c.slot_ga[i_s]], c.geom_thick[c.slot_gb[i_s]])
-    if depth_end > lim:
+    if (depth_end > lim) & (c.pair_warned[c.slot_pair[i_s]] == 0):
         ev = c.eval_count[i_b]
         first = c.deep_i[i_b, 0] == 0
         # ranked by how much deeper it went within the step (a fast impact before a slow sinking)
@@ -107,7 +109,7 @@ def geom_half_thickness(geoms) -> np.ndarray:
     return out
 
 
-def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gain):
+def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gain, last=False):
     """What the deep-penetration watch tells the user: who, when, how deep, why and what to do."""
     geoms = plan.geoms
     ga, gb = int(plan.np_slot_ga[i_s]), int(plan.np_slot_gb[i_s])
@@ -126,4 +128,5 @@ def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gai
     return (f"contact between {geoms.names[ga]} and {geoms.names[gb]}{env}: at step {step} it ended "
             f"{depth:.3g} m deep, more than {lim:.3g} m ({DEEP_FRACTION:g} of the thinner geom's half thickness): "
             f"the body is sinking into or passing through the other; {why}. To fix: {todo}. "
-            "(Warned once per scene.)")
+            f"(Warned once per pair of geoms, for at most {MAX_DEEP_WARNINGS} pairs a scene"
+            + ("; this is the last.)" if last else ".)"))

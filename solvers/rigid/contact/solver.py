@@ -15,7 +15,8 @@ from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, fun
 from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
                      RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round, func_bound_count)
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
-from .report import ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report, geom_half_thickness
+from .report import (MAX_DEEP_WARNINGS, ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report,
+                     geom_half_thickness)
 from .slots import CONTACT_STAGES, CROSS_STAGES
 from .solve import func_solve_coulomb, func_solve_candidates, func_solve_normal
 
@@ -34,8 +35,8 @@ def _runtime(index):
 
 class WatchClock:
     """When ContactSolver.watch reads the device (one int, ~15 us): after each of the first 16 steps,
-    then after every 16th, never once it has warned. A plain object, so that the fused step's Python
-    asks it without the ~1 us that each attribute of a data-oriented class costs."""
+    then after every 16th, never once it has warned MAX_DEEP_WARNINGS times. A plain object, so that
+    the fused step's Python asks it without the ~1 us that each attribute of a data-oriented class costs."""
     __slots__ = ("n", "done")
 
     def __init__(self):
@@ -175,6 +176,9 @@ class ContactSolver:
         # limit]), any env's
         self.eval_count = I(B)
         self.deep_i, self.deep_f, self.deep_any = I((B, 3)), F((B, 4), False), I(1)
+        # the pairs the watch has warned about (not recorded again), and how many it has
+        self.pair_warned = I(Pn)
+        self.n_deep_warned = 0
         self.clock = WatchClock()
         self.tree = tree.finalize()
 
@@ -227,6 +231,7 @@ class ContactSolver:
                                  np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None],
                                  np.minimum(geom_half_thickness(geoms), 1e30)[:, None]], -1)
         self.clock.reset()
+        self.n_deep_warned = 0
         dyn = np.zeros(max(plan.n_links, 1), dtype=np.int32)
         dyn[: plan.n_links] = plan.link_dyn
         slot_i = np.array([[x[0], x[1], x[2], x[3], lp] for x, lp in zip(slots, plan.slot_lp)], dtype=np.int32)
@@ -303,6 +308,16 @@ class ContactSolver:
             self.dqacc_coulomb[I] = 0.0
         for i_b in range(self.eval_count.shape[0]):
             self.eval_count[i_b] = 0
+        for i_b in range(self.deep_i.shape[0]):
+            self.deep_i[i_b, 0] = 0
+        self.deep_any[0] = 0
+        for i_p in range(self.pair_warned.shape[0]):
+            self.pair_warned[i_p] = 0
+
+    @ti.kernel
+    def kernel_rearm(self, i_p: ti.i32):
+        """After a warning about pair i_p: not that pair again, and the record open for another."""
+        self.pair_warned[i_p] = 1
         for i_b in range(self.deep_i.shape[0]):
             self.deep_i[i_b, 0] = 0
         self.deep_any[0] = 0
@@ -456,11 +471,11 @@ class ContactSolver:
 
     def watch(self, step: int, evals_per_step: int, h: float):
         """After a step without gradients (scene step number `step`) when `clock.due()` says so: warn
-        once per scene when a contact has ended a step deep inside the other body (func_report_slot
-        records the first one)."""
+        when a contact has ended a step deep inside the other body (func_report_slot records the first
+        one), once per pair of geoms and for at most MAX_DEEP_WARNINGS pairs a scene: a body that tunnels
+        at the start (placed inside the ground) does not hide a tangle later in the run."""
         if self.deep_any[0] == 0:
             return
-        self.clock.done = True
         di, df = self.deep_i.to_numpy()[: max(self.n_envs, 1)], self.deep_f.to_numpy()[: max(self.n_envs, 1)]
         hit = np.nonzero(di[:, 0])[0]
         # the earliest record, the deepest (relative to its limit) among those
@@ -468,8 +483,13 @@ class ContactSolver:
         i_s, e_hit = int(di[i_b, 1]), int(di[i_b, 2])
         depth, speed, lim, gain = (float(x) for x in df[i_b, :4])
         late = (int(self.eval_count[i_b]) - e_hit) // max(int(evals_per_step), 1)
+        self.n_deep_warned += 1
+        last = self.n_deep_warned >= MAX_DEEP_WARNINGS
+        self.clock.done = last
+        self.kernel_rearm(int(self.plan.np_slot_pair[i_s]))
         warnings.warn(ContactPenetrationWarning(deep_contact_message(
-            self.plan, i_s, i_b, self.n_envs, step - late, h, depth, speed, lim, gain)), stacklevel=_user_stacklevel())
+            self.plan, i_s, i_b, self.n_envs, step - late, h, depth, speed, lim, gain, last)),
+            stacklevel=_user_stacklevel())
 
     # ------------------------------------------------------------------ readers
     def read(self):
