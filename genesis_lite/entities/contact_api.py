@@ -132,9 +132,11 @@ class ContactMixin:
         'link_a', 'link_b', 'geom_a', 'geom_b' (global indices; side a is this entity's), 'position' (m,
         world), 'normal' (unit, pointing from b towards a), 'force_a' (N, the contact force on link a, world
         frame), 'force_b' (= -force_a), 'penetration' (m, > 0 when overlapping; the force starts slightly
-        before contact, see RigidOptions.contact_smoothing). Unbatched scenes: one row per touching contact
-        point. Batched: rows for every potential contact point, shape (n_envs, n, ...), and 'valid_mask'
-        (n_envs, n) marks the touching ones. with_entity: only contacts against that entity."""
+        before contact, see RigidOptions.contact_smoothing). Unbatched scenes: one row per contact point
+        that applied a force in the step. Batched: rows for every potential contact point, shape (n_envs,
+        n, ...), and 'valid_mask' (n_envs, n) marks those. The forces add up to what the bodies felt: a
+        contact whose linearised normal law pulled in the step (solvers/rigid/contact, step 5) is listed
+        with its pull (force_a . normal < 0). with_entity: only contacts against that entity."""
         sim = self._sim
         dev, dt = sim.device, sim.dtype
         c = self._contact
@@ -158,7 +160,9 @@ class ContactMixin:
             pos = nrm = F = np.zeros((B, n, 3))
             depth = np.zeros((B, n))
             ga = gb = np.zeros(n, dtype=np.int64)
-        valid = fn > 0
+        # every contact that applied a force: one whose linearised normal law pulled in the step too (its
+        # normal component is then negative), so that the forces add up to what the bodies felt
+        valid = (fn > 0) | (np.abs(F).sum(-1) > 0)
         geom_link = c.geoms.link if c is not None else np.zeros(0, dtype=np.int64)
         la = geom_link[ga] if n else ga
         lb = geom_link[gb] if n else gb
@@ -186,7 +190,7 @@ class ContactMixin:
             idx, _ = self._contact_slots()
             if len(idx):
                 r = c.read()
-                F = r["force"][:, idx] * (r["fn"][:, idx] > 0)[..., None]
+                F = r["force"][:, idx]
                 ls = self._link_start
                 per_link = out.transpose(1, 0, 2)  # a view: (n_links, B, 3)
                 for side, sgn in ((c.np_slot_link_a[idx], 1.0), (c.np_slot_link_b[idx], -1.0)):

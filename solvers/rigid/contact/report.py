@@ -35,15 +35,17 @@ def func_contact_report(s: ti.template(), i_b, e):
                 func_report_slot(s, i_b, i_s)
             else:
                 c.c_fn[i_b, i_s] = 0.0
+                c.c_force[i_b, i_s] = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
     else:
-        # the other slots' c_fn is left as it was: read() masks it with sl_on (as it masks inactive
-        # pairs), and sl_in_final is only read where sl_on is set
+        # the other slots' c_fn and c_force are left as they were: read() masks them with sl_on (as it
+        # masks inactive pairs), and sl_in_final is only read where sl_on is set
         for k in range(c.n_on[i_b]):
             i_s = c.sl_list[i_b, k]
             if c.sl_in_final[i_b, i_s] == 1:
                 func_report_slot(s, i_b, i_s)
             else:
                 c.c_fn[i_b, i_s] = 0.0
+                c.c_force[i_b, i_s] = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
 
 
 @ti.func

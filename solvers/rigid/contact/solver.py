@@ -493,15 +493,18 @@ class ContactSolver:
 
     # ------------------------------------------------------------------ readers
     def read(self):
-        """numpy views of the last evaluation: dict of position, normal, force (on the point side),
-        depth, fn (normal force magnitude, 0 when not touching), each (B, n_slots[, 3])."""
+        """numpy views of the last evaluation: dict of position, normal, force (on the point side: the force
+        the step applied, 0 for a slot that applied none), depth, fn (the normal force where it pushes,
+        else 0), each (B, n_slots[, 3]). A contact whose linearised normal law pulled in the step (see
+        the package docstring, step 5) has fn 0 and a force whose normal component is negative: the
+        forces, not fn, add up to what the bodies felt."""
         B, S = self.n_envs, self.plan.n_slots
-        # without gradients the report writes c_fn of the slots that are on only (func_contact_report)
+        # without gradients the report writes c_fn and c_force of the slots that are on only (func_contact_report)
         active = ((self.pair_active.to_numpy()[:B][:, self.np_slot_pair] == 1)
                   & (self.sl_on.to_numpy()[:B, :S] == 1))
         return {"position": self.c_pos.to_numpy()[:B, :S], "normal": self.c_normal.to_numpy()[:B, :S],
-                "force": self.c_force.to_numpy()[:B, :S], "depth": self.c_depth.to_numpy()[:B, :S],
-                "fn": np.where(active, self.c_fn.to_numpy()[:B, :S], 0.0)}
+                "force": np.where(active[..., None], self.c_force.to_numpy()[:B, :S], 0.0),
+                "depth": self.c_depth.to_numpy()[:B, :S], "fn": np.where(active, self.c_fn.to_numpy()[:B, :S], 0.0)}
 
 
 class _FrictionBlock:
