@@ -148,7 +148,6 @@ class ContactMixin:
         n = len(idx)
         if c is not None and n:
             r = c.read()
-            fn = r["fn"][:, idx]
             pos, nrm, F, depth = (r[k][:, idx] for k in ("position", "normal", "force", "depth"))
             sgn = np.where(flip, -1.0, 1.0)[None, :, None]
             nrm = nrm * sgn
@@ -156,13 +155,13 @@ class ContactMixin:
             ga = np.where(flip, c.np_slot_gb[idx], c.np_slot_ga[idx])
             gb = np.where(flip, c.np_slot_ga[idx], c.np_slot_gb[idx])
         else:
-            fn = np.zeros((B, n))
             pos = nrm = F = np.zeros((B, n, 3))
             depth = np.zeros((B, n))
             ga = gb = np.zeros(n, dtype=np.int64)
-        # every contact that applied a force: one whose linearised normal law pulled in the step too (its
-        # normal component is then negative), so that the forces add up to what the bodies felt
-        valid = (fn > 0) | (np.abs(F).sum(-1) > 0)
+        # every contact that applied a force (read() zeroes the others): one whose linearised normal law
+        # pulled in the step too (its normal component is then negative), so that the forces add up to
+        # what the bodies felt
+        valid = np.abs(F).sum(-1) > 0
         geom_link = c.geoms.link if c is not None else np.zeros(0, dtype=np.int64)
         la = geom_link[ga] if n else ga
         lb = geom_link[gb] if n else gb

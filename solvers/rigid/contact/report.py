@@ -34,8 +34,7 @@ def func_contact_report(s: ti.template(), i_b, e):
             if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
                 func_report_slot(s, i_b, i_s)
             else:
-                c.c_fn[i_b, i_s] = 0.0
-                c.c_force[i_b, i_s] = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+                func_report_none(s, i_b, i_s)
     else:
         # the other slots' c_fn and c_force are left as they were: read() masks them with sl_on (as it
         # masks inactive pairs), and sl_in_final is only read where sl_on is set
@@ -44,8 +43,14 @@ def func_contact_report(s: ti.template(), i_b, e):
             if c.sl_in_final[i_b, i_s] == 1:
                 func_report_slot(s, i_b, i_s)
             else:
-                c.c_fn[i_b, i_s] = 0.0
-                c.c_force[i_b, i_s] = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+                func_report_none(s, i_b, i_s)
+
+
+@ti.func
+def func_report_none(s: ti.template(), i_b, i_s):
+    """A touching slot out of the final system applied no force."""
+    s.contact.c_fn[i_b, i_s] = 0.0
+    s.contact.c_force[i_b, i_s] = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
 
 
 @ti.func
