@@ -8,9 +8,9 @@ joint limits on, starting from the "ready" pose. Rates are medians of 5 repeats:
 - 1 env: steps/s of a Python loop of `scene.step()` / `mujoco.mj_step`;
 - 1024 envs: env-steps/s of `build(n_envs=1024)` + 100 `scene.step()` / `mujoco.rollout.rollout`
   (1024 initial states, 100 steps, 2 threads). The machine is shared and its load changes within a
-  run, so the genesis_lite child also runs MuJoCo's rollout itself, alternating run for run: the
-  "paired ratio" is the median of those per-pair ratios (the "ratio" column divides medians taken
-  minutes apart);
+  run, so the genesis_lite child also runs MuJoCo itself (its mj_step loop at 1 env, its rollout for
+  the batch), alternating run for run: the "paired ratio" is the median of those per-pair ratios (the
+  "ratio" column divides medians taken minutes apart);
 - real Genesis (`genesis-world`, CPU) when a separate venv has it ($GENESIS_PYTHON, else /work/genesis_venv
   or /tmp/gvenv).
 Build time: `import genesis_lite`, `gs.init`, a scene with the full Panda URDF (meshes) and a plane,
@@ -42,8 +42,8 @@ GENESIS_PYTHON = genesis_python()
 # --- MuJoCo ----------------------------------------------------------------------------------------
 
 
-def mujoco_step_loop(urdf, n_steps=5000, repeats=5) -> float:
-    """Steps/s of mujoco.mj_step in a Python loop, 1 env."""
+def mujoco_step_runner(urdf, n_steps=5000):
+    """once(): seconds of n_steps mujoco.mj_step in a Python loop, 1 env, from the ready pose."""
     import mujoco
 
     m = mujoco_model(urdf)
@@ -58,6 +58,12 @@ def mujoco_step_loop(urdf, n_steps=5000, repeats=5) -> float:
         assert np.all(np.isfinite(d.qpos)), "MuJoCo diverged"
         return t.seconds
 
+    return once
+
+
+def mujoco_step_loop(urdf, n_steps=5000, repeats=5) -> float:
+    """Steps/s of mujoco.mj_step in a Python loop, 1 env."""
+    once = mujoco_step_runner(urdf, n_steps)
     once()  # warm-up
     return median_rate(once, n_steps, repeats)
 
@@ -157,9 +163,10 @@ def _gl_reset(robot, n_envs):
 
 def worker_gl_steps(urdf, n_envs, n_steps, repeats, precision, paired_threads=0) -> dict:
     """Steps/s (n_envs == 0: 1 env, no batch axis) or env-steps/s of a loop of scene.step().
-    paired_threads > 0: MuJoCo's rollout of the same env and step counts on that many threads runs in
-    this process too, alternating with genesis_lite's runs, so that both see the same load; the ratio
-    is the median of the per-pair ratios (this machine's load changes faster than a whole run)."""
+    paired_threads > 0: MuJoCo runs the same env and step counts in this process too (1 env: its
+    mj_step loop in Python; a batch: its rollout on paired_threads threads), alternating with
+    genesis_lite's runs, so that both see the same load; the ratio is the median of the per-pair
+    ratios (this machine's load changes faster than a whole run)."""
     with Timer() as tb:
         gs, scene, robot = _gl_scene(urdf, n_envs, precision)
         _gl_set(robot, robot.set_dofs_damping, np.zeros(robot.n_dofs), n_envs)
@@ -181,7 +188,10 @@ def worker_gl_steps(urdf, n_envs, n_steps, repeats, precision, paired_threads=0)
     n = max(n_envs, 1) * n_steps
     if not paired_threads:
         return {"rate": median_rate(once, n, repeats), "build_s": build_s}
-    mj_once, shutdown = mujoco_rollout_runner(urdf, n_envs, n_steps, paired_threads)
+    if n_envs:
+        mj_once, shutdown = mujoco_rollout_runner(urdf, n_envs, n_steps, paired_threads)
+    else:
+        mj_once, shutdown = mujoco_step_runner(urdf, n_steps), (lambda: None)
     try:
         mj_once()
         pairs = [(mj_once(), once()) for _ in range(repeats)]
@@ -290,12 +300,13 @@ def main():
     if not args.skip_genesis_lite:
         for n_envs, n_steps in ((0, steps_1), (args.envs, steps_b)):
             print(f"genesis_lite {max(n_envs, 1)} env(s) ...", flush=True)
-            paired = args.threads if n_envs else 0
+            paired = args.threads if n_envs else 1
             res, err = _child("gl_steps", urdf, envs=n_envs, steps=n_steps, repeats=repeats if not paired else 2 * repeats,
                               precision=args.precision, **({"paired-threads": paired} if paired else {}))
             note = err or f"build+compile {res['build_s']:.1f} s"
             if res and "paired_ratio" in res:
-                note += (f"; paired with MuJoCo's rollout in its process: {res['paired_ratio']:.2f}x "
+                peer = "rollout" if n_envs else "mj_step loop"
+                note += (f"; paired with MuJoCo's {peer} in its process: {res['paired_ratio']:.2f}x "
                          f"(MuJoCo {res['mj_rate']:,.0f} there)")
             rows.append({"engine": f"genesis_lite (f{args.precision}, CPU)", "envs": max(n_envs, 1),
                          "rate": res["rate"] if res else None, "paired": res.get("paired_ratio") if res else None,

@@ -131,6 +131,7 @@ def child_gl(integrator, n_envs, steps, rounds, profile, threads=0):
     import taichi as ti
     import bench_workprecision as W
     import genesis_lite as gs
+    from solvers.rigid.schedule import pack_span
 
     kw = {"kernel_profiler": True} if profile else {}
     if threads:
@@ -160,7 +161,7 @@ def child_gl(integrator, n_envs, steps, rounds, profile, threads=0):
 
     def bare():
         step_no[0] += 1
-        s.kernel_step_fused(step_no[0], 0, sol.n_ops, 1)
+        s.kernel_step_fused(step_no[0], pack_span(0, sol.n_ops, 1))
 
     def solver_step():
         step_no[0] += 1

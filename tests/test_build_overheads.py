@@ -137,6 +137,13 @@ class _LaunchProbe:
         for i in self.x:
             self.loss[None] += c * self.x[i] ** 2
 
+    @ti.kernel
+    def count(self, a: ti.i32, b: ti.i32) -> ti.i32:
+        """The owner as the only template (the fused step's shape): out += a * b, returns out[0]."""
+        for i in self.out:
+            self.out[i] += a * b
+        return ti.cast(self.out[0], ti.i32)
+
 
 def test_fast_launch_gives_taichi_s_results():
     """Repeated launches (the fast path) give what the formula gives, for every template argument, scalar
@@ -193,6 +200,31 @@ def test_fast_launch_gives_taichi_s_results():
     with pytest.raises(Exception) as taichi_err:
         K.Kernel._taichi_call(q.write._primal, q, 3, "one", 0, np.ones(5))
     assert type(fast_err.value) is type(taichi_err.value) and "cannot be converted" in str(fast_err.value)
+
+
+def test_fast_launch_of_an_owner_s_kernel_follows_the_owner():
+    """A kernel whose only template is its owner (the fused step's shape) reuses its last launch's
+    entry only for that same owner: two owners alternating, an owner freed and another made in its
+    place (the same id), and fields created between launches each get their own results."""
+    gs.init(backend=gs.cpu, precision="64")
+    from solvers.taichi_compat import frontend as F
+
+    q, r = _LaunchProbe(3), _LaunchProbe(3)
+    for step in range(1, 5):  # two owners alternating: each launch's last entry is the other owner's
+        assert q.count(step, 1) == sum(range(1, step + 1))
+        assert r.count(step, 10) == 10 * sum(range(1, step + 1))
+    for step in range(3):  # one owner again and again (the last entry reused), then the other
+        assert q.count(1, 1) == 11 + step
+    assert r.count(1, 1) == 101
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(F, "id", lambda obj: 0, raising=False)  # every owner gets one id: only the refs tell them apart
+        for _ in range(2):
+            q.count(0, 0)
+        del q
+        q = _LaunchProbe(3)  # fields created after the launches, an owner in the freed one's place
+        assert q.count(2, 3) == 6 and q.count(1, 1) == 7
+        assert r.count(1, 1) == 102
+        assert q.out.to_numpy().tolist() == [7.0] * 3 and r.out.to_numpy().tolist() == [102.0] * 3
 
 
 def test_source_store_keeps_taichi_s_source_across_processes(tmp_path, monkeypatch):

@@ -288,8 +288,9 @@ class RigidSim:
         if self._ctrl_dirty:
             self._load_ctrl(self.ctrl, self.ctrl_mode)
             self._ctrl_dirty = False
-        self._load_params(self._params_dirty)
-        self._params_dirty = set()
+        if self._params_dirty:
+            self._load_params(self._params_dirty)
+            self._params_dirty = set()
 
     def _load_params(self, names):
         """Upload the parameters among `names` whose tensors are not the ones in the fields (the core's

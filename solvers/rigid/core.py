@@ -31,6 +31,7 @@ from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INTEGRATE
 from .kinematics import KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_world_inertia
 from .layout import ZeroPlan, func_zero_plan, place_env_major
+from .schedule import SPAN_BITS, SPAN_MASK
 from .schedule import OP_DYN, OP_SOLVE
 
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
@@ -354,9 +355,11 @@ class RigidCore:
                     stage(self, i_b, kind, e, base, src, dst, h)
 
     @ti.kernel
-    def kernel_step_fused(self, step: ti.i32, k0: ti.i32, k1: ti.i32, finish: ti.i32) -> ti.i32:
+    def kernel_step_fused(self, step: ti.i32, span: ti.i32) -> ti.i32:
         """Ops k0..k1-1 of the schedule (the whole step, or one substep when another solver steps
-        between substeps), all envs, one launch (no gradient bookkeeping). With `finish` the last slot
+        between substeps), all envs, one launch (no gradient bookkeeping), span = k0 | k1 << 15 |
+        finish << 30 (schedule.pack_span: one argument, not three, as each costs ~0.6 us to set at a
+        launch, a twentieth of a 1-env step). With `finish` the last slot
         becomes slot 0 and nan_step[i_b] records the first `step` after which env i_b's state is not
         finite (checked while copying, so nearly free). Returns how many envs have such a record: the
         scene reads that integer after every step and looks at the state only when it grew. (A
@@ -366,6 +369,9 @@ class RigidCore:
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
             if i_b < self.n_envs:
+                k0 = span & SPAN_MASK
+                k1 = (span >> SPAN_BITS) & SPAN_MASK
+                finish = span >> (2 * SPAN_BITS)
                 for k in range(k0, k1):
                     op = self.sched[k, 0]
                     kind, e, base, src, dst = self.sched[k, 1], self.sched[k, 2], self.sched[k, 3], self.sched[k, 4], self.sched[k, 5]

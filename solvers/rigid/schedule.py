@@ -38,6 +38,16 @@ OP_DYN, OP_SOLVE, OP_INT, OP_COPY = 0, 1, 2, 3
 INT_EULER, INT_RK_STAGE, INT_RK_FINAL = 0, 1, 2
 
 
+# kernel_step_fused takes the ops it runs and whether it ends the step as one integer (pack_span)
+SPAN_BITS = 15
+SPAN_MASK = (1 << SPAN_BITS) - 1
+
+
+def pack_span(k0: int, k1: int, finish: int) -> int:
+    """Ops k0..k1-1 and `finish` (0 or 1) as kernel_step_fused's one argument."""
+    return k0 | (k1 << SPAN_BITS) | (finish << (2 * SPAN_BITS))
+
+
 class StepSchedule:
     """The ops of one step, (op, kind, e, base, src, dst, h), and where each substep's begin in that
     list (substep i moves the state from slot substep_slot[i] to substep_slot[i + 1])."""
@@ -67,6 +77,9 @@ class StepSchedule:
                 ops.append((OP_INT, INT_EULER, i, i, i, i + 1, h))
             self.n_slots, self.n_evals = substeps + 1, substeps
             self.evals_per_substep = 1
+        if len(ops) > SPAN_MASK:
+            raise ValueError(f"{substeps} substeps make {len(ops)} ops in a step, more than the {SPAN_MASK} one step "
+                             "can hold: use fewer substeps and a smaller dt instead")
         self.ops = ops
         self.n_ops = len(ops)
         self.substep_first_op = first + [len(ops)]

@@ -294,10 +294,13 @@ def _install_light_traceback():
 
 
 class _FastEntry:
-    __slots__ = ("refs", "key", "t_kernel", "sync")
+    """What a fast launch reuses: weak references to the template arguments (position, ref), Taichi's
+    key and compiled instance of the kernel, whether to synchronise after it, and the compiled kernel
+    data (None until the first fast launch asks Taichi for it)."""
+    __slots__ = ("refs", "key", "t_kernel", "sync", "data")
 
     def __init__(self, refs, key, t_kernel, sync=False):
-        self.refs, self.key, self.t_kernel, self.sync = refs, key, t_kernel, sync
+        self.refs, self.key, self.t_kernel, self.sync, self.data = refs, key, t_kernel, sync, None
 
 
 _VALUE_TYPES = (int, float, bool, str, type(None))
@@ -387,16 +390,34 @@ def install_fast_launch() -> bool:
                 or self.has_print):
             return original(self, *args, **kwargs)
         temps, floats, ints, arrays = plan
-        sig = tuple(a if type(a) in _VALUE_TYPES else id(a) for a in (args[i] for i in temps))
-        if arrays:
-            asig = tuple(array_sig(args[i]) for i, _ in arrays)
-            if None in asig:
-                return original(self, *args)
-            sig = (sig, asig)
-        cache = d["_gs_cache"]
-        hit = cache.get(sig)
-        if (hit is None or self.compiled_kernels.get(hit.key) is not hit.t_kernel
-                or any(r() is not args[i] for i, r in hit.refs) or fields_seen[0] != fields_state(rt)):
+        # a kernel whose one template argument is an object (a data-oriented class's kernel) and that
+        # takes no array: the entry of its last fast launch, if that object is the one passed again
+        hit = d.get("_gs_last")
+        if hit is not None:
+            i, r = hit.refs[0]
+            if r() is not args[i]:
+                hit = None
+        sig = None
+        if hit is None:
+            sig = tuple([a if type(a) in _VALUE_TYPES else id(a) for a in [args[i] for i in temps]])
+            if arrays:
+                asig = tuple(array_sig(args[i]) for i, _ in arrays)
+                if None in asig:
+                    return original(self, *args)
+                sig = (sig, asig)
+            hit = d["_gs_cache"].get(sig)
+            if hit is not None:
+                for i, r in hit.refs:
+                    if r() is not args[i]:
+                        hit = None
+                        break
+            if hit is not None and len(temps) == 1 and len(hit.refs) == 1 and not arrays:
+                d["_gs_last"] = hit
+        if hit is None or self.compiled_kernels.get(hit.key) is not hit.t_kernel or fields_seen[0] != fields_state(rt):
+            d["_gs_last"] = None
+            cache = d["_gs_cache"]
+            if sig is None:  # the last launch's entry, gone stale (such a kernel takes no array)
+                sig = tuple([a if type(a) in _VALUE_TYPES else id(a) for a in [args[i] for i in temps]])
             ret = original(self, *args)
             refs = []
             for i in temps:
@@ -432,7 +453,13 @@ def install_fast_launch() -> bool:
                                                       tuple(v.shape), 0)
         prog = rt.prog
         try:
-            prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel), ctx)
+            data = hit.data
+            if data is None:
+                # Taichi's compiled data for this instance: compile_kernel looks it up by the key the
+                # kernel got at its first compile (not by the config of the moment) and returns a
+                # reference into its cache, stable while the program lives (fields_state checks it)
+                data = hit.data = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+            prog.launch_kernel(data, ctx)
         except Exception as e:
             e = handle_exception_from_cpp(e)
             if impl.get_runtime().print_full_traceback:
