@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, fields
-from typing import Optional, Tuple
+from typing import Optional, Tuple, Union
 
 import numpy as np
 
@@ -206,16 +206,21 @@ class RigidOptions(_Options):
 @dataclass
 class MPMOptions(_Options):
     """The MPM solver's background grid: grid_density cells per metre between lower_bound and
-    upper_bound (m, world frame), whose faces are walls with Coulomb friction wall_friction;
-    particle_size (m) is the spacing of the particles sampled in an entity (default 0.01 * 64 /
-    grid_density, Genesis's). The 3 outermost cells of each face belong to the walls: particles start
-    inside [lower_bound + 3 dx, upper_bound - 3 dx] (dx = 1 / grid_density)."""
+    upper_bound (m, world frame), whose faces are walls; particle_size (m) is the spacing of the
+    particles sampled in an entity (default 0.01 * 64 / grid_density, Genesis's). The 3 outermost cells
+    of each face belong to the walls: particles stay inside [lower_bound + 3 dx, upper_bound - 3 dx]
+    (dx = 1 / grid_density), as in Genesis. The walls are frictionless by default, as Genesis's domain
+    boundary (which only stops the velocity into it); wall_friction > 0 gives them Coulomb friction of
+    that coefficient (a floor that holds a sand pile without a rigid plane inside the domain), or three
+    coefficients, for the faces normal to x, y and z ((0, 0, 0.5): a rough floor between smooth side
+    walls). A rigid Plane at lower_bound lies below the walls and never touches the material, in Genesis
+    as here."""
 
     grid_density: float = 64.0
     lower_bound: Tuple[float, float, float] = (-1.0, -1.0, 0.0)
     upper_bound: Tuple[float, float, float] = (1.0, 1.0, 1.0)
     particle_size: Optional[float] = None
-    wall_friction: float = 0.5
+    wall_friction: Union[float, Tuple[float, float, float]] = 0.0
     enable_CPIC: bool = False
 
     def _validate(self):
@@ -234,8 +239,13 @@ class MPMOptions(_Options):
             self.particle_size = 0.01 * 64.0 / float(d)
         elif not (isinstance(self.particle_size, (int, float)) and np.isfinite(self.particle_size) and self.particle_size > 0):
             self._err("particle_size", self.particle_size, "must be a positive number (m) or None")
-        if not (isinstance(self.wall_friction, (int, float)) and np.isfinite(self.wall_friction) and self.wall_friction >= 0):
-            self._err("wall_friction", self.wall_friction, "must be a finite number >= 0")
+        mu = self.wall_friction
+        one = isinstance(mu, (int, float, np.integer, np.floating)) and not isinstance(mu, bool)
+        three = (isinstance(mu, (tuple, list, np.ndarray)) and len(mu) == 3
+                 and all(isinstance(m, (int, float, np.integer, np.floating)) and not isinstance(m, bool) for m in mu))
+        if not ((one or three) and np.all(np.isfinite(np.asarray(mu, float))) and np.all(np.asarray(mu, float) >= 0)):
+            self._err("wall_friction", mu, "must be a finite number >= 0, or three of them (the faces normal to x, y, z)")
+        self.wall_friction = float(mu) if one else tuple(float(m) for m in mu)
         if self.enable_CPIC:
             self._err("enable_CPIC", self.enable_CPIC, "CPIC (thin rigid shells in MPM) is not implemented; leave it False")
 

@@ -281,14 +281,15 @@ MPM_MATERIALS = {
 }
 
 
-def _mpm_scene(v, upper, dens=32, dt=4e-3, substeps=4, coupler=None):
+def _mpm_scene(v, upper, dens=32, dt=4e-3, substeps=4, coupler=None, **mpm):
     return _scene(v, dt=dt, substeps=substeps, coupler=coupler,
-                  mpm=dict(lower_bound=(0.0, 0.0, 0.0), upper_bound=upper, grid_density=dens))
+                  mpm=dict(lower_bound=(0.0, 0.0, 0.0), upper_bound=upper, grid_density=dens, **mpm))
 
 
 def build_mpm_cube(v, material):
-    """A cube of one MPM material (27 particles) thrown down and sideways onto the floor (wall friction)."""
-    scene = _mpm_scene(v, upper=(0.3, 0.3, 0.3))
+    """A cube of one MPM material (27 particles) thrown down and sideways onto the floor, whose walls
+    have friction 0.5 (the walls' default is frictionless: mpm_four throws its cubes onto that)."""
+    scene = _mpm_scene(v, upper=(0.3, 0.3, 0.3), wall_friction=0.5)
     floor = 3 / 32
     cube = scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, floor + 0.04), size=(0.06, 0.06, 0.06)),
                             material=MPM_MATERIALS[material]())
@@ -301,7 +302,7 @@ def build_mpm_cube(v, material):
 
 def build_mpm_four(v):
     """One cube of each MPM material (Elastic, ElastoPlastic, Sand, Liquid) side by side, thrown onto
-    the floor: every constitutive model in one scene, one compile."""
+    the floor (its walls frictionless, the default): every constitutive model in one scene, one compile."""
     scene = _mpm_scene(v, upper=(0.5, 0.5, 0.3))
     floor = 3 / 32
     ents = {}
@@ -311,7 +312,7 @@ def build_mpm_four(v):
                                               material=mat())
     scene.build(n_envs=v.n_envs)
     rng = np.random.default_rng(12)
-    # sand thrown harder, so that it shears against the floor and its friction angle matters
+    # sand thrown harder, so that it shears as it spreads on the floor and its friction angle matters
     defaults = {f"{k}.particles_vel": rng.normal(0.0, 0.3, (e.n_particles, 3)) + ([1.0, 0.5, -3.0] if k == "sand" else
                                                                                 [0.3, 0.2, -1.5])
                 for k, e in ents.items()}
@@ -319,13 +320,19 @@ def build_mpm_four(v):
 
 
 def build_ball_in_block(v, material=None):
-    """A rigid ball (default Rigid material) pressed into a soft elastic block, two-way coupled."""
+    """A rigid ball (default Rigid material) pressed into a soft elastic block, two-way coupled. The walls
+    hold material 3 cells in from each face; the block starts a cell above the floor's plane (its lowest
+    particles weigh 2 % on the walls' top nodes) and two cells in from the side walls' (the domain is
+    large enough that the top walls are far above it): a block resting on or pressed into the walls has
+    nodes whose velocity into a wall is ~0 and switches it on and off within a finite difference's step
+    (the hard wall's kink), and the central differences stop converging. (mpm_four checks gradients
+    through the walls, with cubes thrown onto them.)"""
     dens = 32
-    floor = 3 / dens
-    scene = _mpm_scene(v, upper=(0.3, 0.3, 0.3), dens=dens, dt=2e-3, substeps=6)
-    block = scene.add_entity(gs.morphs.Box(pos=(0.15, 0.15, floor + 0.04), size=(0.12, 0.12, 0.08)),
+    x0, floor = 0.15 + 2 / dens, 4 / dens  # the block's centre along x and y, the plane it starts on
+    scene = _mpm_scene(v, upper=(0.3 + 4 / dens, 0.3 + 4 / dens, 0.4), dens=dens, dt=2e-3, substeps=6)
+    block = scene.add_entity(gs.morphs.Box(pos=(x0, x0, floor + 0.04), size=(0.12, 0.12, 0.08)),
                              material=gs.materials.MPM.Elastic(E=1e4, nu=0.3))
-    ball = scene.add_entity(gs.morphs.Sphere(pos=(0.155, 0.148, floor + 0.08 + 0.035), radius=0.04),
+    ball = scene.add_entity(gs.morphs.Sphere(pos=(x0 + 0.005, x0 - 0.002, floor + 0.08 + 0.035), radius=0.04),
                             material=material or gs.materials.Rigid(rho=800))
     scene.build(n_envs=v.n_envs)
     return Built(scene, {"block": block, "ball": ball}, T=5,
@@ -337,7 +344,7 @@ def build_ball_attached(v):
     top particles attached to the ball by springs (MPMEntity.set_particle_constraints)."""
     b = build_ball_in_block(v)
     block, ball = b.ents["block"], b.ents["ball"]
-    top = block.get_particles_in_bbox((0.0, 0.0, 3 / 32 + 0.06), (1.0, 1.0, 1.0))
+    top = block.get_particles_in_bbox((0.0, 0.0, 4 / 32 + 0.06), (1.0, 1.0, 1.0))
     assert bool(top.any()) and not bool(top.all())
     block.set_particle_constraints(top, ball.links[0].idx, stiffness=300.0)
     return b
@@ -353,13 +360,17 @@ def build_arm_press(v):
     """assets/urdf/arm.urdf under PD control pressing its tool into plasticine, coupled both ways
     (default CouplerOptions); examples/arm_press_plasticine.py shrunk to 32 cells/m and 6 steps: the
     tool starts 15 mm deep in soft plasticine (yield stress 60 Pa), moving down at ~0.3 m/s, and its PD
-    targets press on."""
-    dens, L, H = 32, 0.3, 0.25
-    wall = 3.0 / dens
+    targets press on. The block starts a cell clear of the planes where the walls hold material (3 cells
+    in from each face; the domain is 2 cells wider and 3 taller than the block needs): pressed against
+    them, nodes whose velocity into a wall is ~0 switch it on and off within a finite difference's step
+    (the hard wall's kink, see build_ball_in_block)."""
+    dens = 32
+    L, H = 0.3 + 2 / dens, 0.25 + 3 / dens
+    floor = 4.0 / dens
     scene = _mpm_scene(v, upper=(L, L, H), dens=dens, dt=2e-3, substeps=5)
-    block = scene.add_entity(gs.morphs.Box(pos=(L / 2, L / 2, wall + 0.03), size=(0.12, 0.12, 0.06)),
+    block = scene.add_entity(gs.morphs.Box(pos=(L / 2, L / 2, floor + 0.03), size=(0.12, 0.12, 0.06)),
                              material=gs.materials.MPM.ElastoPlastic(E=5e4, nu=0.3, yield_stress=60.0))
-    top = wall + 0.06
+    top = floor + 0.06
     a = 1.2
     # shoulder pitch a, elbow pi - a: the last link points down; its tool's bottom 15 mm into the block
     # (the top particles' centres lie half a particle spacing, 1 cm, below its surface); off the grid's

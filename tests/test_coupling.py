@@ -38,7 +38,9 @@ def test_box_resting_on_an_elastic_block_feels_its_weight():
     scene.build()
     weight = box.get_mass() * G
     F, V = [], []
-    for _ in range(500):
+    # 1.4 s: on the default frictionless floor (Genesis's) the block's bounce dies out more slowly than on a
+    # floor with friction (at 1 s the box still moved at 9 mm/s, at 1.4 s at 2.4 mm/s)
+    for _ in range(700):
         scene.step()
         F.append(box.get_links_mpm_force()[0].numpy())
         V.append(box.get_vel()[2].item())
@@ -178,11 +180,17 @@ def test_one_way_coupling_moves_the_material_but_not_the_body():
     ball = scene.add_entity(gs.morphs.Sphere(pos=(0.2, 0.2, 0.25), radius=0.04), material=gs.materials.Rigid(rho=500))
     scene.build()
     z0 = ball.get_pos()[2].item()
+    x0 = block.get_particles_pos().numpy().copy()
     for _ in range(60):
         scene.step()
     t = 60 * scene.dt
     assert abs(ball.get_pos()[2].item() - (z0 - 0.5 * G * t * t)) < 0.01  # free fall: it feels nothing
-    assert block.get_particles_pos()[:, 2].min().item() < 3 / 32  # it pushed the material down into the floor cells
+    # it pushed the material under it 3 cm down (the ball's bottom went 4.5 cm into the block), and no
+    # particle is inside it by more than half a cell
+    x = block.get_particles_pos().numpy()
+    under = (np.abs(x0[:, 0] - 0.2) < 0.02) & (np.abs(x0[:, 1] - 0.2) < 0.02)
+    assert x0[under, 2].max() - x[under, 2].max() > 0.03
+    assert np.linalg.norm(x - ball.get_pos().numpy(), axis=1).min() > 0.04 - 0.5 / 32
     assert np.abs(ball.get_links_mpm_force().numpy()).max() == 0.0
 
 

@@ -19,17 +19,18 @@ def func_grid_velocity(s: ti.template(), i_b, I, dt):
 
 @ti.func
 def func_wall(s: ti.template(), v, I, d: ti.template()):
-    """Grid velocity v at node I after the walls normal to axis d: a node within `bound` cells of
-    a face loses its velocity into the wall and Coulomb friction (coefficient wall_friction) slows
-    its tangential velocity by mu |v_n|, never reversing it."""
-    low = ti.cast(I[d] < s.bound, float)
-    high = ti.cast(I[d] >= s.grid_res[d] - s.bound, float)
+    """Grid velocity v at node I after the walls normal to axis d: a node at most `bound` cells from a
+    face (up to the plane that particles are kept behind, solver.BOUND) loses its velocity into the
+    wall, and Coulomb friction (the coefficient wall_friction[d] of the faces normal to axis d, 0 by
+    default as in Genesis) slows its tangential velocity by mu |v_n|, never reversing it."""
+    low = ti.cast(I[d] <= s.bound, float)
+    high = ti.cast(I[d] >= s.grid_res[d] - 1 - s.bound, float)
     n = ti.Vector([1.0 if d == 0 else 0.0, 1.0 if d == 1 else 0.0, 1.0 if d == 2 else 0.0]) * (low - high)
     vn = v.dot(n)
     into = ti.cast(vn < 0.0, float) * (low + high)
     vt = v - vn * n
     vt_norm = ti.sqrt(vt.dot(vt) + 1e-12)  # 1e-6 m/s smoothing keeps 1/vt_norm^2 finite in float32
-    slide = vt * ti.max(0.0, 1.0 + s.wall_friction * vn / vt_norm)
+    slide = vt * ti.max(0.0, 1.0 + ti.static(s.wall_friction[d]) * vn / vt_norm)
     return into * slide + (1.0 - into) * v
 
 

@@ -50,7 +50,11 @@ from .grid import func_grid_velocity, func_walls
 from .p2g import func_p2g, func_p2g_adjoint
 from .svd import POLAR_TOL, func_polar, func_svd3
 
-BOUND = 3  # grid nodes at each face that act as walls (particles live inside them)
+# the walls: the grid nodes from each face up to BOUND cells in (BOUND + 1 of them) take no velocity into
+# the wall (grid.func_wall), so material rests BOUND cells in from the face, where Genesis's boundary
+# holds it (lower_bound + 3 dx); particles are clamped one cell further out (x_min, x_max), a safety net
+# that material held by the walls does not reach (a clamp where it rests would cut its gradients)
+BOUND = 3
 NAN_BIG = 1 << 30  # nan_env holds NAN_BIG - (first non-finite step) (kernel_count_nonfinite)
 # Whether the particle count is read at run time, so that scenes of nearby counts share a solver of
 # one capacity (cap_particles), as rigid scenes share by size class: a sweep over a body's size compiles
@@ -80,7 +84,7 @@ class MPMSolver:
     pooled by its class (see the module docstring): made by `acquire`, which loads a scene into it
     (`_load`). Per scene: particle positions x0 (P, 3) m, volumes vol (P,) m^3, masses mass (P,) kg,
     material codes mat (P,); dt is one scene step (s), split into `substeps`; wall_friction is the
-    walls' Coulomb coefficient. Its substep is three stages (see the module docstring)."""
+    walls' Coulomb coefficient (a number, or one per axis of the faces' normals). Its substep is three stages (see the module docstring)."""
 
     def __init__(self, key):
         dtype, requires_grad, n_envs, cap, n_slots, lower, dx, grid_res, wall_friction, mats = key
@@ -101,10 +105,10 @@ class MPMSolver:
         upper_eff = np.asarray(lower, float) + (res - 1) * self.dx
         self.np_lower, self.np_upper = np.asarray(lower, float), upper_eff
         # plain floats: compile-time constants (a ti.Vector attribute in the clamp crashed g2p's adjoint)
-        self.x_min = tuple(float(v) for v in self.np_lower + self.dx)
-        self.x_max = tuple(float(v) for v in upper_eff - self.dx)
+        self.x_min = tuple(float(v) for v in self.np_lower + (BOUND - 1) * self.dx)
+        self.x_max = tuple(float(v) for v in upper_eff - (BOUND - 1) * self.dx)
         self.requires_grad = requires_grad
-        self.wall_friction = float(wall_friction)
+        self.wall_friction = tuple(float(m) for m in wall_friction)  # per axis of the faces' normals
         self.mats = mats
         self.has_svd = any(m in SVD_MATERIALS for m in self.mats)
         self.has_ad = any(m in AD_MATERIALS for m in self.mats)
@@ -702,7 +706,8 @@ def solver_key(n_envs, n_particles, mat, lower, upper, dx, substeps, dtype, requ
     """The class of solver a scene needs (see the module docstring): what its kernels compile in."""
     res = np.round((np.asarray(upper, float) - np.asarray(lower, float)) / float(dx)).astype(int) + 1
     return (dtype, bool(requires_grad), int(n_envs), cap_particles(n_particles), substeps + 1 if requires_grad else 1,
-            tuple(float(v) for v in lower), float(dx), tuple(int(r) for r in res), float(wall_friction),
+            tuple(float(v) for v in lower), float(dx), tuple(int(r) for r in res),
+            tuple(float(m) for m in np.broadcast_to(np.asarray(wall_friction, float), (3,))),
             tuple(sorted(set(int(m) for m in mat))))
 
 
