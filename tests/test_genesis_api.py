@@ -151,6 +151,33 @@ def test_set_mass_scales_links_as_genesis_and_links_info_reads_them(arm_path):
         arm.set_mass_shift([-2.5], links_idx_local=[1])
 
 
+def test_a_link_s_pose_and_velocity_as_genesis_s_rigid_link_gives_them(arm_path):
+    """RigidLink.get_pos / get_quat / get_vel / get_ang (grasp_soft_cube reads the hand's pose so): the
+    forearm's origin is the elbow, 0.6 m along the upper arm turned by the shoulder angle q1 about y, so at
+    (0.6 cos q1, 0, -0.6 sin q1), moving at 0.6 q1' (-sin q1, 0, -cos q1); the forearm is turned by q1 + q2
+    about y and spins at q1' + q2'. (3,) per link unbatched, (n_envs, 3) batched, rows by envs_idx."""
+    for n_envs in (0, 2):
+        scene, arm = _arm_scene(arm_path, n_envs=n_envs)
+        q = np.array([[0.3, -0.5], [-1.1, 0.7]])[: max(n_envs, 1)]
+        v = np.array([[1.0, 2.0], [-0.5, 0.25]])[: max(n_envs, 1)]
+        arm.set_dofs_position(torch.tensor(q if n_envs else q[0], dtype=torch.float64))
+        arm.set_dofs_velocity(torch.tensor(v if n_envs else v[0], dtype=torch.float64))
+        fore = arm.get_link("fore")
+        q1, q12, w1, w12 = q[:, 0], q.sum(1), v[:, 0], v.sum(1)
+        zero = np.zeros_like(q1)
+        want = {"get_pos": np.stack([0.6 * np.cos(q1), zero, -0.6 * np.sin(q1)], -1),
+                "get_quat": np.stack([np.cos(q12 / 2), zero, np.sin(q12 / 2), zero], -1),
+                "get_vel": 0.6 * w1[:, None] * np.stack([-np.sin(q1), zero, -np.cos(q1)], -1),
+                "get_ang": np.stack([zero, w12, zero], -1)}
+        for name, ref in want.items():
+            got = getattr(fore, name)()
+            d = 4 if name == "get_quat" else 3
+            assert tuple(got.shape) == ((n_envs, d) if n_envs else (d,)), (name, got.shape)
+            np.testing.assert_allclose(got.numpy(), ref if n_envs else ref[0], atol=1e-12, err_msg=name)
+        if n_envs:
+            np.testing.assert_allclose(fore.get_pos(envs_idx=[1]).numpy(), want["get_pos"][1:], atol=1e-12)
+
+
 def test_links_info_layout_follows_batch_links_info(arm_path):
     """(n_links, n_envs) with RigidOptions(batch_links_info=True), as Genesis's fields; without it a per-env
     difference cannot be shown in the (n_links,) layout and is refused with what to do."""

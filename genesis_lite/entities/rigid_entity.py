@@ -41,6 +41,23 @@ class RigidLink:
         """This link's mass (kg), per env in a batched scene (Genesis's RigidLink.get_mass)."""
         return self.entity.get_links_mass([self.idx_local], envs_idx)[..., 0]
 
+    def get_pos(self, envs_idx=None):
+        """This link's origin in the world frame (m): (3,), or (n_envs, 3) in a batched scene (Genesis's
+        RigidLink.get_pos); differentiable, as entity.get_links_pos."""
+        return self.entity.get_links_pos([self.idx_local], envs_idx)[..., 0, :]
+
+    def get_quat(self, envs_idx=None):
+        """This link's orientation in the world frame (w, x, y, z), as get_pos."""
+        return self.entity.get_links_quat([self.idx_local], envs_idx)[..., 0, :]
+
+    def get_vel(self, envs_idx=None):
+        """The linear velocity (m/s, world) of this link's origin, as get_pos."""
+        return self.entity.get_links_vel([self.idx_local], envs_idx)[..., 0, :]
+
+    def get_ang(self, envs_idx=None):
+        """This link's angular velocity (rad/s, world), as get_pos."""
+        return self.entity.get_links_ang([self.idx_local], envs_idx)[..., 0, :]
+
     @property
     def is_fixed(self) -> bool:
         """Whether this link is fixed to the world (no joint with dofs on its way to the root)."""
