@@ -84,7 +84,8 @@ class MPMSolver:
     pooled by its class (see the module docstring): made by `acquire`, which loads a scene into it
     (`_load`). Per scene: particle positions x0 (P, 3) m, volumes vol (P,) m^3, masses mass (P,) kg,
     material codes mat (P,); dt is one scene step (s), split into `substeps`; wall_friction is the
-    walls' Coulomb coefficient (a number, or one per axis of the faces' normals). Its substep is three stages (see the module docstring)."""
+    walls' Coulomb coefficient (a number, or one per axis of the faces' normals). Its substep is three
+    stages (see the module docstring)."""
 
     def __init__(self, key):
         dtype, requires_grad, n_envs, cap, n_slots, lower, dx, grid_res, wall_friction, mats = key

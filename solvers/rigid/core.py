@@ -31,8 +31,7 @@ from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INTEGRATE
 from .kinematics import KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_world_inertia
 from .layout import ZeroPlan, func_zero_plan, place_env_major
-from .schedule import SPAN_BITS, SPAN_MASK
-from .schedule import OP_DYN, OP_SOLVE
+from .schedule import OP_DYN, OP_SOLVE, SPAN_BITS, SPAN_MASK
 
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
 SERIAL_MAX_ENVS = 16

@@ -374,6 +374,10 @@ def install_fast_launch() -> bool:
             return (torch.Tensor, v.dtype, v.dim())
         return None
 
+    def template_sig(args, temps):
+        """The template arguments' part of a cache key: value arguments as they are, objects by id."""
+        return tuple([a if type(a) in _VALUE_TYPES else id(a) for a in [args[i] for i in temps]])
+
     def fast_call(self, *args, **kwargs):
         d = self.__dict__
         plan = d.get("_gs_plan", False)
@@ -399,7 +403,7 @@ def install_fast_launch() -> bool:
                 hit = None
         sig = None
         if hit is None:
-            sig = tuple([a if type(a) in _VALUE_TYPES else id(a) for a in [args[i] for i in temps]])
+            sig = template_sig(args, temps)
             if arrays:
                 asig = tuple(array_sig(args[i]) for i, _ in arrays)
                 if None in asig:
@@ -417,7 +421,7 @@ def install_fast_launch() -> bool:
             d["_gs_last"] = None
             cache = d["_gs_cache"]
             if sig is None:  # the last launch's entry, gone stale (such a kernel takes no array)
-                sig = tuple([a if type(a) in _VALUE_TYPES else id(a) for a in [args[i] for i in temps]])
+                sig = template_sig(args, temps)
             ret = original(self, *args)
             refs = []
             for i in temps:
