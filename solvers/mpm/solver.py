@@ -174,9 +174,10 @@ class MPMSolver:
         # adjoints start from the grid's and particles' own), but a Tape needs a scalar to seed
         self.replay_loss = ti.field(f, shape=(), needs_grad=True) if g else None
         self.vjp_loss = ti.field(f, shape=(), needs_grad=True) if g else None  # see kernel_vjp
+        # the adjoints zeroed before a step's backward; not the grid's, which every substep's adjoint
+        # zeroes in its own region (kernel_clear_grid_grads) and no kernel reads outside it
         self.grad_fields = [self.x, self.v, self.C, self.F, self.tau, self.mu, self.lam, self.yield_stress,
-                            self.alpha, self.viscosity, self.f_ext, self.gravity, self.grid_m, self.grid_mv,
-                            self.grid_v] if g else []
+                            self.alpha, self.viscosity, self.f_ext, self.gravity] if g else []
 
     def _fill(self, x0, vol, mass, mat, gravity):
         nd = self.np_dtype
@@ -191,8 +192,8 @@ class MPMSolver:
         """The Tape-recorded calls with their own adjoints (see the module docstring)."""
 
         @ti.ad.no_grad
-        def clear_grid(src):
-            self._clear_grid(src)
+        def clear_grid():
+            self.kernel_clear_grid()  # the region record_substep_grad has just found (active_lo, active_n)
 
         @ti.ad.grad_replaced
         def record_substep(i, stages):
@@ -225,7 +226,9 @@ class MPMSolver:
 
         @ti.ad.grad_replaced
         def g2p(src, dst):
-            self.kernel_g2p(src, dst, self.h)
+            pass  # nothing to recompute: slot dst holds what kernel_g2p wrote there in the step's forward
+            # (the backward's replay of the step, whose slots no later launch overwrites), which is all
+            # the adjoint reads; only the grid, which the next substep overwrote, is recomputed
 
         @ti.ad.grad_for(g2p)
         def g2p_grad(src, dst):
@@ -275,7 +278,7 @@ class MPMSolver:
             self._region = None
             return
         if replay:
-            self.clear_grid(src)
+            self.clear_grid()
             self.p2g_replay(src)
         else:
             self._clear_grid(src)
