@@ -96,6 +96,33 @@ def _kernel_templated(a: ti.template(), s: ti.f32) -> ti.f32:
     return acc
 
 
+def test_light_getframeinfo_answers_as_inspect_does(tmp_path, monkeypatch):
+    """The getframeinfo Taichi's import runs under (frontend.import_taichi) gives inspect's answer for
+    every frame a decoration looks at: a function's, a class body's, a module's while it is imported,
+    and the import machinery's above it (a pseudo-file without source)."""
+    import importlib
+    import inspect
+
+    from solvers.taichi_compat import frontend
+
+    (tmp_path / "gl_frames_probe.py").write_text(
+        "import sys\n"
+        "FRAMES = [sys._getframe(k) for k in range(4)]\n"
+        "class C:\n"
+        "    FRAME = sys._getframe(0)\n"
+        "def f():\n"
+        "    return sys._getframe(0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    probe = importlib.import_module("gl_frames_probe")
+    frames = probe.FRAMES + [probe.C.FRAME, probe.f()]  # (finished frames: a running one moves on)
+    files = {f.f_code.co_filename for f in frames}
+    assert any(f.startswith("<frozen") for f in files) and str(tmp_path / "gl_frames_probe.py") in files
+    for frame in frames:
+        assert frontend.light_getframeinfo(frame) == inspect.getframeinfo(frame), frame.f_code.co_filename
+        assert frontend.light_getframeinfo(frame).positions == inspect.getframeinfo(frame).positions
+    assert inspect.getframeinfo is frontend._INSPECT_GETFRAMEINFO  # put back after Taichi's import
+
+
 def test_tree_and_context_equal_taichi_s():
     """The cached source gives the same tree, source lines, file and line numbers as Taichi's helper,
     for a kernel with a template argument and for a function inside it."""

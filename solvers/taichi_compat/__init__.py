@@ -24,6 +24,10 @@ from __future__ import annotations
 import logging
 import os
 
+from . import frontend as _frontend
+
+_frontend.import_taichi()  # (before the first `import taichi` below: see its docstring)
+
 TAICHI_VERSION = (1, 7, 4)
 _log = logging.getLogger("genesis_lite")
 

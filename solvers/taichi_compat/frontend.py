@@ -109,6 +109,57 @@ def install() -> bool:
     return True
 
 
+_INSPECT_GETFRAMEINFO = inspect.getframeinfo
+_CODE_POSITION = getattr(inspect, "_get_code_position", None)
+
+
+def light_getframeinfo(frame, context=1):
+    """inspect.getframeinfo(frame, 1) without its `sys.modules` scan: the position of the frame's
+    instruction and its line from linecache (through the frame's module globals); a pseudo-file
+    ("<frozen importlib._bootstrap>": the frame above a module-level decoration) without source gives
+    code_context and index None, as inspect does. Any other case goes to inspect's own."""
+    if context != 1 or not inspect.isframe(frame) or _CODE_POSITION is None:
+        return _INSPECT_GETFRAMEINFO(frame, context)
+    try:
+        positions = _CODE_POSITION(frame.f_code, frame.f_lasti)
+        lineno = positions[0] if positions[0] is not None else frame.f_lineno
+        file = frame.f_code.co_filename
+        pseudo = file.startswith("<") and file.endswith(">")
+        if not (os.path.isabs(file) or pseudo):
+            return _INSPECT_GETFRAMEINFO(frame, context)
+        lines = linecache.getlines(file, frame.f_globals)
+        if not lines and pseudo:
+            context_lines, index = None, None
+        elif 0 < lineno <= len(lines) and not pseudo:
+            context_lines, index = [lines[lineno - 1]], 0
+        else:
+            return _INSPECT_GETFRAMEINFO(frame, context)
+        import dis
+
+        return inspect.Traceback(file, lineno, frame.f_code.co_name, context_lines, index,
+                                 positions=dis.Positions(*positions))
+    except Exception:
+        return _INSPECT_GETFRAMEINFO(frame, context)
+
+
+def import_taichi() -> None:
+    """Import Taichi (once per process) with `inspect.getframeinfo` as `light_getframeinfo` while it
+    runs: Taichi decorates ~90 of its own functions and kernels at import, and each decoration reads
+    one source line through getframeinfo (its `_inside_class`, for a module-level decoration the frame
+    of the import machinery, which has no source), whose module lookup scans `sys.modules`: with
+    torch imported first, as scripts usually do, that doubled Taichi's import time. Restored when the
+    import ends. GS_TAICHI_SPEEDUPS=0 or GS_TAICHI_FAST_FRONTEND=0: a plain import."""
+    if "taichi" in sys.modules or os.environ.get("GS_TAICHI_SPEEDUPS") == "0" \
+            or os.environ.get("GS_TAICHI_FAST_FRONTEND") == "0":
+        import taichi  # noqa: F401
+        return
+    inspect.getframeinfo = light_getframeinfo
+    try:
+        import taichi  # noqa: F401
+    finally:
+        inspect.getframeinfo = _INSPECT_GETFRAMEINFO
+
+
 class _SourceStore:
     """The normalised source of each function, kept on disk across processes: finding it (inspect
     tokenises the file from the function's first line to the end of its block) costs ~0.5 ms a
