@@ -101,6 +101,46 @@ def test_sliding_box_stops_after_v2_over_2mug(mu, v0):
     assert float(box.get_vel().abs().max()) < 1e-3  # it has stopped (no creep)
 
 
+@pytest.mark.xfail(strict=True, reason="friction takes its bound from the frictionless solve's normal forces, which "
+                   "sum to less than the weight while a sliding box pitches (contact/__init__.py, step 4)")
+def test_sliding_box_converges_to_coulomb_as_the_step_shrinks():
+    """A box launched along a floor (0.2 m cube, v0 2 m/s, mu 0.5, default options) against the exact
+    Coulomb slide x(t) = v0 t - mu g t^2 / 2, which stops at v0 / (mu g) = 0.41 s: the error at t = 1 s
+    should fall with dt at first order (|error| <= 1.1 dt m/s), and over the slide the friction impulse
+    should be mu times the normal impulse within 1e-3.
+
+    Measured 2026-11-28: the error at 1 s is -9.9e-3 / -2.0e-3 / +1.2e-3 / +3.2e-3 m at dt = 10 / 2.5 /
+    0.625 / 0.3125 ms (it changes sign and grows), the impulse ratio 0.9988 / 0.9951 / 0.9908 at 2.5 /
+    0.625 / 0.3125 ms. The cause, traced: friction's bound per contact is mu f2, the normal forces of the
+    frictionless solve (step 2), in which the box, pressed harder on its front edge by friction's torque,
+    pitches back; with the soft contact law's slopes differing front to back its f2 sum to 9.70 N for a
+    9.81 N box at 0.3125 ms. A prototype taking the bound from the normal force at the Coulomb-predicted
+    velocity (step 3) passes this test (error 0.88-0.99 dt, ratio 0.9999) but, as tried, breaks gradient
+    and friction-cone tests elsewhere (the closing note of 2026-11-28)."""
+    mu, v0 = 0.5, 2.0
+    t_stop = v0 / (mu * G)
+    exact = v0 * t_stop - 0.5 * mu * G * t_stop ** 2
+    for dt in (0.01, 0.0025, 0.000625, 0.0003125):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt))
+        scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
+        box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)),
+                               material=gs.materials.Rigid(friction=mu, rho=125.0))
+        scene.build()
+        box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+        fn = ft = 0.0
+        for k in range(int(round(1.0 / dt))):
+            scene.step()
+            if (k + 1) * dt < 0.35:  # sliding
+                c = box.get_contacts()
+                F, n = _np(c["force_a"]), _np(c["normal"])
+                normal = (F * n).sum(-1)
+                fn += normal.sum()
+                ft += np.linalg.norm((F - normal[:, None] * n).sum(0))
+        err = float(box.get_pos()[0]) - exact
+        assert abs(err) <= 1.1 * dt, (dt, err)
+        assert abs(ft / (mu * fn) - 1.0) < 1e-3, (dt, ft / (mu * fn))
+
+
 @pytest.mark.parametrize("mu", [1.0, pytest.param(0.05, marks=pytest.mark.slow)])
 def test_sphere_on_incline_rolls_or_slides(mu):
     """On a 30 degree incline a solid sphere rolls without slip (a = 5/7 g sin) when mu > 2/7 tan, and

@@ -172,38 +172,68 @@ def test_heavy_load_on_a_light_box_warns_about_contact_stiffness():
     assert float(b.get_pos()[0, 2]) < 0.1 - 0.01  # B did sink (more than 10 % of its size)
 
 
-@pytest.mark.slow
-def test_box_sliding_over_an_edge_stays_in_the_friction_cone():
-    """The reported setup (dt = 1e-3): a box (0.12 x 0.1 x 0.08 m, 0.19 kg) sliding and turning on a fixed
-    box (0.2 x 0.2 x 0.1 m) over its edge. In every step whose contacts are all face contacts (vertical
-    normals), the contact force on the sliding box (from its momentum change, gravity removed) obeys
-    Coulomb: |horizontal| <= mu * vertical (mu = 1, 5 % and 0.05 N for the smoothing).
+EDGE_SPINS = (1.1, 1.2, 1.3, 1.4, 1.5, 1.6, 1.7, 1.8)  # rad/s about z: the reported 1.5 and its neighbours
 
-    A strict xfail until 2026-11-27 (issue #21, item 4): the lower box's top edge, level with the sliding
-    box's bottom face (1 um gap), is tested against the sliding box's SDF, whose nearest feature there is
-    its side face; the step's linear prediction along that face's normal (the box slides towards the
-    edge at 0.8 m/s, 0.8 mm per step, against a 0.18 mm gap) closes a gap that never closes, so a
-    horizontal speculative force of ~100 N kicks the box, and its sticking friction, unbounded in the
-    final solve, then made the box rock: steps later its horizontal force was 1.7-3x its vertical one.
-    The bound rounds (contact/__init__.py, step 5) keep that friction within the law; the speculative
-    kick itself remains (the package docstring's known gap; its steps have a horizontal normal and are
-    not checked here)."""
+
+def _edge_slide_cone_excess(wz):
+    """The reported setup (dt = 1e-3): a box (0.12 x 0.1 x 0.08 m, 0.19 kg) sliding and turning (wz rad/s)
+    on a fixed box (0.2 x 0.2 x 0.1 m) over its edge, 200 steps. For every step whose contacts are all face
+    contacts (vertical normals): how far the contact force on the sliding box (from its momentum change,
+    gravity removed) exceeds Coulomb's bound, |horizontal| - (mu * vertical (mu = 1) + 5 % + 0.05 N for the
+    smoothing), and whether a contact of that step pulled (its normal force < 0)."""
     dt = 1e-3
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt))
     scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.1), pos=(0.0, 0.0, 0.051), fixed=True))
     q = np.array([0.98, 0.0, 0.0, 0.2])
     up = scene.add_entity(gs.morphs.Box(size=(0.12, 0.1, 0.08), pos=(0.02, -0.01, 0.143), quat=tuple(q / np.linalg.norm(q))))
     scene.build()
-    up.set_dofs_velocity(_t([0.8, -0.4, -0.1, 0.0, 0.0, 1.5]))
+    up.set_dofs_velocity(_t([0.8, -0.4, -0.1, 0.0, 0.0, wz]))
     m = float(up.get_mass().reshape(-1)[0])
     v = _np(up.get_vel()).copy()
-    worst = []
-    for i in range(200):
+    rows = []
+    for _ in range(200):
         scene.step()
         v1 = _np(up.get_vel()).copy()
         f = m * (v1 - v) / dt - m * np.array([0.0, 0.0, -G])
         v = v1
-        n = _np(up.get_contacts()["normal"])
+        c = up.get_contacts()
+        n, F = _np(c["normal"]), _np(c["force_a"])
         if len(n) and (np.abs(n[:, 2]) > 0.99).all():
-            worst.append(np.linalg.norm(f[:2]) - (1.05 * max(f[2], 0.0) + 0.05))
-    assert max(worst) <= 0.0, (max(worst), int(np.argmax(worst)))
+            rows.append((np.linalg.norm(f[:2]) - (1.05 * max(f[2], 0.0) + 0.05), bool(((F * n).sum(-1) < 0).any())))
+    return rows
+
+
+@pytest.mark.slow
+def test_box_sliding_over_an_edge_stays_in_the_friction_cone():
+    """Issue #21, item 4 (see _edge_slide_cone_excess for the setup): in every step of face contacts in which
+    no contact pulls, the contact force on the sliding box obeys Coulomb, for the reported spin and seven
+    around it.
+
+    The history: a strict xfail until 2026-11-27. The lower box's top edge, level with the sliding box's
+    bottom face (1 um gap), is tested against the sliding box's SDF, whose nearest feature there is its side
+    face; the step's linear prediction along that face's normal (the box slides towards the edge at 0.8
+    m/s, 0.8 mm per step, against a 0.18 mm gap) closes a gap that never closes, so a horizontal speculative
+    force of ~100 N kicks the box, and its sticking friction, unbounded in the final solve, then made the
+    box rock: steps later its horizontal force was 1.7-3x its vertical one. The bound rounds
+    (contact/__init__.py, step 5) keep that friction within the law. Until 2026-11-28 this test checked
+    the reported spin alone, steps with pulling contacts included: it passed there by chance. With the
+    spins around it the bound is exceeded in 4 of the 8 runs (by up to 26 N), each time in a step in which
+    a contact of the final system pulls (the normal solve's active set, the package docstring's known
+    gap; test_friction_cone_with_pulling_contacts below)."""
+    checked = 0
+    for wz in EDGE_SPINS:
+        rows = [ex for ex, pull in _edge_slide_cone_excess(wz) if not pull]
+        assert not rows or max(rows) <= 0.0, (wz, len(rows), max(rows))
+        checked += len(rows)
+    assert checked > 200, checked  # (measured 2026-11-28: 8 to 190 steps a run)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the normal solve's active set: contacts of the final system can pull while "
+                   "friction keeps the load of the normal solve (contact/__init__.py's known gap)")
+def test_friction_cone_with_pulling_contacts():
+    """test_box_sliding_over_an_edge_stays_in_the_friction_cone's runs, every step of face contacts included:
+    measured 2026-11-28, 4 of the 8 runs exceed the bound, in 2-4 steps each, by up to 26 N (the reported
+    spin, 1.5 rad/s, is one of the four that do not)."""
+    worst = max(ex for wz in EDGE_SPINS for ex, _ in _edge_slide_cone_excess(wz))
+    assert worst <= 0.0, worst
