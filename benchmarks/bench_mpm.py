@@ -305,9 +305,11 @@ def write_report(results, out, wall, quick):
                          f"{m['checkpoints_MiB']:.1f} | {m['replayed']} | {m['fwd_s']:.1f} | {m['bwd_s']:.1f} |")
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     old = Path(out).read_text() if Path(out).exists() else ""
-    if "<!-- bare -->" in old and "<!-- /bare -->" in old:  # keep the --bare section
-        lines += ["", "<!-- bare -->" + old.split("<!-- bare -->", 1)[1].split("<!-- /bare -->", 1)[0] + "<!-- /bare -->"]
-    Path(out).write_text("\n".join(lines) + "\n")
+    tail = ""
+    if "<!-- bare -->" in old and "<!-- /bare -->" in old:  # keep the --bare section and the notes after it
+        bare, tail = old.split("<!-- bare -->", 1)[1].split("<!-- /bare -->", 1)
+        lines += ["", "<!-- bare -->" + bare + "<!-- /bare -->"]
+    Path(out).write_text("\n".join(lines) + ("\n" + tail.lstrip("\n") if tail.strip() else "\n"))
     print("\n".join(lines))
 
 
