@@ -33,6 +33,7 @@ gs.init(taichi_speedups=False) also the launch path below; `uninstall` restores 
 from __future__ import annotations
 
 import ast
+import dis
 import inspect
 import linecache
 import os
@@ -56,18 +57,13 @@ def install() -> bool:
     if not all(hasattr(K, n) for n in needed):  # another Taichi layout: leave it alone
         return False
     patterns = K._KERNEL_CLASS_STACKFRAME_STMT_RES
-    code_position = getattr(inspect, "_get_code_position", None)
 
     def _inside_class(level_of_class_stackframe):
         # Taichi's: the first statement of inspect.getframeinfo(frame)[3] matched against `class ` /
         # `@data_oriented`. getframeinfo's line is the start line of the frame's current instruction.
         try:
             frame = sys._getframe(level_of_class_stackframe)
-            lineno = frame.f_lineno
-            if code_position is not None:
-                pos = code_position(frame.f_code, frame.f_lasti)
-                if pos[0] is not None:
-                    lineno = pos[0]
+            lineno, _ = _frame_position(frame)
             line = linecache.getline(frame.f_code.co_filename, lineno, frame.f_globals).strip()
             return any(p.match(line) for p in patterns)
         except Exception:
@@ -113,6 +109,15 @@ _INSPECT_GETFRAMEINFO = inspect.getframeinfo
 _CODE_POSITION = getattr(inspect, "_get_code_position", None)
 
 
+def _frame_position(frame):
+    """(line, position) of the frame's current instruction, as inspect.getframeinfo finds them: the
+    position's start line where it has one, else f_lineno (position None without _get_code_position)."""
+    if _CODE_POSITION is None:
+        return frame.f_lineno, None
+    positions = _CODE_POSITION(frame.f_code, frame.f_lasti)
+    return (positions[0] if positions[0] is not None else frame.f_lineno), positions
+
+
 def light_getframeinfo(frame, context=1):
     """inspect.getframeinfo(frame, 1) without its `sys.modules` scan: the position of the frame's
     instruction and its line from linecache (through the frame's module globals); a pseudo-file
@@ -121,8 +126,7 @@ def light_getframeinfo(frame, context=1):
     if context != 1 or not inspect.isframe(frame) or _CODE_POSITION is None:
         return _INSPECT_GETFRAMEINFO(frame, context)
     try:
-        positions = _CODE_POSITION(frame.f_code, frame.f_lasti)
-        lineno = positions[0] if positions[0] is not None else frame.f_lineno
+        lineno, positions = _frame_position(frame)
         file = frame.f_code.co_filename
         pseudo = file.startswith("<") and file.endswith(">")
         if not (os.path.isabs(file) or pseudo):
@@ -134,8 +138,6 @@ def light_getframeinfo(frame, context=1):
             context_lines, index = [lines[lineno - 1]], 0
         else:
             return _INSPECT_GETFRAMEINFO(frame, context)
-        import dis
-
         return inspect.Traceback(file, lineno, frame.f_code.co_name, context_lines, index,
                                  positions=dis.Positions(*positions))
     except Exception:
