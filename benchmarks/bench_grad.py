@@ -534,7 +534,7 @@ def main():
     ap.add_argument("--skip-first", action="store_true")
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--skip-genesis", action="store_true")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "grad.md", help="Markdown tables ('' for none)")
+    ap.add_argument("--out", type=str, default=str(HERE / "results" / "grad.md"), help="Markdown tables ('' for none)")
     ap.add_argument("--plot", type=Path, default=None, help="write a PNG of memory against horizon (needs matplotlib)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
@@ -565,9 +565,10 @@ def main():
               "require grad; loss = squared position of the last link summed over envs.\n"
               "Repeats: 1-env rows of table 1 are medians of 7 (3 with --quick), 1024-env rows of 3 (to keep the run "
               "under ~10 minutes); every memory row is a single rollout.\n")
-    if args.out and str(args.out):
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(header + "\n".join(tables) + "\n")
+    if args.out:  # '' (Path('') would be the working directory): no file
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(header + "\n".join(tables) + "\n")
         print(f"wrote {args.out}")
     if args.json:
         args.json.write_text(json.dumps(data, indent=2))

@@ -90,35 +90,81 @@ def test_the_broad_phase_boxes_change_no_number():
         assert done.returncode == 0, (mode, done.stderr[-3000:])
         out[mode] = json.loads(done.stdout.strip().splitlines()[-1])
     assert out["boxes"]["sha"] == out["spheres"]["sha"], out
-    assert out["boxes"]["active"] < 0.7 * out["spheres"]["active"], out
+    # 2,866 against 3,979 (2026-11-28, with the normal rounds; the count follows the pile's course)
+    assert out["boxes"]["active"] < 0.8 * out["spheres"]["active"], out
     assert out["boxes"]["z_min"] > 0.0, out  # nothing went through the ground
     assert out["boxes"]["v_max"] < 10.0, out  # nothing blew up (falls of up to 3 m: 7.7 m/s)
 
 
-@pytest.mark.xfail(strict=True, reason="known bug, found 2026-11-27 (issue #24): piles of thrown bodies blow up "
-                   "in half the seeds")
-def test_a_thrown_pile_stays_bounded():
+def test_thrown_piles_stay_bounded():
     """The broad-phase pile (tests/workers/broad_phase_pile.py: 14 planks, upright 1 m cylinders, boxes
-    and spheres thrown at each other and the ground at up to 2 m/s and 6 rad/s) with seed 20. Over
-    seeds 1-22, 11 piles reach 12.7-377 m/s or NaN (2026-11-28); this one 302 m/s at step 27.
-    Traced (contact/__init__.py's steps): it happens with friction off too (96.5 m/s at step 22), so the
-    normal law's solve is the cause, not friction. Step 2 drops a contact whose linear law pulls at the
-    first solve's velocity, step 4 one whose normal solve pulled, and nothing checks the final solution:
-    a box point 1.25 cm from a cylinder, closing at 2.8 m/s, was dropped and the step ended 3.9 cm deep;
-    in the tangle that followed, point slots on both sides push opposite ways (loads of 5-175 kN on
-    bodies of 2-3 kg), and contacts of the final system pull (to -33 kN). Tried, measured over the 22
-    seeds: dropping the contacts that pull at each bound round's solution (0 blow-ups, but a box pushed
-    sideways into another tumbles and the ground's friction is lost: the friction of a contact follows
-    its normal solve's load, not the final one); the same once the friction has settled (1 blow-up, but
-    a box spinning on another keeps spinning, or stops at once, by which friction the drop keeps);
-    Newton rounds on every contact's normal law (the tangent at the last solution) within the bound
-    rounds (4 rounds: 8 blow-ups; 8 or 16 rounds: most steps hit the cap; they cycle). A solve of the
-    implicit normal law that converges (a line search on its convex energy) is the cure."""
-    done = subprocess.run([sys.executable, str(WORKERS / "broad_phase_pile.py"), "boxes", "20"], capture_output=True,
-                          text=True, timeout=900)
+    and spheres thrown at each other and the ground at up to 2 m/s and 6 rad/s) with four seeds that
+    blew up before the normal rounds (2026-11-28: 151, 314 and 222 m/s, and NaN at step 65; 10 of
+    seeds 1-22 reached 15-314 m/s or NaN): no body moves faster than a fall from the pile's top gives
+    (~7.7 m/s), nothing ends below the ground. The cause was the normal solve's one-shot choice of
+    contacts (a contact dropped after the first solve ended the step centimetres deep); the normal
+    rounds (contact/passes.py: func_normal_round) solve the frictionless step to its exact set of
+    pushing contacts. With them all 22 seeds stay within 7.4 m/s."""
+    done = subprocess.run([sys.executable, str(WORKERS / "broad_phase_pile.py"), "boxes", "8,19,20,22"],
+                          capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-2000:]
-    out = json.loads(done.stdout.strip().splitlines()[-1])
-    assert out["v_max"] < 10.0, out
+    outs = [json.loads(line) for line in done.stdout.strip().splitlines()[-4:]]
+    assert [o["seed"] for o in outs] == [8, 19, 20, 22], outs
+    for o in outs:
+        assert o["v_max"] < 8.0 and o["z_min"] > 0.0, o
+
+
+def test_grad_through_the_normal_rounds():
+    """Gradients of a box and a cylinder thrown onto each other and the ground (three steps, each
+    recording normal rounds: the rounds choose the contacts, the last solve's system carries the
+    gradient) in both bodies' initial velocities, against central finite differences in float64. (The
+    tumbling pair's stiff contacts put ~1e-11 of round-off into the loss: a difference step of 3e-5
+    keeps the finite differences above it; at 1e-5 they agree to 1.3e-5, at 1e-6 to 1.5e-4.) The same
+    rollout without gradients (the fused step's rounds) gives the same positions."""
+    import torch
+
+    rng = np.random.default_rng(6)
+    p_box, p_cyl = (*rng.uniform(-0.1, 0.1, 2), 0.08), (*rng.uniform(-0.1, 0.1, 2), 0.21)
+    v_box, v_cyl = (torch.tensor(np.concatenate([rng.uniform(-2, 2, 3), rng.uniform(-6, 6, 3)]), dtype=torch.float64)
+                    for _ in range(2))
+
+    def build(requires_grad):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=requires_grad))
+        scene.add_entity(gs.morphs.Plane())
+        box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.1, 0.06), pos=p_box))
+        cyl = scene.add_entity(gs.morphs.Cylinder(radius=0.04, height=0.3, pos=p_cyl))
+        scene.build()
+        return scene, box, cyl
+
+    scene, box, cyl = build(True)
+    contact = scene.sim.rigid_solver.contact
+    s0 = scene.get_state()
+    rounds = []
+
+    def loss(v0, v1):
+        scene.reset(s0)
+        box.set_dofs_velocity(v0)
+        cyl.set_dofs_velocity(v1)
+        for _ in range(3):
+            scene.step()
+            rounds.append(contact.normal_rounds)
+        p0, p1 = box.get_pos(), cyl.get_pos()
+        return p0[0] + 0.7 * p1[0] + 0.3 * p1[1] - 0.2 * p0[1] + 0.5 * p1[2] + 0.4 * cyl.get_quat()[1]
+
+    rep = gs.grad.check(loss, {"v_box": v_box, "v_cyl": v_cyl}, eps=3e-5, tol=2e-5)
+    assert rep.ok, str(rep)
+    assert min(rounds) >= 1, rounds  # every step ran the rounds
+    # the fused step without gradients runs the same rounds: the same rollout, to the rounding of code
+    # compiled two ways (1.4e-10 apart after the three steps; a round that chose another set would move
+    # them by millimetres)
+    loss(v_box, v_cyl)
+    with_grad = torch.cat([box.get_qpos(), cyl.get_qpos()]).detach().numpy()
+    plain, box2, cyl2 = build(False)
+    box2.set_dofs_velocity(v_box)
+    cyl2.set_dofs_velocity(v_cyl)
+    for _ in range(3):
+        plain.step()
+    np.testing.assert_allclose(torch.cat([box2.get_qpos(), cyl2.get_qpos()]).numpy(), with_grad, rtol=0, atol=1e-8)
 
 
 def _pushed_pair(requires_grad=False):

@@ -108,6 +108,47 @@ def func_factor(s: ti.template(), i_b):
     func_factor_to(s, i_b, s.mass_fac)
 
 
+# Folded mimics (flatten.np_fold): a follower f of leader l with q_f = m q_l + offset, beside l in the dof
+# tree and with no dof below it, is solved in reduced form: A' = T^T A T and b' = T^T b, T the identity
+# with m at (f, l), the follower's row and column then left with its diagonal alone (its b' is 0, so its
+# solution is 0) and set to m x_l after the solve. Beside l, f shares l's ancestors, so A' keeps the tree
+# sparsity. Every factorisation folds its copy of the matrix and every solve its right-hand side, the
+# adjoints included (their formulas hold with the full vectors: A_bar = -y x^T with y = T A'^-1 T^T x_bar).
+@ti.func
+def func_fold_matrix(s: ti.template(), i_b, F: ti.template()):
+    """A <- T^T A T on a copy F of the tree entries of mass_mat (lower triangle; the leader and the
+    follower are not each other's ancestors, so A[l, f] is not a tree entry)."""
+    for f in range(s.n_dofs):
+        lead = s.dof_fold_leader[f]
+        if lead >= 0:
+            m = s.dof_mimic_mult[f]
+            F[i_b, lead, lead] = F[i_b, lead, lead] + m * m * F[i_b, f, f]
+            j = s.dof_parent[f]
+            while j >= 0:
+                F[i_b, lead, j] = F[i_b, lead, j] + m * F[i_b, f, j]
+                F[i_b, f, j] = 0.0
+                j = s.dof_parent[j]
+
+
+@ti.func
+def func_fold_vec(s: ti.template(), i_b, x: ti.template(), e):
+    """b <- T^T b on x[e, i_b, :] (before a solve)."""
+    for f in range(s.n_dofs):
+        lead = s.dof_fold_leader[f]
+        if lead >= 0:
+            x[e, i_b, lead] = x[e, i_b, lead] + s.dof_mimic_mult[f] * x[e, i_b, f]
+            x[e, i_b, f] = 0.0
+
+
+@ti.func
+def func_unfold_vec(s: ti.template(), i_b, x: ti.template(), e):
+    """x <- T x on x[e, i_b, :] (after a solve): each folded follower moves m times its leader."""
+    for f in range(s.n_dofs):
+        lead = s.dof_fold_leader[f]
+        if lead >= 0:
+            x[e, i_b, f] = s.dof_mimic_mult[f] * x[e, i_b, lead]
+
+
 @ti.func
 def func_factor_to(s: ti.template(), i_b, F: ti.template()):
     """func_factor into F (a [env, dof, dof] field; only its lower triangle is written): the contact
@@ -116,6 +157,7 @@ def func_factor_to(s: ti.template(), i_b, F: ti.template()):
     for i in range(n):
         for j in range(i + 1):
             F[i_b, i, j] = s.mass_mat[i_b, i, j]
+    func_fold_matrix(s, i_b, F)
     for kk in range(n):
         k = n - 1 - kk
         i = s.dof_parent[k]
@@ -133,6 +175,7 @@ def func_factor_to(s: ti.template(), i_b, F: ti.template()):
 def func_solve(s: ti.template(), i_b, x: ti.template(), e):
     """x[e, i_b, :] <- M^-1 x[e, i_b, :] using the factor in mass_fac."""
     n = s.n_dofs
+    func_fold_vec(s, i_b, x, e)
     for kk in range(n):
         i = n - 1 - kk
         j = s.dof_parent[i]
@@ -146,6 +189,7 @@ def func_solve(s: ti.template(), i_b, x: ti.template(), e):
         while j >= 0:
             x[e, i_b, i] = x[e, i_b, i] - s.mass_fac[i_b, i, j] * x[e, i_b, j]
             j = s.dof_parent[j]
+    func_unfold_vec(s, i_b, x, e)
 
 
 @ti.func
@@ -227,6 +271,19 @@ def func_factor_solve_local(s: ti.template(), i_b, e):
         x[i] = s.force[i_b, i]
         for j in range(i + 1):
             L[i, j] = s.mass_mat[i_b, i, j]
+    # the folded mimics (func_fold_matrix, func_fold_vec), on the local copies
+    for f in range(n):
+        lead = s.dof_fold_leader[f]
+        if lead >= 0:
+            m = s.dof_mimic_mult[f]
+            L[lead, lead] = L[lead, lead] + m * m * L[f, f]
+            x[lead] = x[lead] + m * x[f]
+            x[f] = 0.0
+            j = par[f]
+            while j >= 0:
+                L[lead, j] = L[lead, j] + m * L[f, j]
+                L[f, j] = 0.0
+                j = par[j]
     for kk in range(n):
         k = n - 1 - kk
         i = par[k]
@@ -253,6 +310,7 @@ def func_factor_solve_local(s: ti.template(), i_b, e):
             j = par[j]
     for i in range(n):
         s.qacc[e, i_b, i] = x[i]
+    func_unfold_vec(s, i_b, s.qacc, e)
 
 
 @ti.func

@@ -65,7 +65,9 @@ def func_dof_update(s: ti.template(), i_b, kind, e, base, src, h, j):
 def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
     """New velocities, and the velocities qvel_move[e] that func_integrate_qpos moves positions with.
     A URDF <mimic> follower copies its leader: v_f = m v_l, and its position is carried onto
-    m q_l + offset within the step (a kinematic constraint; the follower exerts no force back)."""
+    m q_l + offset within the step. For a follower beside its leader (inertia.func_fold_matrix) the solves
+    already gave it m times the leader's acceleration, its inertia, forces and contacts acting on the
+    leader, so the copy changes nothing but rounding; other followers are kinematic (no force back)."""
     for i_d in range(s.n_dofs):
         lead = s.dof_mimic_leader[i_d]
         follower = lead >= 0

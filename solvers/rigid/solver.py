@@ -92,7 +92,9 @@ class RigidSolver:
         self._schedule()
         # n_links + 1: a root link reads its parent from a slot no link occupies (kinematics.func_parent_slot)
         self.specialized = bool(n_envs >= SPECIALIZE_MIN_ENVS if specialize is None else specialize)
-        tree = tuple(int(p) for p in self.flat.np_dof_parent) if self.specialized and not requires_grad else None
+        # (not with folded mimics: the unrolled factorisation does not fold them)
+        tree = (tuple(int(p) for p in self.flat.np_dof_parent) if self.specialized and not requires_grad
+                and not self.flat.has_fold else None)
         if tree is not None and TreeSchedule.create(tree) is None:
             tree = None
         key = (dtype, bool(requires_grad), env_capacity(n_envs),
@@ -231,7 +233,7 @@ class RigidSolver:
         # "no limit" as a large finite number: infinities turn masked-out terms into NaN
         lim = np.clip(pad(m.np_dof_limit, D), -1e30, 1e30)
         dof_i = np.stack([pad(m.np_dof_link, D), pad(m.np_dof_q, D), pad(m.np_dof_parent, D),
-                          m.np_mimic[:, 0].astype(np.int32)], -1).astype(np.int32)
+                          m.np_mimic[:, 0].astype(np.int32), m.np_fold[:, 0]], -1).astype(np.int32)
         dof_f = np.concatenate([lim, m.np_mimic[:, 1:], pad(m.np_dof_springref, D)[:, None]], -1).astype(self.np_dtype)
         sched = np.ascontiguousarray(np.array([op[:6] for op in self.ops], dtype=np.int32))
         sched_h = np.array([op[6] for op in self.ops], dtype=self.np_dtype)

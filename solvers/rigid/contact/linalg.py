@@ -8,7 +8,7 @@ factor field given as an argument, and func_factor_to is inertia's: the two coul
 implementation once a bitwise comparison shows the inlined code is the same.)"""
 import taichi as ti
 
-from ..inertia import func_factor_to
+from ..inertia import func_factor_to, func_fold_vec, func_unfold_vec
 
 # which envelope (ContactSolver.env_first / env_last, dense scenes) goes with which factor: the solves'
 # k argument (a tree factor has none and ignores it); the gradient path keeps the final factor's
@@ -28,6 +28,7 @@ def func_tree_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), 
     Read-modify-writes spelled out: `-=` on a field in the env loop compiles to an atomic (a
     compare-and-swap loop), and these solves are never differentiated by Taichi."""
     n = s.n_dofs
+    func_fold_vec(s, i_b, x, e)
     for kk in range(n):
         i = n - 1 - kk
         j = s.dof_parent[i]
@@ -41,6 +42,7 @@ def func_tree_solve(s: ti.template(), Fc: ti.template(), i_b, x: ti.template(), 
         while j >= 0:
             x[e, i_b, i] = x[e, i_b, i] - Fc[i_b, i, j] * x[e, i_b, j]
             j = s.dof_parent[j]
+    func_unfold_vec(s, i_b, x, e)
 
 
 @ti.func
@@ -51,6 +53,7 @@ def func_dense_solve(s: ti.template(), Fc: ti.template(), k, i_b, x: ti.template
     c = s.contact
     n = s.n_dofs
     y = ti.static(c.perm_tmp)
+    func_fold_vec(s, i_b, x, e)
     for i in range(n):
         y[i_b, i] = x[e, i_b, c.dense_perm[i]]
     for i in range(n):
@@ -68,6 +71,7 @@ def func_dense_solve(s: ti.template(), Fc: ti.template(), k, i_b, x: ti.template
         y[i_b, i] = acc
     for i in range(n):
         x[e, i_b, c.dense_perm[i]] = y[i_b, i]
+    func_unfold_vec(s, i_b, x, e)
 
 
 @ti.func
@@ -102,6 +106,14 @@ def func_factor_dense_to(s: ti.template(), i_b, F: ti.template(), k):
             if f == i and v != 0.0:
                 f = j
         c.env_first[i_b, k, i] = f
+    if func_fold_dense(s, i_b, F) > 0:
+        # the rows' first columns again, of the folded matrix
+        for i in range(n):
+            f = i
+            for j in range(i + 1):
+                if f == i and F[i_b, i, j] != 0.0:
+                    f = j
+            c.env_first[i_b, k, i] = f
     # last[j], sweeping j down with the minimum of first over the rows from i on (>= i's, so last[j] >= j)
     i = n - 1
     lowest = c.env_first[i_b, k, i]
@@ -124,6 +136,42 @@ def func_factor_dense_to(s: ti.template(), i_b, F: ti.template(), k):
                 for kk in range(ti.max(fi, fj), j):
                     v -= F[i_b, i2, kk] * F[i_b, j, kk] * F[i_b, kk, kk]
                 F[i_b, i2, j] = v / dj
+
+
+@ti.func
+def func_dense_position(s: ti.template(), d):
+    """The position of dof d in the dense factorisation's order (dense_perm's inverse)."""
+    at = 0
+    for k in range(s.n_dofs):
+        if s.contact.dense_perm[k] == d:
+            at = k
+    return at
+
+
+@ti.func
+def func_fold_dense(s: ti.template(), i_b, F: ti.template()):
+    """inertia.func_fold_matrix on the dense copy F (lower triangle, in dense_perm's order), where the
+    leader and the follower may be coupled (mass_cross) and any entry of theirs may be nonzero. Returns
+    how many followers it folded."""
+    n = s.n_dofs
+    count = 0
+    for f in range(n):
+        lead = s.dof_fold_leader[f]
+        if lead >= 0:
+            count += 1
+            m = s.dof_mimic_mult[f]
+            pf = func_dense_position(s, f)
+            pl = func_dense_position(s, lead)
+            a_ff = F[i_b, pf, pf]
+            a_lf = F[i_b, ti.max(pl, pf), ti.min(pl, pf)]
+            for k in range(n):
+                if (k != pf) & (k != pl):
+                    F[i_b, ti.max(pl, k), ti.min(pl, k)] = (F[i_b, ti.max(pl, k), ti.min(pl, k)]
+                                                            + m * F[i_b, ti.max(pf, k), ti.min(pf, k)])
+                    F[i_b, ti.max(pf, k), ti.min(pf, k)] = 0.0
+            F[i_b, pl, pl] = F[i_b, pl, pl] + 2.0 * m * a_lf + m * m * a_ff
+            F[i_b, ti.max(pl, pf), ti.min(pl, pf)] = 0.0
+    return count
 
 
 @ti.func

@@ -58,6 +58,8 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand, c
         c.sl_u[i_b, i_s] = u
         c.sl_Fn[i_b, i_s] = fn_pred
         c.sl_wn[i_b, i_s] = wn
+        c.sl_tog[i_b, i_s] = 0
+        c.sl_togin[i_b, i_s] = 0
         c.sl_depth[i_b, i_s] = depth
         c.sl_corr[i_b, i_s] = corr
         c.sl_mu[i_b, i_s] = ti.max(c.geom_mu[i_b, ga], c.geom_mu[i_b, gb])

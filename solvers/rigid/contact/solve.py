@@ -5,7 +5,7 @@ import taichi as ti
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
 from .passes import (BOUND_ROUNDS, COULOMB_PASS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
-                     func_link_motion, func_relinearise_listed)
+                     func_link_motion, func_normal_round_listed, func_normal_rounds, func_relinearise_listed)
 from .report import func_contact_report
 
 
@@ -64,8 +64,8 @@ def func_contact_solve(s: ti.template(), i_b, e):
             func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
             func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
             if func_relinearise_listed(s, i_b):
-                func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
-                func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+                func_start_line(s, i_b, c.qacc_normal)
+                func_normal_rounds(s, i_b)
             func_coulomb_listed(s, i_b)
             func_solve_coulomb(s, i_b)
             phase = 1
@@ -88,6 +88,14 @@ def func_contact_solve(s: ti.template(), i_b, e):
 
 
 @ti.func
+def func_start_line(s: ti.template(), i_b, x: ti.template()):
+    """qacc_line <- x[0] (the first solve's solution: where the normal rounds start)."""
+    c = s.contact
+    for i in range(s.n_dofs):
+        c.qacc_line[0, i_b, i] = x[0, i_b, i]
+
+
+@ti.func
 def func_final_solve(s: ti.template(), i_b, e):
     """qacc[e] = A^-1 force for the system as it stands (the final solve, and each bound round's)."""
     if ti.static(s.contact.dense):
@@ -103,13 +111,14 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
     unrolled factor and solve are compiled once, not three and four times (the kernel's compile time
     grows by a third of what inlining each would cost). The factor stays a local between rounds:
     round 0 factors A1 and solves into qacc_normal; round 1 (only when the relinearise pass changed
-    something) A2, into qacc_normal; round 2 solves the Coulomb response dqacc_coulomb with the last
+    something) A2, into qacc_normal, and again after each normal round that changed the system; round 2 solves the Coulomb response dqacc_coulomb with the last
     factor; round 3 factors A3 and solves into qacc[e], and again after each bound round that changed
     the system (at most BOUND_ROUNDS)."""
     c = s.contact
     L = ti.Vector.zero(s.dtype, s.static_tree.n_lower)
     rnd = 0
     rounds = 0
+    normal_rounds = 0
     if c.n_on[i_b] == 0:
         rnd = 3
     while rnd < 4:
@@ -137,7 +146,11 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
             nxt = 2
             if rnd == 0:
                 if func_relinearise_listed(s, i_b):
+                    func_start_line(s, i_b, c.qacc_normal)
                     nxt = 1
+            elif func_normal_round_listed(s, i_b, normal_rounds) == 1:
+                normal_rounds += 1
+                nxt = 1
             if nxt == 2:
                 func_coulomb_listed(s, i_b)
             rnd = nxt

@@ -12,8 +12,9 @@ from ..layout import FieldTree
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
 from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
-from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
-                     RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round, func_bound_count)
+from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, NORMAL_ROUNDS, RELINEARISE_PASS,
+                     RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round, func_bound_count,
+                     func_link_motion, func_normal_round, toggle_round)
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import (MAX_DEEP_WARNINGS, ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report,
                      geom_half_thickness)
@@ -120,6 +121,13 @@ class ContactSolver:
         # it (the relinearise pass kept it); sl_u_normal, sl_load: the velocity and the normal force of
         # the normal solve (Coulomb's load); sl_in_final: still in after the friction pass
         self.sl_in_normal, self.sl_cand = I((B, S)), I((B, S))
+        # the normal rounds (passes.func_normal_round): each slot's law at the rounds' current start and
+        # its change over a round's step; the rounds in which the slot changed sides (bit r) and came in
+        # (bit r of sl_togin); the start (a dof vector); whether an env's rounds are over (gradient path)
+        self.sl_fk, self.sl_de = F((B, S), False), F((B, S), False)
+        self.sl_tog, self.sl_togin = I((B, S)), I((B, S))
+        self.qacc_line = F((1, B, D), False)
+        self.line_done = I(B)
         # without gradients: the slots that are on, in slot order (func_contact_slots), and their count
         self.sl_list, self.n_on = I((B, S)), I(B)
         self.bank_normal = AccBank(B, L, D, n_lp, f, g, True)
@@ -154,6 +162,11 @@ class ContactSolver:
         self.bank_bound = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(K)]
         self.rounds = 0  # the bound rounds the last factor_solve recorded
         self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
+        # the normal rounds' changes on the gradient path (passes.toggle_round), one bank a round
+        KN = NORMAL_ROUNDS if g else 0
+        self.bank_toggle = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(KN)]
+        self.normal_rounds = 0  # the normal rounds the last factor_solve recorded
+        self.banks.update({f"toggle{r}": b for r, b in enumerate(self.bank_toggle)})
         self.link_w_report, self.link_v_report = V3((B, L), False), V3((B, L), False)
         self.solve_tmp = F((1, B, D), False)
         # placeholders where the scene has no pairs of moving links (kernel_load's arguments)
@@ -195,6 +208,7 @@ class ContactSolver:
                                     + self.bank_relinearise.grad_fields + self.bank_coulomb.grad_fields
                                     + self.bank_friction.grad_fields + [self.sl_eta] + self.bnd_x + self.bnd_w
                                     + self.bnd_v + self.bnd_eta + [x for b in self.bank_bound for x in b.grad_fields]
+                                    + [x for b in self.bank_toggle for x in b.grad_fields]
                                     ) if g else []
         # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
         # are zeroed before every solve's adjoint instead
@@ -210,6 +224,7 @@ class ContactSolver:
                       "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
                       "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
         self.steps.update({f"bound{r}": bound_round(r, n_lp) for r in range(K)})
+        self.steps.update({f"toggle{r}": toggle_round(r, n_lp) for r in range(KN)})
 
     def fits(self, plan: ContactPlan) -> bool:
         """Whether a scene's plan can run on this solver's fields and kernels."""
@@ -344,8 +359,16 @@ class ContactSolver:
         bound rounds are recorded while one would change a viscosity (kernel_bound_count; a round that
         changes none adds exact zeros and solves the same system again, so stopping there changes no
         number, and the fused step stops at the same round)."""
-        for which in ("solve_candidates", "relinearise_pass", "solve_normal", "coulomb_pass", "solve_coulomb",
-                      "friction_pass"):
+        for which in ("solve_candidates", "relinearise_pass", "solve_normal"):
+            self.kernel_run(s, which)
+        # the normal rounds, while one changes an env's system (as the fused step's, which stops each env
+        # at its first round that changes nothing: an env done here is left alone by the later rounds)
+        self.normal_rounds = 0
+        while self.normal_rounds < len(self.bank_toggle) and self.kernel_normal_round(s, self.normal_rounds) > 0:
+            self.kernel_run(s, f"toggle{self.normal_rounds}")
+            self.kernel_run(s, "solve_normal")
+            self.normal_rounds += 1
+        for which in ("coulomb_pass", "solve_coulomb", "friction_pass"):
             self.kernel_run(s, which)
         s.kernel_mass_solve(e, False)
         self.rounds = 0
@@ -368,8 +391,33 @@ class ContactSolver:
         self.kernel_adjoint_solve(s, 2)
         self.kernel_run.grad(s, "coulomb_pass")
         self.kernel_adjoint_solve(s, 1)
+        # the rounds' solves before the last feed only their choices of slots (no gradient); the system
+        # the last one solved is the relinearise pass's plus every round's change
+        for r in reversed(range(self.normal_rounds)):
+            self.kernel_run.grad(s, f"toggle{r}")
         self.kernel_run.grad(s, "relinearise_pass")
         self.kernel_adjoint_solve(s, 0)
+
+    @ti.kernel
+    def kernel_normal_round(self, s: ti.template(), r: ti.i32) -> ti.i32:
+        """Normal round r on the gradient path (passes.func_normal_round, forward only) for every env whose
+        rounds are not over: how many slots change sides, over the envs."""
+        n = 0
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                if r == 0:
+                    self.line_done[i_b] = 0
+                    for i in range(s.n_dofs):
+                        self.qacc_line[0, i_b, i] = self.qacc_candidates[0, i_b, i]
+                if self.line_done[i_b] == 0:
+                    func_link_motion(s, self.qacc_normal, 0, i_b, self.link_w_normal, self.link_v_normal)
+                    t = func_normal_round(s, i_b, r)
+                    if t == 0:
+                        self.line_done[i_b] = 1
+                    n += t
+        return n
 
     @ti.kernel
     def kernel_bound_count(self, s: ti.template(), e: ti.i32) -> ti.i32:
