@@ -103,7 +103,7 @@ def test_thrown_piles_stay_bounded():
     seeds 1-22 reached 15-314 m/s or NaN): no body moves faster than a fall from the pile's top gives
     (~7.7 m/s), nothing ends below the ground. The cause was the normal solve's one-shot choice of
     contacts (a contact dropped after the first solve ended the step centimetres deep); the normal
-    rounds (contact/passes.py: func_normal_round) solve the frictionless step to its exact set of
+    rounds (contact/rounds.py: func_normal_round) solve the frictionless step to its exact set of
     pushing contacts. With them all 22 seeds stay within 7.4 m/s."""
     done = subprocess.run([sys.executable, str(WORKERS / "broad_phase_pile.py"), "boxes", "8,19,20,22"],
                           capture_output=True, text=True, timeout=900)

@@ -64,7 +64,7 @@ contact's linear force pulls where another contact stops the body first:
     tangle that followed threw bodies at 300 m/s). The frictionless step with every linear law clipped
     at 0 minimises a convex energy, 1/2 x^T M x - f^T x + sum (law(x))+^2 / (2 W) (W the law's slope), and
     its minimiser is the solution of the system whose contacts are exactly the laws that push there.
-    Each round (passes.func_normal_round) checks that at the last solution; where a law pushes outside
+    Each round (rounds.func_normal_round) checks that at the last solution; where a law pushes outside
     the system or pulls inside it, it moves from the round's start towards that solution (the whole way
     if the energy falls, else to the energy's minimum along the way: an exact line search of a piecewise
     linear derivative), takes the laws that push there as the system's contacts and solves again, at
@@ -134,7 +134,7 @@ M += J^T W J), and with moving pairs the cross terms. The passes of the solve re
 for their own forces.
 
 (The stages live one concern a file: law.py the force law, slots.py the dynamics stages, banks.py the
-per-link sums, passes.py the passes between the solves, linalg.py the factorisations and solves with their
+per-link sums, passes.py the passes between the solves, rounds.py the normal rounds (step 2b), linalg.py the factorisations and solves with their
 adjoints, solve.py their order, plan.py the host-side model, solver.py the fields and launches,
 report.py what the user is told.)
 """

@@ -17,7 +17,6 @@ import taichi as ti
 
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
 from .law import func_heavy_scale, func_normal_law
-from .linalg import ENV_NORMAL, func_factor_into
 
 
 # ------------------------------------------------------------------------------------------------
@@ -100,6 +99,20 @@ def bank_stage(op, bank: str):
         op(s, s.contact.banks[bank], i_b)
 
     return func_bank_stage
+
+
+def bank_clear_stage(bank: str):
+    """The stage (s, i_b) that clears the contact solver's bank `bank` (ContactSolver.banks), its link
+    pairs' sums too where it has them."""
+
+    @ti.func
+    def func_clear(s: ti.template(), i_b):
+        b = s.contact.banks[bank]
+        func_bank_clear(s, b, i_b)
+        if ti.static(b.pairs):
+            func_bank_clear_pairs(s, b, i_b)
+
+    return func_clear
 
 
 # the passes' bank operations: each pass accumulates its changes into a bank of its own
@@ -329,260 +342,6 @@ FRICTION_PASS_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS + (func_frict
 RELINEARISE_SUMS = (func_relinearise_clear, func_relinearise_add_listed, func_relinearise_tree, func_relinearise_dof,
                     func_relinearise_project)
 RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (func_relinearise_cross,)
-
-
-# the normal rounds (after the second solve; step 2b of the package docstring): the normal system's
-# contacts are those whose linear law pushes at its solution. The second solve's set (the laws that
-# pushed at the first solve) need not be: a contact dropped there may be driven in by the others. Each
-# round is a step of an active-set Newton method on the convex energy whose minimiser is the frictionless
-# step with every law clipped at 0 (func_normal_round): the whole step where the energy falls, else an
-# exact line search, so the energy falls at every round, no set comes back, and the set is final after
-# finitely many (2 to 5 in a tumbling pile's steps): at most NORMAL_ROUNDS. A law within its round-off
-# of 0 counts as on either side (ROUND_OFF_*: float32's choices otherwise follow the noise).
-NORMAL_ROUNDS = 8
-LINE_ITERS = 60
-# the relative round-off of a law's value in the rounds' check, by precision
-ROUND_OFF_F64, ROUND_OFF_F32 = 1e-12, 1e-5
-
-
-@ti.func
-def func_round_span(s: ti.template(), i_b):
-    """How many entries func_round_slot walks: every slot with gradients, the listed ones without."""
-    n = s.contact.n_slots
-    if ti.static(not s.requires_grad):
-        n = s.contact.n_on[i_b]
-    return n
-
-
-@ti.func
-def func_round_slot(s: ti.template(), i_b, k):
-    """Entry k of func_round_span's walk: (slot, whether it is on), in slot order either way."""
-    c = s.contact
-    i_s = k
-    if ti.static(not s.requires_grad):
-        i_s = c.sl_list[i_b, k]
-    return i_s, c.sl_on[i_b, i_s] == 1
-
-
-@ti.func
-def func_step_energy(s: ti.template(), i_b, x_new: ti.template(), x_old: ti.template()):
-    """p^T A p for p = x_new[0] - x_old[0] and A the system as it stands (mass_mat's tree entries, and
-    mass_cross in dense scenes: what the factorisations read)."""
-    c = s.contact
-    acc = ti.cast(0.0, s.dtype)
-    for t in range(s.n_anc):
-        i = s.anc_i[t]
-        j = s.anc_j[t]
-        m = s.mass_mat[i_b, i, j] * (x_new[0, i_b, i] - x_old[0, i_b, i]) * (x_new[0, i_b, j] - x_old[0, i_b, j])
-        acc += ti.select(i == j, m, 2.0 * m)
-    if ti.static(c.dense):
-        n = s.n_dofs
-        for ij in range(n * n):
-            i = ij // n
-            j = ij % n
-            if j < i:
-                acc += 2.0 * c.mass_cross[i_b, i, j] * (x_new[0, i_b, i] - x_old[0, i_b, i]) * (x_new[0, i_b, j] - x_old[0, i_b, j])
-    return acc
-
-
-@ti.func
-def func_line_slope(s: ti.template(), i_b, alpha, pAp, pMp):
-    """The energy's derivative along the round's step at alpha (0: the round's start, 1: the solution of
-    the system as it stands) and its slope there. The energy, in the dof vector x: 1/2 x^T M x - f^T x +
-    sum over slots of (law(x))+^2 / (2 W) (M with every term but the contacts', W the law's slope), so its
-    derivative along p is -pAp + alpha pMp + sum (d / W) ((c + alpha d)+ - c+), c the law at the start and
-    d its change over the step (the start is a point whose in-set is exactly the laws that push there)."""
-    c = s.contact
-    g = -pAp + alpha * pMp
-    dg = pMp
-    for k in range(func_round_span(s, i_b)):
-        i_s, on = func_round_slot(s, i_b, k)
-        W = c.sl_wn_normal[i_b, i_s]
-        if on & (W > 0):
-            c0 = c.sl_fk[i_b, i_s]
-            d = c.sl_de[i_b, i_s]
-            f = c0 + alpha * d
-            g += d / W * (ti.max(f, 0.0) - ti.max(c0, 0.0))
-            if f > 0:
-                dg += d * d / W
-    return g, dg
-
-
-@ti.func
-def func_full_step_gain(s: ti.template(), i_b, pAp, pMp):
-    """The energy's change over the whole step (func_line_slope's energy at 1 minus at 0): 1/2 pMp - pAp
-    - sum (d / W) c+ + sum ((c + d)+^2 - c+^2) / (2 W), the linear term from the start's slope -pAp."""
-    c = s.contact
-    gain = 0.5 * pMp - pAp
-    for k in range(func_round_span(s, i_b)):
-        i_s, on = func_round_slot(s, i_b, k)
-        W = c.sl_wn_normal[i_b, i_s]
-        if on & (W > 0):
-            c0 = ti.max(c.sl_fk[i_b, i_s], 0.0)
-            d = c.sl_de[i_b, i_s]
-            c1 = ti.max(c.sl_fk[i_b, i_s] + d, 0.0)
-            gain += (0.5 * (c1 * c1 - c0 * c0) - d * c0) / W
-    return gain
-
-
-@ti.func
-def func_normal_round(s: ti.template(), i_b, r):
-    """Round r of the normal rounds, at the last solve (qacc_normal, its link motion in link_w_normal /
-    link_v_normal) from the round's start (qacc_line, its laws' values in sl_fk, its set in
-    sl_in_normal): 0 if every slot's law pushes at the solution exactly when the slot is in the system
-    (the solution is the energy's minimiser); else the start moves to the minimiser along the step (an
-    exact line search of the piecewise linear derivative), the set becomes the laws that push there,
-    the slots that change are marked for round r (sl_tog, sl_togin: func_toggle_slot) and their number
-    returned (the system is then to be changed by them and solved again)."""
-    c = s.contact
-    h = c.eval_h[i_b]
-    ROUND_OFF = ti.static(ROUND_OFF_F64 if s.dtype == ti.f64 else ROUND_OFF_F32)
-    pAp = func_step_energy(s, i_b, c.qacc_normal, c.qacc_line)
-    in_sum = ti.cast(0.0, s.dtype)
-    change = 0
-    for k in range(func_round_span(s, i_b)):
-        i_s, on = func_round_slot(s, i_b, k)
-        if on:
-            spring = c.sl_wn_normal[i_b, i_s] / h * func_rel_motion(
-                s, i_b, i_s, c.sl_pos[i_b, i_s], c.link_w_normal, c.link_v_normal).dot(c.sl_n[i_b, i_s])
-            e = c.sl_Fn_normal[i_b, i_s] - spring
-            d = e - c.sl_fk[i_b, i_s]
-            c.sl_de[i_b, i_s] = d
-            inside = c.sl_in_normal[i_b, i_s] == 1
-            W = c.sl_wn_normal[i_b, i_s]
-            if inside & (W > 0):
-                in_sum += d * d / W
-            # a law within its round-off of 0 (the difference of its two terms, each up to kN where the
-            # fixed damper meets a fast approach) is on the right side either way
-            tol = ROUND_OFF * (ti.abs(c.sl_Fn_normal[i_b, i_s]) + ti.abs(spring))
-            if ti.select(inside, e < -tol, e > tol):
-                change += 1
-    toggles = 0
-    if change > 0:
-        pMp = ti.max(pAp - in_sum, 0.0)
-        alpha = ti.cast(1.0, s.dtype)
-        if func_full_step_gain(s, i_b, pAp, pMp) >= 0:
-            # the derivative is continuous, increasing and piecewise linear, -pAp < 0 at 0 and g1 > 0 at 1:
-            # Newton's steps within the bracket, halving it where a step leaves it
-            tol = ti.static(1e-13 if s.dtype == ti.f64 else 1e-6)
-            lo = ti.cast(0.0, s.dtype)
-            hi = ti.cast(1.0, s.dtype)
-            a = ti.cast(0.0, s.dtype)
-            for _it in range(LINE_ITERS):
-                g, dg = func_line_slope(s, i_b, a, pAp, pMp)
-                if g < 0:
-                    lo = a
-                else:
-                    hi = a
-                if (ti.abs(g) <= tol * pAp) | (hi - lo <= tol):
-                    break
-                nxt = ti.select(dg > 0, a - g / dg, lo)
-                if (nxt <= lo) | (nxt >= hi):
-                    nxt = 0.5 * (lo + hi)
-                a = nxt
-            alpha = a
-        for k in range(func_round_span(s, i_b)):
-            i_s, on = func_round_slot(s, i_b, k)
-            if on:
-                d = c.sl_de[i_b, i_s]
-                f = c.sl_fk[i_b, i_s] + alpha * d
-                c.sl_fk[i_b, i_s] = f
-                inside = c.sl_in_normal[i_b, i_s] == 1
-                if (f > 0) != inside:
-                    toggles += 1
-                    c.sl_tog[i_b, i_s] = c.sl_tog[i_b, i_s] | (1 << r)
-                    if f > 0:
-                        c.sl_togin[i_b, i_s] = c.sl_togin[i_b, i_s] | (1 << r)
-                    c.sl_in_normal[i_b, i_s] = ti.select(f > 0, 1, 0)
-        for i in range(s.n_dofs):
-            c.qacc_line[0, i_b, i] = c.qacc_line[0, i_b, i] + alpha * (c.qacc_normal[0, i_b, i] - c.qacc_line[0, i_b, i])
-    return toggles
-
-
-@ti.func
-def func_toggle_slot(s: ti.template(), i_b, i_s, r, bank: ti.template()):
-    """Slot i_s's change to the normal system in round r (func_normal_round marked it): its linear law
-    added where it came in, taken away where it left."""
-    c = s.contact
-    if (c.sl_tog[i_b, i_s] >> r) & 1 == 1:
-        sign = ti.select((c.sl_togin[i_b, i_s] >> r) & 1 == 1, 1.0, -1.0)
-        n = c.sl_n[i_b, i_s]
-        func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], sign * c.sl_Fn_normal[i_b, i_s] * n,
-                      sign * c.sl_wn_normal[i_b, i_s] * n.outer_product(n))
-
-
-@ti.func
-def func_normal_rounds(s: ti.template(), i_b):
-    """Without gradients: the second solve (qacc_normal = A2^-1 force, from the start qacc_line) and
-    the normal rounds after it, each changing the system by its slots (through bank_relinearise, whose
-    sums the relinearise pass has already applied) and solving again."""
-    c = s.contact
-    r = 0
-    go = 1
-    while go == 1:
-        func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
-        func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
-        go = func_normal_round_listed(s, i_b, r)
-        r += go
-
-
-@ti.func
-def func_normal_round_listed(s: ti.template(), i_b, r):
-    """Without gradients, normal round r if r < NORMAL_ROUNDS (func_normal_round) and, where it changed the
-    set, its changes onto the system (func_toggle_sums). Returns 1 if the system is to be solved again."""
-    again = 0
-    if r < NORMAL_ROUNDS:
-        if func_normal_round(s, i_b, r) > 0:
-            func_toggle_sums(s, i_b, r)
-            again = 1
-    return again
-
-
-@ti.func
-def func_toggle_sums(s: ti.template(), i_b, r):
-    """Round r's changes onto the system, without gradients (listed slots, bank_relinearise)."""
-    c = s.contact
-    func_relinearise_clear(s, i_b)
-    if ti.static(c.dense):
-        func_relinearise_clear_pairs(s, i_b)
-    for k in range(c.n_on[i_b]):
-        func_toggle_slot(s, i_b, c.sl_list[i_b, k], r, c.bank_relinearise)
-    func_relinearise_tree(s, i_b)
-    func_relinearise_dof(s, i_b)
-    func_relinearise_project(s, i_b)
-    if ti.static(c.dense):
-        func_relinearise_cross(s, i_b)
-
-
-def bank_clear_stage(bank: str):
-    """The stage (s, i_b) that clears the contact solver's bank `bank` (ContactSolver.banks), its link
-    pairs' sums too where it has them."""
-
-    @ti.func
-    def func_clear(s: ti.template(), i_b):
-        b = s.contact.banks[bank]
-        func_bank_clear(s, b, i_b)
-        if ti.static(b.pairs):
-            func_bank_clear_pairs(s, b, i_b)
-
-    return func_clear
-
-
-def toggle_round(r: int, n_lp: int):
-    """The stages of normal round r's change on the gradient path (ContactSolver.steps["toggle<r>"]): the
-    marked slots' laws onto the round's own bank, its sums onto the system."""
-
-    @ti.func
-    def func_toggle_slots(s: ti.template(), i_b):
-        c = s.contact
-        for i_s in range(c.n_slots):
-            if c.sl_on[i_b, i_s] == 1:
-                func_toggle_slot(s, i_b, i_s, r, c.bank_toggle[r])
-
-    sums = tuple(bank_stage(op, f"toggle{r}") for op in (func_bank_tree, func_bank_dof, func_bank_project))
-    if n_lp > 0:
-        sums += (bank_stage(func_bank_cross, f"toggle{r}"),)
-    return (bank_clear_stage(f"toggle{r}"), func_toggle_slots) + sums
 
 
 # the bound rounds (after the final solve; step 5 of the package docstring): where a contact's

@@ -5,7 +5,8 @@ import taichi as ti
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
 from .passes import (BOUND_ROUNDS, COULOMB_PASS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
-                     func_link_motion, func_normal_round_listed, func_normal_rounds, func_relinearise_listed)
+                     func_link_motion, func_relinearise_listed)
+from .rounds import func_normal_round_listed, func_normal_rounds
 from .report import func_contact_report
 
 

@@ -12,9 +12,10 @@ from ..layout import FieldTree
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
 from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
-from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, NORMAL_ROUNDS, RELINEARISE_PASS,
+from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
                      RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round, func_bound_count,
-                     func_link_motion, func_normal_round, toggle_round)
+                     func_link_motion)
+from .rounds import NORMAL_ROUNDS, func_normal_round, toggle_round
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import (MAX_DEEP_WARNINGS, ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report,
                      geom_half_thickness)
@@ -121,7 +122,7 @@ class ContactSolver:
         # it (the relinearise pass kept it); sl_u_normal, sl_load: the velocity and the normal force of
         # the normal solve (Coulomb's load); sl_in_final: still in after the friction pass
         self.sl_in_normal, self.sl_cand = I((B, S)), I((B, S))
-        # the normal rounds (passes.func_normal_round): each slot's law at the rounds' current start and
+        # the normal rounds (rounds.func_normal_round): each slot's law at the rounds' current start and
         # its change over a round's step; the rounds in which the slot changed sides (bit r) and came in
         # (bit r of sl_togin); the start (a dof vector); whether an env's rounds are over (gradient path)
         self.sl_fk, self.sl_de = F((B, S), False), F((B, S), False)
@@ -162,7 +163,7 @@ class ContactSolver:
         self.bank_bound = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(K)]
         self.rounds = 0  # the bound rounds the last factor_solve recorded
         self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
-        # the normal rounds' changes on the gradient path (passes.toggle_round), one bank a round
+        # the normal rounds' changes on the gradient path (rounds.toggle_round), one bank a round
         KN = NORMAL_ROUNDS if g else 0
         self.bank_toggle = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(KN)]
         self.normal_rounds = 0  # the normal rounds the last factor_solve recorded
@@ -400,7 +401,7 @@ class ContactSolver:
 
     @ti.kernel
     def kernel_normal_round(self, s: ti.template(), r: ti.i32) -> ti.i32:
-        """Normal round r on the gradient path (passes.func_normal_round, forward only) for every env whose
+        """Normal round r on the gradient path (rounds.func_normal_round, forward only) for every env whose
         rounds are not over: how many slots change sides, over the envs."""
         n = 0
         if ti.static(s.serial):
