@@ -142,7 +142,7 @@ class RigidCore:
         self.anc_i, self.anc_j = I(N * N), I(N * N)
         self.dof_limit_lo, self.dof_limit_hi = F(N, False), F(N, False)
         self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
-        self.dof_fold_leader = I(N)  # a folded mimic follower's leader, else -1 (flatten.np_fold)
+        self.dof_fold_leader = I(N)  # a folded mimic follower's leader, else -1 (flatten.np_fold_leader)
         self.dof_springref = F(N, False)  # rest position of the joint spring (MJCF springref; else 0)
         # per-env fields: declared without a shape and placed env-major (_place_env_major)
         s3 = lambda grad=g: ti.field(f, needs_grad=grad)  # noqa: E731

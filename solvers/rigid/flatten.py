@@ -122,18 +122,14 @@ class FlatModel:
         # Its motion is then m times the leader's in every solve, and its inertia, forces and contacts act
         # on the leader (a rigid coupling, as an equality constraint in MuJoCo or Genesis); other mimics
         # keep the copy at integration only (integrate.func_integrate_qvel)
-        self.np_fold = np.full((max(nd, 1), 2), -1, dtype=np.int32)  # [fold leader of a follower, folded follower of a leader]
-        has_child = np.zeros(max(nd, 1), dtype=bool)
-        for i in range(nd):
-            if dof_parent[i] >= 0:
-                has_child[dof_parent[i]] = True
+        self.np_fold_leader = np.full(max(nd, 1), -1, dtype=np.int32)  # a folded follower's leader, else -1
+        parents = {int(p) for p in dof_parent[:nd] if p >= 0}
         for f in range(nd):
             lead = int(self.np_mimic[f, 0])
-            if (lead >= 0 and lead != f and dof_parent[f] == dof_parent[lead] and not has_child[f]
-                    and self.np_mimic[lead, 0] < 0 and self.np_fold[lead, 1] < 0):
-                self.np_fold[f, 0] = lead
-                self.np_fold[lead, 1] = f
-        self.has_fold = bool((self.np_fold[:, 0] >= 0).any())
+            if (lead >= 0 and lead != f and dof_parent[f] == dof_parent[lead] and f not in parents
+                    and self.np_mimic[lead, 0] < 0 and lead not in self.np_fold_leader):
+                self.np_fold_leader[f] = lead
+        self.has_fold = bool((self.np_fold_leader >= 0).any())
         anc = np.zeros((max(nd, 1), max(nd, 1)), dtype=np.int32)
         for i in range(nd):
             j = i

@@ -108,7 +108,7 @@ def func_factor(s: ti.template(), i_b):
     func_factor_to(s, i_b, s.mass_fac)
 
 
-# Folded mimics (flatten.np_fold): a follower f of leader l with q_f = m q_l + offset, beside l in the dof
+# Folded mimics (flatten.np_fold_leader): a follower f of leader l with q_f = m q_l + offset, beside l in the dof
 # tree and with no dof below it, is solved in reduced form: A' = T^T A T and b' = T^T b, T the identity
 # with m at (f, l), the follower's row and column then left with its diagonal alone (its b' is 0, so its
 # solution is 0) and set to m x_l after the solve. Beside l, f shares l's ancestors, so A' keeps the tree

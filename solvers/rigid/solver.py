@@ -233,7 +233,7 @@ class RigidSolver:
         # "no limit" as a large finite number: infinities turn masked-out terms into NaN
         lim = np.clip(pad(m.np_dof_limit, D), -1e30, 1e30)
         dof_i = np.stack([pad(m.np_dof_link, D), pad(m.np_dof_q, D), pad(m.np_dof_parent, D),
-                          m.np_mimic[:, 0].astype(np.int32), m.np_fold[:, 0]], -1).astype(np.int32)
+                          m.np_mimic[:, 0].astype(np.int32), m.np_fold_leader], -1).astype(np.int32)
         dof_f = np.concatenate([lim, m.np_mimic[:, 1:], pad(m.np_dof_springref, D)[:, None]], -1).astype(self.np_dtype)
         sched = np.ascontiguousarray(np.array([op[:6] for op in self.ops], dtype=np.int32))
         sched_h = np.array([op[6] for op in self.ops], dtype=self.np_dtype)

@@ -5,7 +5,8 @@ step of an active-set Newton method on the convex energy whose minimiser is the 
 every law clipped at 0 (func_normal_round): the whole step where the energy falls, else an exact line
 search, so the energy falls at every round, no set comes back, and the set is final after finitely many
 (2 to 5 in a tumbling pile's steps): at most NORMAL_ROUNDS. A law within its round-off of 0 counts as on
-either side (ROUND_OFF_*: float32's choices otherwise follow the noise). Without gradients the rounds run
+either side (ROUND_OFF_*), so that noise alone does not call a round (it did not rescue float32's grasp
+of benchmarks/franka_cube_precision.py, whose forces are noise at that precision). Without gradients the rounds run
 in the fused step (func_normal_rounds, func_normal_round_listed); with gradients their search runs
 forward only (ContactSolver.kernel_normal_round) and each round's change of the system is a pass of its
 own (toggle_round), recorded with its adjoint."""

@@ -4,7 +4,7 @@ import taichi as ti
 
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
 from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
-from .passes import (BOUND_ROUNDS, COULOMB_PASS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
+from .passes import (BOUND_ROUNDS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
                      func_link_motion, func_relinearise_listed)
 from .rounds import func_normal_round_listed, func_normal_rounds
 from .report import func_contact_report
@@ -34,9 +34,9 @@ def func_solve_coulomb(s: ti.template(), i_b):
 
 @ti.func
 def func_contact_solve(s: ti.template(), i_b, e):
-    """The solve of a scene with contacts, all stages for one env (the fused step; see
-    ContactSolver.factor_solve). Without gradients (nothing reads the intermediate factors and
-    solutions back) the same results are computed with less work:
+    """The solve of a scene with contacts, all stages for one env, in the fused step (no gradients). The
+    gradient path's ContactSolver.factor_solve launches the same steps one by one; here (nothing reads the
+    intermediate factors and solutions back) the same results are computed with less work:
     - the passes visit the slots listed by func_contact_slots, not all the scene's slots;
     - an env with no slot on skips to the final solve (every pass adds nothing: A3 = A1 = M);
     - the first solve goes to factor_normal / qacc_normal and its link motion to link_w_normal /
@@ -47,17 +47,10 @@ def func_contact_solve(s: ti.template(), i_b, e):
     - the bound rounds stop at the first that changes no viscosity (it added exact zeros: solving
       again would give the same qacc), as on the gradient path (ContactSolver.factor_solve)."""
     c = s.contact
-    if ti.static(s.requires_grad):
-        func_solve_candidates(s, i_b)
-        for stage in ti.static(c.relinearise_pass):
-            stage(s, i_b)
-        func_solve_normal(s, i_b)
-        for stage in ti.static(COULOMB_PASS):
-            stage(s, i_b)
-        func_solve_coulomb(s, i_b)
-        for stage in ti.static(c.friction_pass):
-            stage(s, i_b)
-    elif ti.static(s.unrolled and not c.dense):
+    # a scene built for gradients never runs the fused step (RigidSolver._fused: op by op, through
+    # ContactSolver.factor_solve, whose sequence of launches its adjoint replays)
+    ti.static_assert(not s.requires_grad, "func_contact_solve is the fused step's, without gradients")
+    if ti.static(s.unrolled and not c.dense):
         func_contact_solve_rounds(s, i_b, e)
     else:
         phase = 0
