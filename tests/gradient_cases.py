@@ -230,6 +230,27 @@ def build_arm(v, plane=False):
         "arm.dofs_kp": np.array([12.0, 8.0, 4.0]), "arm.dofs_kv": np.array([0.6, 0.4, 0.2])})
 
 
+def build_gripper(v, plane=False):
+    """assets/urdf/mimic_gripper.urdf fixed 1 m up: a skewed revolute wrist and two prismatic fingers, the
+    second a <mimic> of the first (b = -1.5 a + 0.01), folded into its leader in every factorisation and
+    solve; offset centres of mass, rotated non-diagonal inertia, collision on with nothing to touch. The
+    state and controls act on the wrist and the leader (a follower's own position and velocity are its
+    leader's: their gradient is zero by construction); the follower's mass, inertia and centre of mass
+    act on the leader through the fold. plane=True lowers it over a plane the follower's pad lands on."""
+    scene = _scene(v, dt=0.01)
+    if plane:
+        scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.5))
+    grip = scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "mimic_gripper.urdf"), fixed=True,
+                                           pos=(0.0, 0.0, 0.235 if plane else 1.0)))
+    scene.build(n_envs=v.n_envs)
+    dofs = [grip.get_joint(n).dof_idx_local for n in ("wrist", "finger_a_joint")]
+    # over the plane the leader closes (-0.6 m/s), which lowers the follower's pad: it lands on the plane's
+    # edge of its box in the 4th step (1.8 mm below it at the start) and sticks there, pressed by the PD
+    return Built(scene, {"grip": grip}, T=8, dofs={"grip": dofs}, defaults={
+        "grip.dofs_position": np.array([0.3, 0.02]), "grip.dofs_velocity": np.array([-0.4, -0.6 if plane else 0.15]),
+        "grip.dofs_kp": np.array([6.0, 20.0]), "grip.dofs_kv": np.array([0.4, 1.0])})
+
+
 def _robot_urdf(name):
     sys.path.insert(0, str(TESTS_DIR))
     from conftest import robot_urdf
@@ -415,6 +436,8 @@ SCENES: Dict[str, Callable[[Variation], Built]] = {
     "plank_stack": build_plank_stack,
     "arm": build_arm,
     "arm_plane": lambda v: build_arm(v, plane=True),
+    "gripper": build_gripper,
+    "gripper_plane": lambda v: build_gripper(v, plane=True),
     "go2": build_go2,
     "mpm_four": build_mpm_four,
     **{f"mpm_{m.lower()}": (lambda v, m=m: build_mpm_cube(v, m)) for m in MPM_MATERIALS},
@@ -719,6 +742,18 @@ def _table() -> List[Case]:
     for integ in ("Euler", "RK4"):
         slow("arm", WRENCH_STATE, ARM_OUT, V(integrator=integ), tag="wrench")
     slow("arm", WRENCH_STATE, ARM_OUT, V(precision="32"), tag="wrench")
+    # ------------------------------------------------------------------ gripper with a folded mimic finger
+    GRIP = ("grip.dofs_position", "grip.dofs_velocity", "grip.ctrl_force", "grip.links_mass", "grip.links_inertia",
+            "grip.links_COM", "grip.gravity")
+    GRIP_PD = ("grip.ctrl_position", "grip.dofs_kp", "grip.dofs_kv")
+    GRIP_OUT = ("grip.links_pos", "grip.links_quat", "grip.links_vel", "grip.dofs_position", "grip.dofs_velocity")
+    add("gripper", GRIP, GRIP_OUT)
+    add("gripper", GRIP_PD + ("grip.links_mass",), GRIP_OUT, V(n_envs=3))
+    slow("gripper", GRIP + GRIP_PD, GRIP_OUT, V(integrator="RK4"))
+    slow("gripper", GRIP, GRIP_OUT, V(precision="32"))
+    # the follower's pad on the plane: its contact's Jacobian folded onto the leader
+    slow("gripper_plane", ("grip.dofs_position", "grip.dofs_velocity", "grip.ctrl_position", "grip.links_mass",
+                           "grip.links_COM", "grip.friction"), GRIP_OUT)
     # ------------------------------------------------------------------ box sliding on a plane
     SLIDE = ("box.dofs_velocity", "box.ctrl_force", "box.friction", "box.links_mass", "box.links_COM")
     # exact contact at the start: d/dvz was ~19 % off until 3b88db4 (softplus's adjoint at depth 0)
