@@ -10,7 +10,7 @@ import numpy as np
 from solvers.rigid.schedule import Integrator
 
 
-# time integrators of the rigid solver: the solver's one enum (Euler, implicitfast, RK4)
+# time integrators of the rigid solver: the solver's one enum (Euler, implicitfast, RK4, approximate_implicitfast)
 integrator = Integrator
 
 
@@ -94,7 +94,9 @@ class SimOptions(_Options):
 
 @dataclass
 class RigidOptions(_Options):
-    """integrator: gs.integrator.Euler | implicitfast | RK4. enable_collision / enable_joint_limit
+    """integrator: gs.integrator.approximate_implicitfast (Genesis's default: joint damping and the PD's kv
+    implicit, saturated or not) | implicitfast (also the PD's kp, and neither gain while the actuator is
+    saturated) | Euler | RK4 (solvers/rigid/actuation.py). enable_collision / enable_joint_limit
     switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
     collide. contact_stiffness (N/m per contact point) and contact_damping (N s/m per contact point) set
     the penalty model (the stiffness scaled up for pairs heavier than 100 kg); joint_limit_stiffness /
@@ -124,7 +126,7 @@ class RigidOptions(_Options):
     keeps those parameters per environment always, so the flags are checked and change nothing: per-env
     setters work with them False as well, and the step is the same."""
 
-    integrator: integrator = integrator.implicitfast
+    integrator: integrator = integrator.approximate_implicitfast
     enable_collision: bool = True
     enable_joint_limit: bool = True
     enable_self_collision: bool = False
@@ -185,7 +187,8 @@ class RigidOptions(_Options):
         try:
             self.integrator = integrator(self.integrator)
         except ValueError:
-            self._err("integrator", self.integrator, "use gs.integrator.Euler, implicitfast or RK4")
+            self._err("integrator", self.integrator,
+                      "use gs.integrator.approximate_implicitfast, implicitfast, Euler or RK4")
         for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):

@@ -28,9 +28,11 @@ T_END = 1.0  # s
 STEPS = {
     "Euler": [100, 200, 400, 800],
     "implicitfast": [100, 200, 400, 800],
+    "approximate_implicitfast": [100, 200, 400, 800],
     "RK4": [20, 40, 80, 160],
 }
-ORDER_RANGE = {"Euler": (0.8, 1.3), "implicitfast": (0.8, 1.3), "RK4": (3.5, 4.6)}
+ORDER_RANGE = {"Euler": (0.8, 1.3), "implicitfast": (0.8, 1.3), "approximate_implicitfast": (0.8, 1.3),
+               "RK4": (3.5, 4.6)}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -146,7 +148,7 @@ def test_reference_is_tight_and_matches_the_urdf():
     assert np.allclose(M, [[5.0, 2.0], [2.0, 1.0]], atol=1e-6)
 
 
-@pytest.mark.parametrize("integrator", ["Euler", "implicitfast", "RK4"])
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast", "approximate_implicitfast", "RK4"])
 def test_convergence_order(integrator):
     rows, order = convergence(integrator)
     table = "\n".join(f"  dt={dt:.6f}  err={e:.3e}" for dt, e in rows)
@@ -165,3 +167,63 @@ def test_implicitfast_first_order_with_damping():
     first order to the damped reference."""
     rows, order = convergence("implicitfast", steps=[100, 200, 400], damping=(0.3, 0.2))
     assert 0.8 <= order <= 1.3, (order, rows)
+
+
+def test_approximate_implicitfast_is_the_default():
+    """Genesis's default integrator (v0.4.5 RigidOptions) is ours."""
+    import genesis_lite as gs
+
+    assert gs.options.RigidOptions().integrator == gs.integrator.approximate_implicitfast
+
+
+SLIDER = """<?xml version="1.0"?>
+<robot name="slider">
+  <link name="base"><inertial><mass value="1.0"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="cart"><inertial><mass value="{m}"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="slide" type="prismatic"><parent link="base"/><child link="cart"/><axis xyz="1 0 0"/>
+    <limit lower="-10" upper="10" effort="{f_max}" velocity="100"/><dynamics damping="{d}"/></joint>
+</robot>
+"""
+
+
+@pytest.mark.parametrize("integrator", ["implicitfast", "approximate_implicitfast"])
+@pytest.mark.parametrize("saturated", [False, True])
+def test_pd_step_terms_of_the_implicit_integrators(tmp_path, integrator, saturated):
+    """One step of a PD-driven slider (mass m, joint damping d, gains kp, kv, force limit F) against the
+    integrators' closed forms (semi-implicit Euler, v' = v + h a, q' = q + h v'), error e = q* - q:
+    - approximate_implicitfast (Genesis's: M + h (d + kv) on the diagonal for a dof under position or
+      velocity control, saturated or not; kp explicit): (m + h (d + kv)) a = clip(kp e - kv v) - d v;
+    - implicitfast (ours: the unsaturated actuator's kp and kv implicit, the saturated one's not):
+      (m + h (d + kv) + h^2 kp) a = kp e - kv v - d v - h kp v, or (m + h d) a = F - d v when saturated."""
+    import genesis_lite as gs
+
+    m, d, kp, kv, h = 0.7, 0.3, 400.0, 12.0, 0.02
+    f_max = 5.0 if saturated else 1e4
+    path = tmp_path / "slider.urdf"
+    path.write_text(SLIDER.format(m=m, d=d, f_max=f_max))
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=h, gravity=(0.0, 0.0, 0.0)),
+                     rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator),
+                                                           enable_collision=False, enable_joint_limit=False))
+    slider = scene.add_entity(gs.morphs.URDF(file=str(path), fixed=True))
+    scene.build()
+    slider.set_dofs_armature([0.0])
+    slider.set_dofs_kp([kp])
+    slider.set_dofs_kv([kv])
+    q0, v0, target = 0.1, -0.4, 0.35
+    slider.set_dofs_position([q0])
+    slider.set_dofs_velocity([v0])
+    slider.control_dofs_position([target])
+    scene.step()
+    raw = kp * (target - q0) - kv * v0
+    assert (abs(raw) > f_max) == saturated
+    f = float(np.clip(raw, -f_max, f_max))
+    if integrator == "approximate_implicitfast":
+        a = (f - d * v0) / (m + h * (d + kv))
+    elif saturated:
+        a = (f - d * v0) / (m + h * d)
+    else:
+        a = (raw - d * v0 - h * kp * v0) / (m + h * (d + kv) + h * h * kp)
+    v1 = v0 + h * a
+    q1 = q0 + h * v1
+    np.testing.assert_allclose(slider.get_dofs_velocity().numpy(), [v1], rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(slider.get_dofs_position().numpy(), [q1], rtol=1e-12, atol=1e-14)

@@ -1,10 +1,13 @@
 """Stages 4-5, passive and actuation forces, assembled with the bias into the generalised force.
 
 Diagonal stiffness K and damping D are treated implicitly, (M + h D + h^2 K) qacc = f(q, v) - h K v:
-with implicitfast, the PD gains, joint damping and friction-loss slope; with every integrator, the
-joint-limit springs (stiff by design). The joint springs (set_dofs_stiffness, MJCF `stiffness`) are
-explicit, as in Genesis and MuJoCo (whose implicit integrators are implicit in velocity only), so that a
-trajectory matches theirs step by step.
+with every integrator, the joint-limit springs (stiff by design); with implicitfast, the joint damping,
+the friction-loss slope and the PD's kp and kv while the actuator is not saturated (a saturated one no
+longer responds to q or v); with approximate_implicitfast (Genesis's default integrator, v0.4.5
+rigid/abd/forward_dynamics.py, func_compute_mass_matrix's first-order correction), the joint damping,
+the friction-loss slope and the PD's kv, saturated or not, and never kp: Genesis's answers step by step
+(tests/test_integrators.py). The joint springs (set_dofs_stiffness, MJCF `stiffness`) are explicit, as in
+Genesis and MuJoCo (whose implicit integrators are implicit in velocity only).
 
 Position control of a free joint's dofs follows Genesis (v0.4.5, rigid/abd/forward_dynamics.py,
 func_torque_and_passive_force): a translational dof's error is target - world coordinate of the base
@@ -120,10 +123,13 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
                           ti.select(above, s.limit_k * (lim_hi - q) - s.limit_d * ti.max(v, 0.0), 0.0))
         lim_K = ti.select(below or above, s.limit_k, 0.0)
         lim_D = ti.select((below and v < 0) or (above and v > 0), s.limit_d, 0.0)
-        # stiffness/damping treated implicitly: PD and passive terms with implicitfast only,
-        # joint-limit springs always (they are constraints, stiff by design)
-        K = lim_K + s.implicit_on * kp * free_act
-        D = lim_D + s.implicit_on * (kv * free_act + damp + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
+        # stiffness/damping treated implicitly: PD and passive terms with the implicit integrators only,
+        # joint-limit springs always (they are constraints, stiff by design). approximate_implicitfast
+        # (Genesis's): kv whether or not the actuator is saturated, kp never
+        kv_only = s.implicit_kv_only
+        K = lim_K + s.implicit_on * (1.0 - kv_only) * kp * free_act
+        D = lim_D + s.implicit_on * (kv * (free_act + kv_only * (1.0 - free_act)) + damp
+                                     + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
         s.force[i_b, i_d] = tau - damp * v - spring - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
         diag = s.dof_armature[i_b, i_d] + h * D + h * h * K
         if ti.static(s.requires_grad):

@@ -43,7 +43,7 @@ PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:2]
 MIN_ELEMS = 16
 # run-time sizes and options, indices into RigidCore.cfg_i / cfg_f
 I_ENVS, I_LINKS, I_DOFS, I_QS, I_QPOS_LEN, I_QVEL_LEN, I_LIMITS_ON, I_ELEMS, I_ANC, N_CFG_I = range(10)
-F_LIMIT_K, F_LIMIT_D, F_IMPLICIT_ON, N_CFG_F = range(4)
+F_LIMIT_K, F_LIMIT_D, F_IMPLICIT_ON, F_IMPLICIT_KV_ONLY, N_CFG_F = range(5)
 NO_NAN = 2**31 - 1  # nan_step of an env whose state has stayed finite
 
 
@@ -106,6 +106,7 @@ class RigidCore:
     limit_k = _runtime(F_LIMIT_K, True)
     limit_d = _runtime(F_LIMIT_D, True)
     implicit_on = _runtime(F_IMPLICIT_ON, True)
+    implicit_kv_only = _runtime(F_IMPLICIT_KV_ONLY, True)  # 1.0: approximate_implicitfast's terms
     n_anc = _runtime(I_ANC)  # pairs (i, j) with dof j an ancestor-or-self of dof i (anc_i, anc_j)
 
     def __init__(self, key):

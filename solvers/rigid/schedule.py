@@ -14,8 +14,11 @@ class Integrator(enum.IntEnum):
     """Time integrators of the rigid solver (gs.integrator is this enum, with Genesis's member names)."""
 
     Euler = 0          # semi-implicit (symplectic) Euler
-    implicitfast = 1   # semi-implicit Euler, implicit in joint damping and PD gains
+    implicitfast = 1   # semi-implicit Euler, implicit in joint damping and in the unsaturated PD's kp and kv
     RK4 = 2            # classic 4th-order Runge-Kutta on (q, v)
+    # Genesis's default: semi-implicit Euler implicit in joint damping and in the PD's kv (never kp),
+    # saturated or not (actuation.py)
+    approximate_implicitfast = 3
 
 
 # classic RK4: stage k's derivative is taken at the state advanced by RK4_STAGE_FRACTIONS[k] * h from

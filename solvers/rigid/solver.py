@@ -32,7 +32,7 @@ from ..taichi_compat.compile_options import AdjointCompile, ForwardCompile
 from . import state_io
 from .actuation import func_generalized_force
 from .contact import ContactPlan
-from .core import (DYNAMICS, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
+from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
                    I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
                    elem_capacity, env_capacity, with_applied)
 from .external import ExternalWrench
@@ -80,8 +80,9 @@ class RigidSolver:
         self.dt = dt
         self.substeps = substeps
         self.integrator = integrator
-        self.implicit = integrator == Integrator.implicitfast
+        self.implicit = integrator in (Integrator.implicitfast, Integrator.approximate_implicitfast)
         self.implicit_on = 1.0 if self.implicit else 0.0
+        self.implicit_kv_only = 1.0 if integrator == Integrator.approximate_implicitfast else 0.0
         self.requires_grad = requires_grad
         self.enable_joint_limit = enable_joint_limit
         self.limits_on = bool(enable_joint_limit)
@@ -196,6 +197,7 @@ class RigidSolver:
         cfg[N_CFG_I + F_LIMIT_K] = float(self.limit_k)
         cfg[N_CFG_I + F_LIMIT_D] = float(self.limit_d)
         cfg[N_CFG_I + F_IMPLICIT_ON] = float(self.implicit_on)
+        cfg[N_CFG_I + F_IMPLICIT_KV_ONLY] = float(self.implicit_kv_only)
         return cfg
 
     def param_layout(self):
