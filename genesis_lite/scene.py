@@ -555,8 +555,11 @@ class Scene:
             return rk4_combine(a[-4], a[-3], a[-2], a[-1])
         return a[-1]
 
-    def _dofs_force(self):
+    def _dofs_control_force(self):
         return self._rigid.read_dof_tau()
+
+    def _dofs_force(self):
+        return self._rigid.read_dof_qf()
 
 
 class _SimView:

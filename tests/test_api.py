@@ -321,7 +321,7 @@ GETTERS = {
     "get_pos": (3,), "get_quat": (4,), "get_vel": (3,), "get_ang": (3,),
     "get_links_pos": ("L", 3), "get_links_quat": ("L", 4), "get_links_vel": ("L", 3), "get_links_ang": ("L", 3),
     "get_qpos": ("Q",), "get_dofs_position": ("D",), "get_dofs_velocity": ("D",), "get_dofs_acc": ("D",),
-    "get_dofs_force": ("D",), "get_mass_mat": ("D", "D"), "get_links_mass": ("L",),
+    "get_dofs_force": ("D",), "get_dofs_control_force": ("D",), "get_mass_mat": ("D", "D"), "get_links_mass": ("L",),
     "get_kinetic_energy": (), "get_potential_energy": (), "get_total_energy": (),
 }
 
@@ -352,7 +352,7 @@ def test_getters_with_index_subsets(panda, fresh):
     robot.set_dofs_position(rng.uniform(-0.5, 0.5, 9) * np.r_[np.ones(7), 0, 0] + np.r_[np.zeros(7), 0.01, 0.02])
     robot.set_dofs_velocity(rng.normal(size=9))
     dofs = [6, 1, 3]
-    for name in ("get_dofs_position", "get_dofs_velocity", "get_dofs_force"):
+    for name in ("get_dofs_position", "get_dofs_velocity", "get_dofs_force", "get_dofs_control_force"):
         full = getattr(robot, name)()
         sub = getattr(robot, name)(dofs_idx_local=dofs)
         assert torch.equal(sub, full[dofs]), name
@@ -572,7 +572,7 @@ def test_position_control_reaches_target_with_gravity(panda, fresh):
         assert not moving, f"still moving after 3 s of PD control (rad/s, m/s): {moving}"
         # at rest the PD force holds gravity: kp (target - q) equals the gravity torque
         lo, hi = (_np(x) for x in robot.get_dofs_force_range())
-        f = _np(robot.get_dofs_force())
+        f = _np(robot.get_dofs_control_force())
         assert np.all(f >= lo) and np.all(f <= hi)
         # the force of the last step, from the state it started in
         assert np.allclose(f, np.array(PANDA_KP) * (target - q_prev) - np.array(PANDA_KV) * v_prev, rtol=1e-12, atol=1e-9)
@@ -643,7 +643,7 @@ def test_velocity_control_tracks_target(arm, fresh):
         damping = _np(a.get_dofs_damping())
         # steady state of kv (target - v) = damping v, up to the Coriolis forces of the moving arm
         assert np.allclose(v, kv * target / (kv + damping), rtol=0, atol=3e-3), v
-        f = _np(a.get_dofs_force())
+        f = _np(a.get_dofs_control_force())
         assert np.allclose(f, kv * (target - v_prev), rtol=1e-12, atol=1e-12)
     finally:
         a.set_dofs_force_range(lo0, hi0)
@@ -667,7 +667,7 @@ def test_force_control_and_force_range_clipping(arm, fresh):
             D = np.diag(_np(a.get_dofs_damping()))
             a.control_dofs_force(force)
             scene.step()
-            return M, D, _np(a.get_dofs_acc()), _np(a.get_dofs_velocity()), _np(a.get_dofs_force())
+            return M, D, _np(a.get_dofs_acc()), _np(a.get_dofs_velocity()), _np(a.get_dofs_control_force())
 
         M, D, acc, v1, f = one_step(tau)
         expected = np.linalg.solve(M + DT * D, tau)
@@ -686,13 +686,50 @@ def test_force_control_and_force_range_clipping(arm, fresh):
         a.set_dofs_position(q)
         a.control_dofs_position(q + 1.0)
         scene.step()
-        assert np.array_equal(_np(a.get_dofs_force()), [1.0] * 4)
+        assert np.array_equal(_np(a.get_dofs_control_force()), [1.0] * 4)
         with pytest.raises(GenesisException, match="lower > upper"):
             a.set_dofs_force_range([1.0] * 4, [-1.0] * 4)
     finally:
         a.set_dofs_kp([0.0] * 4)
         a.set_dofs_force_range(lo0, hi0)
         scene.set_gravity((0.0, 0.0, -G))
+
+
+@pytest.mark.parametrize("integrator", [None, "Euler"])
+def test_dofs_force_is_genesis_generalised_force(integrator):
+    """get_dofs_force has Genesis's meaning (its dofs_state.force): actuator + joint damping - bias of the
+    step's starting state, checked against Pinocchio on the skewed arm (offset centres of mass, rotated
+    non-diagonal inertia, skewed axes; default options, collision on with nothing to touch): clip(PD) -
+    D v - rnea(q, v, 0). With Euler, M(q) qacc equals it; get_dofs_control_force is the actuator part."""
+    path = Path(__file__).resolve().parents[1] / "assets" / "urdf" / "skew_arm.urdf"
+    rigid = {} if integrator is None else {"rigid_options": gs.options.RigidOptions(integrator=gs.integrator.Euler)}
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=DT), **rigid)
+    arm = scene.add_entity(gs.morphs.URDF(file=str(path), fixed=True))
+    scene.build()
+    model = pin.buildModelFromUrdf(str(path))
+    model.gravity = pin.Motion(np.array([0.0, 0.0, -G]), np.zeros(3))
+    data = model.createData()
+    assert [model.names[j] for j in range(1, model.njoints)] == [j.name for j in arm.joints if j.n_dofs]
+    q, v = np.array([0.4, -0.7, 1.1]), np.array([0.6, -0.9, 1.3])
+    kp, kv, target = np.array([30.0, 20.0, 10.0]), np.array([1.0, 0.8, 0.5]), np.array([0.9, 0.2, 0.5])
+    damping = _np(arm.get_dofs_damping())
+    assert np.all(damping > 0)
+    arm.set_dofs_kp(kp)
+    arm.set_dofs_kv(kv)
+    arm.set_dofs_force_range([-100.0, -100.0, -2.0], [100.0, 100.0, 2.0])  # the third saturates
+    arm.set_dofs_position(q)
+    arm.set_dofs_velocity(v)
+    M = _np(arm.get_mass_mat())
+    arm.control_dofs_position(target)
+    scene.step()
+    tau = np.clip(kp * (target - q) - kv * v, -np.r_[100.0, 100.0, 2.0], np.r_[100.0, 100.0, 2.0])
+    assert abs(tau[2]) == 2.0
+    bias = pin.rnea(model, data, q, v, np.zeros(3))
+    expected = tau - damping * v - bias
+    np.testing.assert_allclose(_np(arm.get_dofs_control_force()), tau, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(_np(arm.get_dofs_force()), expected, rtol=1e-9, atol=1e-9)
+    if integrator == "Euler":
+        np.testing.assert_allclose(M @ _np(arm.get_dofs_acc()), expected, rtol=1e-9, atol=1e-9)
 
 
 def _run(scene, a, steps, q0=(0.0, 0.9, -0.6, 0.4), v0=(0.0, 0.0, 0.0, 0.0)):
@@ -940,7 +977,7 @@ def test_reset_returns_to_post_build_state(arm4):
     for _ in range(10):
         scene.step()
     assert np.array_equal(_np(a.get_qpos()), q_after)
-    assert np.array_equal(_np(a.get_dofs_force()), np.zeros((4, 4)))
+    assert np.array_equal(_np(a.get_dofs_control_force()), np.zeros((4, 4)))
     scene.reset()
 
 

@@ -330,6 +330,10 @@ class RigidSim:
         """(B, n_dofs): the actuator forces of the last evaluation."""
         return self._result("dof_tau", (self.B, 1, self.n_dofs))[:, 0]
 
+    def read_dof_qf(self):
+        """(B, n_dofs): the actuator, damping and spring forces less the bias, of the last evaluation."""
+        return self._result("dof_qf", (self.B, 1, self.n_dofs))[:, 0]
+
     # ---------------------------------------------------------------- controls and parameters
     def reset_controls(self):
         self.ctrl = torch.zeros(self.B, 3, self.n_dofs, dtype=self.dtype, device=self.device)

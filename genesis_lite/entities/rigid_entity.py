@@ -470,15 +470,19 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         return self._out(self._scene._dofs_acc()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
 
     def get_dofs_force(self, dofs_idx_local=None, envs_idx=None):
-        """Actuator forces (N, N m) applied at the last step after force-range clipping; no gradient."""
+        """Genesis's meaning (its dofs_state.force): the generalised force (N, N m) of the last step's
+        state without the constraints, actuator (after force-range clipping) + joint damping + joint
+        spring - bias (Coriolis, centrifugal, gravity and applied link wrenches); joint limits, friction loss
+        and contacts are not in it. With the Euler integrator and no constraint acting, M qacc equals it
+        (the implicit integrators solve (M + h D) qacc = it). No gradient."""
         self._sim  # noqa: B018 - raises a clear error before build
         return self._out(self._scene._dofs_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
 
     def get_dofs_control_force(self, dofs_idx_local=None, envs_idx=None):
-        """Genesis's name for the actuator forces (N, N m): the PD or force controls applied at the last
-        step, after force-range clipping; no gradient. (get_dofs_force returns the same here; in Genesis
-        it is the total generalised force.)"""
-        return self.get_dofs_force(dofs_idx_local, envs_idx)
+        """The actuator forces (N, N m): the PD or force controls applied at the last step, after
+        force-range clipping; no gradient."""
+        self._sim  # noqa: B018 - raises a clear error before build
+        return self._out(self._scene._dofs_control_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
 
     def _link_out(self, k, links_idx_local, envs_idx):
         out = self._sim.link_outputs()[k]

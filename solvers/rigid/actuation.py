@@ -131,6 +131,9 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         D = lim_D + s.implicit_on * (kv * (free_act + kv_only * (1.0 - free_act)) + damp
                                      + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
         s.force[i_b, i_d] = tau - damp * v - spring - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
+        # Genesis's dofs_state.force (get_dofs_force): actuator, damping and spring less the bias; its joint
+        # limits and friction loss are constraints, not part of it
+        s.dof_qf[i_b, i_d] = tau - damp * v - spring - s.bias[i_b, i_d]
         diag = s.dof_armature[i_b, i_d] + h * D + h * h * K
         if ti.static(s.requires_grad):
             s.mass_mat[i_b, i_d, i_d] += diag

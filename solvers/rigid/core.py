@@ -172,6 +172,7 @@ class RigidCore:
         self.mass_mat, self.bias, self.force = s3(), s3(), s3()
         self.mass_fac = s3(False)
         self.dof_tau = s3(False)
+        self.dof_qf = s3(False)
         self.solve_tmp = s3(False)
         elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
                 self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.dof_force_lo,
@@ -179,7 +180,7 @@ class RigidCore:
                 self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
                 self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m,
                 self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force,
-                self.dof_tau]
+                self.dof_tau, self.dof_qf]
         mats, ones = [self.mass_mat, self.mass_fac], [self.gravity]
         slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.qvel_move]), (1, [self.solve_tmp])]
         _place_env_major(B, N, elem, mats, ones, slots)

@@ -174,6 +174,7 @@ class RigidSolver:
     qacc = _core_field("qacc", "[evaluation, env, dof] accelerations of the last step's evaluations")
     mass_mat = _core_field("mass_mat", "[env, dof, dof] mass matrix of the last evaluation (lower triangle)")
     dof_tau = _core_field("dof_tau", "[env, dof] actuator forces of the last evaluation")
+    dof_qf = _core_field("dof_qf", "[env, dof] actuator + damping + spring - bias forces of the last evaluation")
     link_pos = _core_field("link_pos", "[env, link] link origins (world, m) of the last kinematics")
     link_quat = _core_field("link_quat", "[env, link] link orientations (w, x, y, z) of the last kinematics")
     link_R = _core_field("link_R", "[env, link] link rotation matrices of the last kinematics")
@@ -483,12 +484,13 @@ class RigidSolver:
         field, as the contact friction's)."""
         return _Block(self.applied.gcomp, (self.n_envs, self.n_links), self.applied.kernel_set_gcomp)
 
-    RESULTS = ("mass_mat", "qacc", "dof_tau")
+    RESULTS = ("mass_mat", "qacc", "dof_tau", "dof_qf")
 
     def read_result(self, name: str, out):
         """A per-env dof result of the last evaluation into out: "mass_mat" (n_envs, n_dofs, n_dofs) the
         mass matrix (of the last mass_matrix call, lower triangle), "qacc" (n_envs, n_evals, n_dofs) the
-        accelerations of the last step's evaluations, "dof_tau" (n_envs, 1, n_dofs) the actuator forces."""
+        accelerations of the last step's evaluations, "dof_tau" (n_envs, 1, n_dofs) the actuator forces,
+        "dof_qf" (n_envs, 1, n_dofs) the actuator, damping and spring forces less the bias."""
         if self.n_envs * self.n_dofs:
             state_io.kernel_get_result(self.core, self.RESULTS.index(name), out)
 

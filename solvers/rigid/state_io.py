@@ -170,9 +170,12 @@ def kernel_get_result(s: ti.template(), which: ti.i32, out: ti.types.ndarray()):
             elif which == 1:
                 for e, i in ti.ndrange(out.shape[1], n):
                     out[i_b, e, i] = s.qacc[e, i_b, i]
-            else:
+            elif which == 2:
                 for i in range(n):
                     out[i_b, 0, i] = s.dof_tau[i_b, i]
+            else:
+                for i in range(n):
+                    out[i_b, 0, i] = s.dof_qf[i_b, i]
 
 
 @ti.kernel
