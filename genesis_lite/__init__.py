@@ -6,7 +6,6 @@
 """
 from __future__ import annotations
 
-import gc
 import logging
 import os
 import time
@@ -220,20 +219,6 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     cpu_threads = threads if threads is not None else (_available_cores() if arch == ti.cpu else None)
     _init_args = args
     _initialized = True
-    _freeze_startup_objects()
-
-
-def _freeze_startup_objects() -> None:
-    """Move the objects alive now (torch's, Taichi's and the other imported modules': ~10^6) out of
-    Python's cyclic garbage collector's reach (`gc.freeze`). They live as long as the process, yet each
-    full collection traversed them all again: ~70-90 ms each, a few during a build and its first
-    kernels' front end, and three or four more at interpreter exit (together ~0.5 s of a short script).
-    The frozen objects are the process's modules, classes and functions, and whatever the script made
-    before gs.init: a reference cycle among those, dropped later, is never freed (a full collection
-    first would free what is already garbage, but costs as much as the freeze saves). Garbage created
-    after gs.init is collected as before. Once per process; GS_GC_FREEZE=0 leaves the collector alone."""
-    if os.environ.get("GS_GC_FREEZE") != "0":
-        gc.freeze()
 
 
 def _assert_initialized():
