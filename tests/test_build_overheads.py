@@ -341,6 +341,35 @@ def test_frontend_can_be_turned_off(monkeypatch):
         assert out.stdout.strip().splitlines()[-1] == want, switch
 
 
+def test_a_default_run_writes_the_kernel_cache(tmp_path):
+    """A fresh process with an empty kernel cache leaves Taichi's cache metadata and kernels behind when
+    it exits (Taichi writes them as its Program is destroyed at interpreter exit: anything that keeps
+    that object alive, as a gc.freeze at gs.init once did, leaves every later run cold), and a second
+    process finds them: it compiles nothing new (the cache's files are unchanged)."""
+    import subprocess
+
+    code = ("import genesis_lite as gs\n"
+            "gs.init(backend=gs.cpu, precision='64', logging_level='warning')\n"
+            "scene = gs.Scene()\n"
+            "scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0, 0, 0.5)))\n"
+            "scene.build()\n"
+            "scene.step()\n")
+    env = {**os.environ, "TI_OFFLINE_CACHE_FILE_PATH": str(tmp_path / "ti"), "GS_CACHE_DIR": str(tmp_path / "gs")}
+    env.pop("GS_CHECK_AD_STACK", None)  # Taichi's own runtime: its cache folder is the one named above
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    listings = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600,
+                             cwd=repo)
+        assert out.returncode == 0, out.stderr
+        files = sorted(p.name for p in (tmp_path / "ti").rglob("*.tic"))
+        assert (tmp_path / "ti" / "ticache" / "ticache.tcb").is_file() or list((tmp_path / "ti").rglob("ticache.tcb")), \
+            "no kernel-cache metadata was written"
+        assert files, "no compiled kernel was cached"
+        listings.append(files)
+    assert listings[0] == listings[1]
+
+
 # --------------------------------------------------------------------------------------------
 # Model cache
 # --------------------------------------------------------------------------------------------
