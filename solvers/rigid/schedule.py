@@ -15,10 +15,10 @@ class Integrator(enum.IntEnum):
 
     Euler = 0          # semi-implicit (symplectic) Euler
     implicitfast = 1   # semi-implicit Euler, implicit in joint damping and in the unsaturated PD's kp and kv
-    RK4 = 2            # classic 4th-order Runge-Kutta on (q, v)
     # Genesis's default: semi-implicit Euler implicit in joint damping and in the PD's kv (never kp),
-    # saturated or not (actuation.py)
-    approximate_implicitfast = 3
+    # saturated or not (actuation.py). The first three numbers are Genesis's.
+    approximate_implicitfast = 2
+    RK4 = 3            # classic 4th-order Runge-Kutta on (q, v)
 
 
 # classic RK4: stage k's derivative is taken at the state advanced by RK4_STAGE_FRACTIONS[k] * h from
