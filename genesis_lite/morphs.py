@@ -88,9 +88,11 @@ class URDF(FileMorph):
     requires_jac_and_IK: bool = False
     links_to_keep: Sequence[str] = ()
     convexify: bool = True
+    default_armature: Optional[float] = None
 
     def _check(self):
         super()._check()
+        _check_default_armature(self)
         if isinstance(self.links_to_keep, str):
             raise ValueError(f"gs.morphs.URDF(links_to_keep={self.links_to_keep!r}): give a list of link names")
         self.links_to_keep = tuple(str(n) for n in self.links_to_keep)
@@ -106,6 +108,23 @@ class MJCF(FileMorph):
 
     fixed: Optional[bool] = None
     requires_jac_and_IK: bool = False
+    default_armature: Optional[float] = None
+
+    def _check(self):
+        super()._check()
+        _check_default_armature(self)
+
+
+def _check_default_armature(morph):
+    """default_armature (kg m^2 or kg, Genesis's name): an armature given to every hinge and slide joint of the
+    file (URDF: all of them; MJCF: those whose compiled armature is 0, where Genesis fills in the ones whose XML
+    element names none). Genesis's default is 0.1, and its default integrator, approximate_implicitfast, relies
+    on it (a stiff PD on light links stays stable); genesis_lite's is None (the file's armature, 0 in a URDF)
+    until both become the defaults together (README, Integrators)."""
+    v = morph.default_armature
+    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0):
+        raise ValueError(f"gs.morphs.{type(morph).__name__}(default_armature={v!r}): give a number >= 0 (kg m^2 for "
+                         "a hinge, kg for a slide) or None")
 
 
 @dataclass

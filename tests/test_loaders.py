@@ -460,3 +460,28 @@ def test_dangling_mimic_warns(tmp_path):
     with pytest.warns(UserWarning, match="j1.*nobody"):
         m = urdf(write(tmp_path, body))
     assert m.links[1].mimic is None
+
+
+def test_default_armature_is_genesis_s_opt_in(tmp_path):
+    """URDF / MJCF(default_armature=a), Genesis's morph option: every hinge and slide joint of a URDF gets
+    armature a, a free or fixed joint none; an MJCF joint keeps an armature its file gives and gets a where it
+    has none. None (genesis_lite's default; Genesis's is 0.1) leaves the files' values. A bad value is refused."""
+    from conftest import robot_urdf
+
+    urdf = str(robot_urdf("anymal"))
+    plain = load_morph(morphs.URDF(file=urdf))
+    assert all(l.armature == 0.0 for l in plain.links)
+    arm = load_morph(morphs.URDF(file=urdf, default_armature=0.1))
+    assert [l.armature for l in arm.links if l.joint_type in ("revolute", "prismatic")] == [0.1] * 12
+    assert all(l.armature == 0.0 for l in arm.links if l.joint_type in ("free", "fixed"))
+    # the loaded model is not changed for later loads (the model cache's)
+    assert all(l.armature == 0.0 for l in load_morph(morphs.URDF(file=urdf)).links)
+    xml = tmp_path / "two.xml"
+    xml.write_text("""<mujoco><worldbody><body name="a"><joint name="j1" type="hinge" armature="0.3"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="1"/><body name="b" pos="0 0 0.3"><joint name="j2" type="slide"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="1"/></body></body></worldbody></mujoco>""")
+    m = load_morph(morphs.MJCF(file=str(xml), default_armature=0.05))
+    assert {l.joint_name: l.armature for l in m.links if l.joint_type != "fixed"} == {"j1": 0.3, "j2": 0.05}
+    for bad in (-0.1, float("nan"), "0.1", True):
+        with pytest.raises(ValueError, match="default_armature"):
+            morphs.URDF(file=urdf, default_armature=bad)

@@ -17,9 +17,9 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
     if material is None:
         material = materials.Rigid()
     if isinstance(morph, morphs.URDF):
-        return load_urdf(morph, material, name)
+        return _with_default_armature(load_urdf(morph, material, name), morph.default_armature, every=True)
     if isinstance(morph, morphs.MJCF):
-        return load_mjcf(morph, material, name)
+        return _with_default_armature(load_mjcf(morph, material, name), morph.default_armature, every=False)
     if isinstance(morph, morphs.Mesh):
         return load_mesh(morph, material, name)
     if isinstance(morph, (morphs.Box, morphs.Sphere, morphs.Capsule, morphs.Cylinder, morphs.Plane)):
@@ -28,3 +28,16 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
         f"entity '{name}': cannot load a morph of type {type(morph).__name__}; expected one of gs.morphs.URDF, "
         "MJCF, Mesh, Box, Sphere, Capsule, Cylinder, Plane"
     )
+
+
+def _with_default_armature(model: EntityModel, armature, every: bool) -> EntityModel:
+    """The model with `armature` on its hinge and slide joints (every one, or those with none), as Genesis's
+    morphs' default_armature; a new model (a loaded one may be the model cache's)."""
+    if armature is None:
+        return model
+    import dataclasses
+
+    links = [dataclasses.replace(l, armature=float(armature))
+             if l.joint_type in ("revolute", "prismatic") and (every or l.armature == 0.0) else l
+             for l in model.links]
+    return dataclasses.replace(model, links=links)
