@@ -96,10 +96,11 @@ class SimOptions(_Options):
 class RigidOptions(_Options):
     """integrator: gs.integrator.implicitfast (the default: joint damping and the PD's kp and kv implicit, neither
     gain while the actuator is saturated) | approximate_implicitfast (Genesis's default: joint damping and the
-    PD's kv implicit, saturated or not; kp explicit) | Euler | RK4 (solvers/rigid/actuation.py). Genesis pairs its
-    default with an armature of 0.1 on every joint of a URDF or MJCF (its morphs' default_armature), which
-    genesis_lite's morphs take but do not add by default: without it Genesis's go2 driver tips over at landing with approximate_implicitfast,
-    so implicitfast stays the default. enable_collision / enable_joint_limit
+    PD's kv implicit, saturated or not; kp explicit) | Euler | RK4 (solvers/rigid/actuation.py). Genesis
+    pairs its default with an armature of 0.1 on every joint of a URDF or MJCF (its morphs'
+    default_armature), which genesis_lite's morphs take but do not add by default: without it Genesis's go2
+    driver tips over at landing with approximate_implicitfast, so implicitfast stays the default.
+    enable_collision / enable_joint_limit
     switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
     collide. contact_stiffness (N/m per contact point) and contact_damping (N s/m per contact point) set
     the penalty model (the stiffness scaled up for pairs heavier than 100 kg); joint_limit_stiffness /

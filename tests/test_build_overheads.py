@@ -363,8 +363,7 @@ def test_a_default_run_writes_the_kernel_cache(tmp_path):
                              cwd=repo)
         assert out.returncode == 0, out.stderr
         files = sorted(p.name for p in (tmp_path / "ti").rglob("*.tic"))
-        assert (tmp_path / "ti" / "ticache" / "ticache.tcb").is_file() or list((tmp_path / "ti").rglob("ticache.tcb")), \
-            "no kernel-cache metadata was written"
+        assert any((tmp_path / "ti").rglob("ticache.tcb")), "no kernel-cache metadata was written"
         assert files, "no compiled kernel was cached"
         listings.append(files)
     assert listings[0] == listings[1]

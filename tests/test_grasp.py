@@ -8,6 +8,11 @@ Before 2026-11-28 the abrupt lift squeezed the pads 6 mm into the cube and left 
 (a strict xfail): the normal solve's one-shot choice of contacts (contact/__init__.py, step 2b now),
 and the second finger, a URDF <mimic> of the first, moved by copying after each step, so that the
 contact solve predicted a pad that then went elsewhere (inertia.func_fold_matrix now ties it)."""
+import json
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -120,11 +125,6 @@ def test_the_reported_contact_forces_add_up_to_what_the_cube_felt(urdf_path):
 
 def _grasp_in_float32(ramp_steps, integrator=None):
     """The grasp and lift in a fresh float32 process (tests/workers/grasp_precision.py)."""
-    import json
-    import os
-    import subprocess
-    import sys
-
     worker = os.path.join(os.path.dirname(os.path.abspath(__file__)), "workers", "grasp_precision.py")
     out = subprocess.run([sys.executable, worker, "32", str(ramp_steps)] + ([integrator] if integrator else []),
                          capture_output=True, text=True, timeout=900)

@@ -464,10 +464,14 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         local = self._dofs(dofs_idx_local) - self._dof_start
         return self._out(self._dof_positions(q[self._envs(envs_idx)])[:, local])
 
+    def _dof_result(self, read, dofs_idx_local, envs_idx):
+        """A per-dof result of the last step (read: the scene's (n_envs, n_dofs) reader), indexed as asked."""
+        self._sim  # noqa: B018 - raises a clear error before build
+        return self._out(read()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+
     def get_dofs_acc(self, dofs_idx_local=None, envs_idx=None):
         """Dof accelerations of the last step (rad/s^2, m/s^2); no gradient."""
-        self._sim  # noqa: B018 - raises a clear error before build
-        return self._out(self._scene._dofs_acc()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+        return self._dof_result(self._scene._dofs_acc, dofs_idx_local, envs_idx)
 
     def get_dofs_force(self, dofs_idx_local=None, envs_idx=None):
         """Genesis's meaning (its dofs_state.force): the generalised force (N, N m) of the last step's
@@ -475,14 +479,12 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         spring - bias (Coriolis, centrifugal, gravity and applied link wrenches); joint limits, friction loss
         and contacts are not in it. With the Euler integrator and no constraint acting, M qacc equals it
         (the implicit integrators solve (M + h D) qacc = it). No gradient."""
-        self._sim  # noqa: B018 - raises a clear error before build
-        return self._out(self._scene._dofs_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+        return self._dof_result(self._scene._dofs_force, dofs_idx_local, envs_idx)
 
     def get_dofs_control_force(self, dofs_idx_local=None, envs_idx=None):
         """The actuator forces (N, N m): the PD or force controls applied at the last step, after
         force-range clipping; no gradient."""
-        self._sim  # noqa: B018 - raises a clear error before build
-        return self._out(self._scene._dofs_control_force()[self._envs(envs_idx)][:, self._dofs(dofs_idx_local)])
+        return self._dof_result(self._scene._dofs_control_force, dofs_idx_local, envs_idx)
 
     def _link_out(self, k, links_idx_local, envs_idx):
         out = self._sim.link_outputs()[k]

@@ -1,6 +1,8 @@
 """Loaders: turn a user's morph (+ material) into a plain numpy `EntityModel` for the rigid solver."""
 from __future__ import annotations
 
+import dataclasses
+
 from solvers.rigid.model import EntityModel
 
 from .mjcf import load_mjcf
@@ -35,8 +37,6 @@ def _with_default_armature(model: EntityModel, armature, every: bool) -> EntityM
     morphs' default_armature; a new model (a loaded one may be the model cache's)."""
     if armature is None:
         return model
-    import dataclasses
-
     links = [dataclasses.replace(l, armature=float(armature))
              if l.joint_type in ("revolute", "prismatic") and (every or l.armature == 0.0) else l
              for l in model.links]
