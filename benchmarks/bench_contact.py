@@ -177,10 +177,12 @@ def _gl_quadruped(gs, n_envs, plane=True, collision=True):
     import torch
 
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=DT),
-                     rigid_options=gs.options.RigidOptions(enable_collision=collision))
+                     rigid_options=gs.options.RigidOptions(integrator=gs.integrator.implicitfast,
+                                                           enable_collision=collision))
     if plane:
         scene.add_entity(gs.morphs.Plane())
-    robot = scene.add_entity(gs.morphs.URDF(file=str(anymal_urdf()), fixed=False, pos=(0.0, 0.0, BASE_Z)))
+    robot = scene.add_entity(gs.morphs.URDF(file=str(anymal_urdf()), fixed=False, pos=(0.0, 0.0, BASE_Z),
+                                            default_armature=None))  # MuJoCo reads the URDF without
     scene.build(n_envs=n_envs)
     names = [j.name for j in robot.joints if j.n_dofs == 1]
     dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]

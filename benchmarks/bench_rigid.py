@@ -130,7 +130,7 @@ def _gl_scene(urdf, n_envs, precision, plane=False):
     )
     if plane:
         scene.add_entity(gs.morphs.Plane())
-    robot = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True))
+    robot = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True, default_armature=None))
     if n_envs:
         scene.build(n_envs=n_envs)
     else:
@@ -214,7 +214,7 @@ import genesis_lite as gs
 gs.init(backend=gs.cpu, precision={precision!r})
 scene = gs.Scene(sim_options=gs.options.SimOptions(dt={dt}))
 scene.add_entity(gs.morphs.Plane())
-robot = scene.add_entity(gs.morphs.URDF(file={urdf!r}, fixed=True))
+robot = scene.add_entity(gs.morphs.URDF(file={urdf!r}, fixed=True, default_armature=None))
 scene.build()
 scene.step()
 import json

@@ -107,7 +107,7 @@ def _gl_energy(gs, integrator, dt, steps, every=ENERGY_EVERY):
 
 def _gl_scene(gs, dt, substeps=1, **rigid):
     return gs.Scene(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps),
-                    rigid_options=gs.options.RigidOptions(**rigid))
+                    rigid_options=gs.options.RigidOptions(**{"integrator": gs.integrator.implicitfast, **rigid}))
 
 
 def _run_steps(scene, n, every, probe):
@@ -123,7 +123,7 @@ def _gl_stiff(gs, dt, t_end=2.0):
 
     scene = _gl_scene(gs, dt, contact_stiffness=STIFF_K, contact_damping=STIFF_C)
     scene.add_entity(gs.morphs.Plane())
-    box = scene.add_entity(gs.morphs.URDF(file=str(_box_urdf()), fixed=False, pos=(0, 0, 0.2)))
+    box = scene.add_entity(gs.morphs.URDF(file=str(_box_urdf()), fixed=False, pos=(0, 0, 0.2), default_armature=None))
     scene.build()
     st = {"zmin": 1e9, "zmax_after": -1e9, "landed": False}
 
@@ -232,7 +232,8 @@ def _gl_chain(gs, dt, t_end=2.0):
 
     scene = _gl_scene(gs, dt)
     scene.add_entity(gs.morphs.Plane())
-    chain = scene.add_entity(gs.morphs.URDF(file=str(S.CHAIN30_URDF), fixed=False, pos=(0, 0, 3.2)))
+    chain = scene.add_entity(gs.morphs.URDF(file=str(S.CHAIN30_URDF), fixed=False, pos=(0, 0, 3.2),
+                                                default_armature=None))
     scene.build()
     e0 = float(chain.get_total_energy())
     st = {"emax": e0}
@@ -378,7 +379,7 @@ def _gl_grad(gs, horizons, dt=0.01):
         scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, requires_grad=requires_grad),
                          rigid_options=gs.options.RigidOptions(integrator=gs.integrator.Euler, enable_collision=False,
                                                                enable_joint_limit=False))
-        pend = scene.add_entity(gs.morphs.URDF(file=str(S.PENDULUM_URDF), fixed=True))
+        pend = scene.add_entity(gs.morphs.URDF(file=str(S.PENDULUM_URDF), fixed=True, default_armature=None))
         scene.build()
         pend.set_dofs_damping([0.0, 0.0])
         pend.set_dofs_armature([0.0, 0.0])

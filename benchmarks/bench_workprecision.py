@@ -274,7 +274,8 @@ def _gl_build_quad(gs, files, integrator, dt, substeps, n_envs):
 
     scene = gs.Scene(**_gl_opts(gs, integrator, dt, substeps, collision=True))
     scene.add_entity(gs.morphs.Plane())
-    robot = scene.add_entity(gs.morphs.URDF(file=str(files["urdf"]), fixed=False, pos=(0.0, 0.0, BASE_Z)))
+    robot = scene.add_entity(gs.morphs.URDF(file=str(files["urdf"]), fixed=False, pos=(0.0, 0.0, BASE_Z),
+                                            default_armature=None))  # MuJoCo's model has none
     scene.build(n_envs=n_envs)
     names = [j.name for j in robot.joints if j.n_dofs == 1]
     dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]

@@ -88,7 +88,7 @@ class URDF(FileMorph):
     requires_jac_and_IK: bool = False
     links_to_keep: Sequence[str] = ()
     convexify: bool = True
-    default_armature: Optional[float] = None
+    default_armature: Optional[float] = 0.1
 
     def _check(self):
         super()._check()
@@ -108,7 +108,7 @@ class MJCF(FileMorph):
 
     fixed: Optional[bool] = None
     requires_jac_and_IK: bool = False
-    default_armature: Optional[float] = None
+    default_armature: Optional[float] = 0.1
 
     def _check(self):
         super()._check()
@@ -116,11 +116,11 @@ class MJCF(FileMorph):
 
 
 def _check_default_armature(morph):
-    """default_armature (kg m^2 or kg, Genesis's name): an armature given to every hinge and slide joint of the
-    file (URDF: all of them; MJCF: those whose compiled armature is 0, where Genesis fills in the ones whose XML
-    element names none). Genesis's default is 0.1, and its default integrator, approximate_implicitfast, relies
-    on it (a stiff PD on light links stays stable); genesis_lite's is None (the file's armature, 0 in a URDF)
-    until both become the defaults together (README, Integrators)."""
+    """default_armature (kg m^2 or kg; Genesis's option and default, 0.1): a rotor inertia added to the joints
+    of the file (URDF: every hinge and slide joint; MJCF: every <joint> element of the worldbody that names no
+    armature, a default class's value overridden, as Genesis reads it). The default integrator,
+    approximate_implicitfast, relies on it, as Genesis's does: a stiff PD on light links stays stable. None
+    keeps the file's armature (0 in a URDF): the robot's own dynamics, as Pinocchio and MuJoCo compute them."""
     v = morph.default_armature
     if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0):
         raise ValueError(f"gs.morphs.{type(morph).__name__}(default_armature={v!r}): give a number >= 0 (kg m^2 for "

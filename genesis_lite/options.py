@@ -94,12 +94,12 @@ class SimOptions(_Options):
 
 @dataclass
 class RigidOptions(_Options):
-    """integrator: gs.integrator.implicitfast (the default: joint damping and the PD's kp and kv implicit, neither
-    gain while the actuator is saturated) | approximate_implicitfast (Genesis's default: joint damping and the
-    PD's kv implicit, saturated or not; kp explicit) | Euler | RK4 (solvers/rigid/actuation.py). Genesis
-    pairs its default with an armature of 0.1 on every joint of a URDF or MJCF (its morphs'
-    default_armature), which genesis_lite's morphs take but do not add by default: without it Genesis's go2
-    driver tips over at landing with approximate_implicitfast, so implicitfast stays the default.
+    """integrator: gs.integrator.approximate_implicitfast (the default, Genesis's: joint damping and the PD's kv
+    implicit, saturated or not; kp explicit) | implicitfast (joint damping and the PD's kp and kv implicit,
+    neither gain while the actuator is saturated) | Euler | RK4 (solvers/rigid/actuation.py). Like Genesis,
+    the default relies on the armature of 0.1 that URDF and MJCF morphs add to their joints by default
+    (gs.morphs.URDF / MJCF(default_armature=)): without it a stiff PD on light links can go unstable (Genesis's
+    go2 driver tips over at landing).
     enable_collision / enable_joint_limit
     switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
     collide. contact_stiffness (N/m per contact point) and contact_damping (N s/m per contact point) set
@@ -130,7 +130,7 @@ class RigidOptions(_Options):
     keeps those parameters per environment always, so the flags are checked and change nothing: per-env
     setters work with them False as well, and the step is the same."""
 
-    integrator: integrator = integrator.implicitfast
+    integrator: integrator = integrator.approximate_implicitfast
     enable_collision: bool = True
     enable_joint_limit: bool = True
     enable_self_collision: bool = False

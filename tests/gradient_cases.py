@@ -8,7 +8,7 @@ new case a line in `_table`. tests/gradient_check.py runs a case: autograd again
 differences in float64 (how, and the verdicts, are described there); tests/test_gradient_matrix.py
 runs the table, benchmarks/bench_gradient_matrix.py runs it and writes a summary.
 
-Scenes keep the options a user gets by default (RigidOptions(), collision on, implicitfast; default
+Scenes keep the options a user gets by default (RigidOptions(), collision on, approximate_implicitfast; default
 CouplerOptions), short horizons (3-10 steps), few particles and coarse grids; what a builder sets
 beyond its entities says why in its docstring or a comment (dt, PD gains, an arm's force range).
 Inputs start from the scene's defaults (Built.defaults, applied every rollout) or their kind's base
@@ -45,7 +45,7 @@ F64 = torch.float64
 @dataclass(frozen=True)
 class Variation:
     """What a case changes from the defaults a user gets. integrator: None (the default,
-    implicitfast), "Euler", "approximate_implicitfast" (Genesis's default) or "RK4"; checkpoint_every:
+    approximate_implicitfast, Genesis's), "Euler", "implicitfast" or "RK4"; checkpoint_every:
     SimOptions(checkpoint_every=); process: "shared" (the test's process, after whatever ran there), "after" (the test's process,
     after building and differentiating another scene itself), "first" (the first scene of a fresh
     process); precision "32": float32 (in a fresh process) against this process's float64."""
@@ -700,7 +700,7 @@ def _table() -> List[Case]:
     add("free_box", FB_SHORT, BOX_OUT, V(process="first"))
     add("free_box", FB_SHORT, BOX_OUT, V(integrator="Euler"))
     add("free_box", FB_SHORT, BOX_OUT, V(integrator="RK4"))
-    add("free_box", FB_SHORT, BOX_OUT, V(integrator="approximate_implicitfast"))
+    add("free_box", FB_SHORT, BOX_OUT, V(integrator="implicitfast"))
     # float32: not the mass of a body in flight, whose gradient is the difference of gravity terms ~1000x
     # larger (m g against M qacc): float32 rounds it to ~2 % (measured: -0.005035 against -0.005128)
     add("free_box", FB_SHORT[:4], BOX_OUT, V(precision="32"))
@@ -719,9 +719,9 @@ def _table() -> List[Case]:
     add("arm", ARM_PD + ("arm.dofs_velocity",), ARM_OUT, V(n_envs=3))
     add("arm", ("arm.dofs_position", "arm.ctrl_force", "arm.links_inertia"), ARM_OUT, V(checkpoint_every=3))
     add("arm", ARM_STATE, ARM_OUT, V(process="after"))
-    # approximate_implicitfast (Genesis's default): the PD's kv implicit, saturated or not, kp explicit
-    add("arm", ARM_PD + ("arm.dofs_velocity", "arm.dofs_damping"), ARM_OUT, V(integrator="approximate_implicitfast"))
-    for integ in ("Euler", "RK4", "approximate_implicitfast"):
+    # implicitfast: the PD's kp and kv implicit while the actuator is not saturated
+    add("arm", ARM_PD + ("arm.dofs_velocity", "arm.dofs_damping"), ARM_OUT, V(integrator="implicitfast"))
+    for integ in ("Euler", "RK4", "implicitfast"):
         slow("arm", ARM_STATE, ARM_OUT, V(integrator=integ))
         slow("arm", ARM_PD + ("arm.ctrl_velocity",), ARM_OUT, V(integrator=integ), tag="pd")
     slow("arm", ARM_STATE, ARM_OUT, V(process="first"))
@@ -754,7 +754,7 @@ def _table() -> List[Case]:
     add("gripper", GRIP_PD + ("grip.links_mass",), GRIP_OUT, V(n_envs=3))
     slow("gripper", GRIP + GRIP_PD, GRIP_OUT, V(integrator="RK4"))
     slow("gripper", GRIP, GRIP_OUT, V(precision="32"))
-    slow("gripper", GRIP + GRIP_PD, GRIP_OUT, V(integrator="approximate_implicitfast"))
+    slow("gripper", GRIP + GRIP_PD, GRIP_OUT, V(integrator="implicitfast"))
     # the follower's pad on the plane: its contact's Jacobian folded onto the leader
     slow("gripper_plane", ("grip.dofs_position", "grip.dofs_velocity", "grip.ctrl_position", "grip.links_mass",
                            "grip.links_COM", "grip.friction"), GRIP_OUT)
@@ -769,7 +769,7 @@ def _table() -> List[Case]:
     slow("slide_land", SLIDE, BOX_OUT, V(process="after"))
     slow("slide_land", SLIDE, BOX_OUT, V(process="first"))
     slow("slide_land", SLIDE, BOX_OUT, V(precision="32"))
-    for integ in ("Euler", "RK4", "approximate_implicitfast"):
+    for integ in ("Euler", "RK4", "implicitfast"):
         slow("slide_land", SLIDE, BOX_OUT, V(integrator=integ))
         slow("slide_contact", ("box.dofs_velocity",), BOX_OUT, V(integrator=integ))
     # ------------------------------------------------------------------ a 400 t box landing (mass-scaled contact)

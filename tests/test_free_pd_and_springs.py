@@ -174,8 +174,8 @@ PENDULUM = ('<robot name="pendulum"><link name="base"/><link name="bob"><inertia
 
 
 def test_pendulum_with_a_joint_spring_oscillates_at_the_small_angle_frequency():
-    """I th'' = -(k + m g l) th: period 2 pi sqrt(I / (k + m g l)), I = m l^2 + I_bob, from the zero crossings
-    of a 0.01 rad swing."""
+    """I th'' = -(k + m g l) th: period 2 pi sqrt(I / (k + m g l)), I = m l^2 + I_bob + the default armature
+    (0.1 kg m^2, Genesis's, on every URDF joint), from the zero crossings of a 0.01 rad swing."""
     m, l, i_bob, g, k = 2.0, 0.5, 1e-3, 9.81, 7.0
     with tempfile.TemporaryDirectory() as d:
         path = os.path.join(d, "pendulum.urdf")
@@ -196,10 +196,11 @@ def test_pendulum_with_a_joint_spring_oscillates_at_the_small_angle_frequency():
     s = np.nonzero(np.sign(th[1:]) != np.sign(th[:-1]))[0]
     crossings = t[s] - th[s] * (t[s + 1] - t[s]) / (th[s + 1] - th[s])  # linear interpolation
     period = 2 * np.mean(np.diff(crossings))
-    ref = 2 * np.pi * np.sqrt((m * l * l + i_bob) / (k + m * g * l))
+    inertia = m * l * l + i_bob + 0.1
+    ref = 2 * np.pi * np.sqrt(inertia / (k + m * g * l))
     assert abs(period / ref - 1) < 1e-3, (period, ref)
     # without the spring it swings at the gravity pendulum's frequency: the spring is what changed it
-    assert ref < 0.8 * 2 * np.pi * np.sqrt((m * l * l + i_bob) / (m * g * l))
+    assert ref < 0.8 * 2 * np.pi * np.sqrt(inertia / (m * g * l))
 
 
 def test_stiffness_setter_checks_and_free_joint_warning():
@@ -237,6 +238,7 @@ def test_mjcf_springs_follow_mujoco_trajectory(tmp_path):
     m = mujoco.MjModel.from_xml_path(str(path))
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
     np.testing.assert_allclose(m.qpos_spring, [0.3, -0.5, 0.02])  # the reference reads the file as we do
+    m.dof_armature[:] = 0.1  # genesis_lite's default (Genesis's) on joints whose element names no armature
     d = mujoco.MjData(m)
     q0, v0 = np.array([-0.2, 0.4, -0.03]), np.array([0.5, -1.0, 0.1])
     d.qpos[:], d.qvel[:] = q0, v0

@@ -121,9 +121,9 @@ def test_set_mass_scales_links_as_genesis_and_links_info_reads_them(arm_path):
     scene, arm = _arm_scene(arm_path)
     model = {"upper": (2.0, 0.05, 0.3), "fore": (1.0, 0.02, 0.8)}  # mass, Iyy, COM distance from the shoulder
 
-    def shoulder(scale_upper, scale_fore):
+    def shoulder(scale_upper, scale_fore):  # plus the default armature (0.1, Genesis's) on the diagonal
         (mu, iu, xu), (mf, i_f, xf) = model["upper"], model["fore"]
-        return scale_upper * (iu + mu * xu ** 2) + scale_fore * (i_f + mf * xf ** 2)
+        return scale_upper * (iu + mu * xu ** 2) + scale_fore * (i_f + mf * xf ** 2) + 0.1
 
     np.testing.assert_allclose(arm.get_mass_mat().numpy()[0, 0], shoulder(1, 1), rtol=1e-9)
     assert arm.links[0].is_fixed and not arm.links[1].is_fixed
@@ -136,7 +136,7 @@ def test_set_mass_scales_links_as_genesis_and_links_info_reads_them(arm_path):
     arm.get_link("fore").set_mass(3.0)  # ratio 1.5 on the forearm alone
     M = arm.get_mass_mat().numpy()
     np.testing.assert_allclose(M[0, 0], shoulder(2, 3), rtol=1e-9)
-    np.testing.assert_allclose(M[1, 1], 3 * (0.02 + 1.0 * 0.2 ** 2), rtol=1e-9)
+    np.testing.assert_allclose(M[1, 1], 3 * (0.02 + 1.0 * 0.2 ** 2) + 0.1, rtol=1e-9)
     # Genesis's rigid_solver.links_info (solver link order; the arm is the scene's only entity)
     info = scene.sim.rigid_solver.links_info
     np.testing.assert_allclose(info.inertial_mass.to_numpy(), [0.0, 4.0, 3.0], atol=1e-12)

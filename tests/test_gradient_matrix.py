@@ -3,7 +3,7 @@ every case of the table, autograd against central finite differences in float64,
 user gets by default (a scene that leaves one says why).
 
 Each case builds its own scene (nothing is shared between tests, so any order and any subset runs
-alike). Variations: integrators (the default implicitfast, Euler, approximate_implicitfast, RK4), n_envs
+alike). Variations: integrators (the default approximate_implicitfast, Euler, implicitfast, RK4), n_envs
 0 and 3, checkpointing off and on, the scene built in this process after other scenes or first in a fresh
 process (a subprocess), and float32 (a subprocess with gs.init(precision="32")) against this process's
 float64.
@@ -56,7 +56,7 @@ def test_table_covers_every_input_and_output_kind_by_default():
     for c in gc.CASES:
         for t in c.var.tags():
             scenes_of.setdefault(t, set()).add(c.scene)
-    for tag in ("integrator=Euler", "integrator=RK4", "integrator=approximate_implicitfast", "integrator=default", "n_envs=3", "checkpoint=on",
+    for tag in ("integrator=Euler", "integrator=RK4", "integrator=implicitfast", "integrator=default", "n_envs=3", "checkpoint=on",
                 "process=first", "process=after", "precision=32"):
         assert len(scenes_of.get(tag, ())) >= 3, (tag, scenes_of.get(tag))
     assert set(gc.SCENES) == {c.scene for c in gc.CASES}

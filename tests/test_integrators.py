@@ -171,10 +171,10 @@ def test_implicitfast_first_order_with_damping():
 
 def test_genesis_integrator_numbers():
     """Genesis's three integrators have its numbers (gs.integrator is an IntEnum: RigidOptions(integrator=2)
-    means the same on both); the default stays implicitfast (RigidOptions' docstring says why)."""
+    means the same on both); the default is Genesis's, approximate_implicitfast."""
     import genesis_lite as gs
 
-    assert gs.options.RigidOptions().integrator == gs.integrator.implicitfast
+    assert gs.options.RigidOptions().integrator == gs.integrator.approximate_implicitfast
     assert [int(gs.integrator.Euler), int(gs.integrator.implicitfast), int(gs.integrator.approximate_implicitfast)] \
         == [0, 1, 2]
     assert gs.options.RigidOptions(integrator=2).integrator == gs.integrator.approximate_implicitfast

@@ -462,26 +462,41 @@ def test_dangling_mimic_warns(tmp_path):
     assert m.links[1].mimic is None
 
 
-def test_default_armature_is_genesis_s_opt_in(tmp_path):
-    """URDF / MJCF(default_armature=a), Genesis's morph option: every hinge and slide joint of a URDF gets
-    armature a, a free or fixed joint none; an MJCF joint keeps an armature its file gives and gets a where it
-    has none. None (genesis_lite's default; Genesis's is 0.1) leaves the files' values. A bad value is refused."""
+def test_default_armature_is_genesis_s(tmp_path):
+    """URDF / MJCF(default_armature=a), Genesis's morph option with its default 0.1: every hinge and slide joint
+    of a URDF gets armature a, a free or fixed joint none; in an MJCF every <joint> element of the worldbody
+    that names no armature gets a, a default class's value overridden (what Genesis 0.4.5 loads from its
+    ant.xml: 0.1 where the class says 1), an element's own value is kept, and joints of an included file keep
+    theirs. None leaves the files' values. A bad value is refused."""
     from conftest import robot_urdf
 
     urdf = str(robot_urdf("anymal"))
-    plain = load_morph(morphs.URDF(file=urdf))
-    assert all(l.armature == 0.0 for l in plain.links)
-    arm = load_morph(morphs.URDF(file=urdf, default_armature=0.1))
+    arm = load_morph(morphs.URDF(file=urdf))
     assert [l.armature for l in arm.links if l.joint_type in ("revolute", "prismatic")] == [0.1] * 12
     assert all(l.armature == 0.0 for l in arm.links if l.joint_type in ("free", "fixed"))
+    assert all(l.armature == 0.0 for l in load_morph(morphs.URDF(file=urdf, default_armature=None)).links)
     # the loaded model is not changed for later loads (the model cache's)
-    assert all(l.armature == 0.0 for l in load_morph(morphs.URDF(file=urdf)).links)
-    xml = tmp_path / "two.xml"
-    xml.write_text("""<mujoco><worldbody><body name="a"><joint name="j1" type="hinge" armature="0.3"/>
-      <geom type="box" size="0.1 0.1 0.1" mass="1"/><body name="b" pos="0 0 0.3"><joint name="j2" type="slide"/>
-      <geom type="box" size="0.1 0.1 0.1" mass="1"/></body></body></worldbody></mujoco>""")
-    m = load_morph(morphs.MJCF(file=str(xml), default_armature=0.05))
-    assert {l.joint_name: l.armature for l in m.links if l.joint_type != "fixed"} == {"j1": 0.3, "j2": 0.05}
+    assert [l.armature for l in load_morph(morphs.URDF(file=urdf, default_armature=0.02)).links
+            if l.joint_type == "revolute"] == [0.02] * 12
+    assert all(l.armature == 0.0 for l in load_morph(morphs.URDF(file=urdf, default_armature=None)).links)
+    (tmp_path / "hand.xml").write_text("""<mujoco><body name="d" pos="0 0 0.3"><joint name="j4" type="hinge"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="1"/></body></mujoco>""")
+    body = """<body name="a" pos="0 0 1"><freejoint/><geom type="box" size="0.1 0.1 0.1" mass="1"/>
+      <body name="b" pos="0 0 0.3"><joint name="j1" type="hinge" armature="0.3"/><geom type="box" size="0.1 0.1 0.1" mass="1"/>
+      <body name="c" pos="0 0 0.3"><joint name="j2" type="slide"/><joint name="j3" axis="1 0 0"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="1"/>{}</body></body></body>"""
+    for include in (False, True):
+        xml = tmp_path / f"tree{int(include)}.xml"
+        xml.write_text(f"""<mujoco><default><joint armature="0.7"/></default><worldbody>
+          {body.format('<include file="hand.xml"/>' if include else '')}</worldbody></mujoco>""")
+        got = {l.joint_name: l.armature for l in load_morph(morphs.MJCF(file=str(xml), default_armature=0.05)).links
+               if l.joint_type in ("revolute", "prismatic")}
+        assert got == {"j1": 0.3, "j2": 0.05, "j3": 0.05, **({"j4": 0.7} if include else {})}
+        assert {l.joint_name: l.armature for l in load_morph(morphs.MJCF(file=str(xml))).links
+                if l.joint_type in ("revolute", "prismatic")} == {k: (0.1 if v == 0.05 else v) for k, v in got.items()}
+        assert {l.joint_name: l.armature for l in load_morph(morphs.MJCF(file=str(xml), default_armature=None)).links
+                if l.joint_type in ("revolute", "prismatic")} == {"j1": 0.3, "j2": 0.7, "j3": 0.7,
+                                                                  **({"j4": 0.7} if include else {})}
     for bad in (-0.1, float("nan"), "0.1", True):
         with pytest.raises(ValueError, match="default_armature"):
             morphs.URDF(file=urdf, default_armature=bad)

@@ -75,9 +75,11 @@ def test_a_mimic_pair_moves_as_one_body(tmp_path):
     """A follower b = m a is rigidly tied to its leader: a force F on a accelerates the pair as one
     body, a'' = F / (m_a + m^2 m_b) (virtual work: the kinetic energy is (m_a + m^2 m_b) a'^2 / 2), and
     a force G on b gives a'' = m G / (m_a + m^2 m_b). (Copying the leader's motion onto the follower
-    after each step, as before 2026-11-28, gave F / m_a and 0.)"""
-    ma, mb, mult = 0.3, 0.5, 2.0
-    scene, robot = _gripper(tmp_path, ma, mb, mult)
+    after each step, as before 2026-11-28, gave F / m_a and 0.) Each slide's default armature (0.1 kg,
+    Genesis's) adds to its mass."""
+    mult = 2.0
+    scene, robot = _gripper(tmp_path, 0.3, 0.5, mult)
+    ma, mb = 0.3 + 0.1, 0.5 + 0.1
     a = robot.get_joint("joint_a").dof_idx_local
     b = robot.get_joint("joint_b").dof_idx_local
     h, n = 0.01, 20

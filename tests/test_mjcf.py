@@ -2,7 +2,8 @@
 
 The models in assets/mjcf/ (written for these tests) are compiled by MuJoCo; the same file loaded by
 genesis_lite must give, at random seeded configurations in float64:
-- the joint-space mass matrix of `mujoco.mj_fullM` (armature included on both sides);
+- the joint-space mass matrix of `mujoco.mj_fullM` (armature included on both sides: the reference model
+  gets the armature of 0.1 that genesis_lite, as Genesis, adds by default to joints whose element names none);
 - MuJoCo's body poses (data.xpos / xquat) and collision geom poses (geom_xpos / geom_xmat). Our link
   frame sits at the joint anchor (jnt_pos) with the body's axes, so a link is compared at
   xpos + xmat @ jnt_pos;
@@ -16,6 +17,7 @@ ours are in the world: v_ours = T v_mj with T = diag(I, R, I), so M_ours = T M_m
 from __future__ import annotations
 
 import sys
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +76,13 @@ class Pair:
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
         self.m.dof_damping[:] = 0.0
         self.m.dof_frictionloss[:] = 0.0
+        # genesis_lite's default, Genesis's: an armature of 0.1 on each of the worldbody's <joint> elements that
+        # names none (a default class's value overridden); the reference gets the same, read from the file here
+        for e in ET.parse(self.path).getroot().find("worldbody").iter("joint"):
+            if "armature" not in e.attrib and e.get("type") != "free":
+                j = mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_JOINT, e.get("name"))
+                assert j >= 0, f"{file}: name every joint"
+                self.m.dof_armature[self.m.jnt_dofadr[j]] = 0.1
         self.d = mujoco.MjData(self.m)
         self.scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, gravity=GRAVITY))
         self.robot = self.scene.add_entity(gs.morphs.MJCF(file=str(self.path)))
@@ -227,8 +236,11 @@ def test_joint_parameters_from_compiled_model():
     from genesis_lite.loaders import load_mjcf
 
     gs = _gs()
-    model = load_mjcf(morphs.MJCF(file=str(ASSETS / "skew_arm.xml")), gs.materials.Rigid(), "arm")
+    model = load_mjcf(morphs.MJCF(file=str(ASSETS / "skew_arm.xml"), default_armature=None), gs.materials.Rigid(), "arm")
     L = {l.name: l for l in model.links}
+    # with Genesis's default armature (0.1) the default classes' armature gives way on every joint here
+    assert {l.armature for l in load_mjcf(morphs.MJCF(file=str(ASSETS / "skew_arm.xml")), gs.materials.Rigid(),
+                                          "arm").links if l.joint_type != "fixed"} == {0.1}
     assert [l.name for l in model.links] == ["base", "link1", "link2", "slider", "mount", "link4", "link5",
                                              "pendulum_drop", "pendulum"]
     # a jointless body is a link of its own, welded to its parent (as Genesis keeps it)

@@ -591,12 +591,12 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         _, v = sim.get_state()
         d = self._dofs(None)
         vd = v[:, d]
-        M = self._scene._mass_matrix()[:, d][:, :, d].to(vd.dtype)
+        M = self._scene._mass_matrix()[:, d][:, :, d].to(vd.dtype) + torch.diag_embed(sim.params["armature"][:, d])
         ke = 0.5 * (vd.unsqueeze(1) @ M @ vd.unsqueeze(-1)).reshape(-1)
         return ke, pe
 
     def get_kinetic_energy(self, envs_idx=None):
-        """0.5 v^T M v (J), armature excluded."""
+        """0.5 v^T M v (J), the rotors' armature included on M's diagonal (as Genesis's)."""
         return self._out(self._energies()[0][self._envs(envs_idx)])
 
     def get_potential_energy(self, envs_idx=None):

@@ -19,9 +19,9 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
     if material is None:
         material = materials.Rigid()
     if isinstance(morph, morphs.URDF):
-        return _with_default_armature(load_urdf(morph, material, name), morph.default_armature, every=True)
+        return _with_default_armature(load_urdf(morph, material, name), morph.default_armature)
     if isinstance(morph, morphs.MJCF):
-        return _with_default_armature(load_mjcf(morph, material, name), morph.default_armature, every=False)
+        return load_mjcf(morph, material, name)  # its default_armature applied as it reads the file
     if isinstance(morph, morphs.Mesh):
         return load_mesh(morph, material, name)
     if isinstance(morph, (morphs.Box, morphs.Sphere, morphs.Capsule, morphs.Cylinder, morphs.Plane)):
@@ -32,12 +32,12 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
     )
 
 
-def _with_default_armature(model: EntityModel, armature, every: bool) -> EntityModel:
-    """The model with `armature` on its hinge and slide joints (every one, or those with none), as Genesis's
-    morphs' default_armature; a new model (a loaded one may be the model cache's)."""
+def _with_default_armature(model: EntityModel, armature) -> EntityModel:
+    """The URDF's model with `armature` on every hinge and slide joint, as Genesis's URDF morph's
+    default_armature; a new model (a loaded one may be the model cache's)."""
     if armature is None:
         return model
     links = [dataclasses.replace(l, armature=float(armature))
-             if l.joint_type in ("revolute", "prismatic") and (every or l.armature == 0.0) else l
+             if l.joint_type in ("revolute", "prismatic") else l
              for l in model.links]
     return dataclasses.replace(model, links=links)
