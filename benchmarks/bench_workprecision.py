@@ -20,6 +20,7 @@ Each genesis_lite sweep runs in a child process (one gs.init per process); Genes
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -256,6 +257,7 @@ def _mj_build_box(files, integrator, dt):
 # quadruped dropped on the ground --------------------------------------------------------------------------------
 
 QUAD_REF = ("RK4", 1e-4)
+QUAD_ARMATURE = 0.1  # kg m^2: Genesis's default_armature, genesis_lite's since 2026-11-28
 QUAD_REF_CHECK = ("RK4", 2e-4)
 
 
@@ -269,13 +271,15 @@ def _quad_ref(files):
                      fine=QUAD_REF, check=QUAD_REF_CHECK)
 
 
-def _gl_build_quad(gs, files, integrator, dt, substeps, n_envs):
+def _gl_build_quad(gs, files, integrator, dt, substeps, n_envs, armature=None):
+    """armature: None, the file's (none), as MuJoCo reads the URDF; a number, Genesis's default_armature on
+    every joint (the quadruped_armature row gives MuJoCo's joints the same)."""
     from bench_contact import BASE_Z, KP, KV, standing_pose
 
     scene = gs.Scene(**_gl_opts(gs, integrator, dt, substeps, collision=True))
     scene.add_entity(gs.morphs.Plane())
     robot = scene.add_entity(gs.morphs.URDF(file=str(files["urdf"]), fixed=False, pos=(0.0, 0.0, BASE_Z),
-                                            default_armature=None))  # MuJoCo's model has none
+                                            default_armature=armature))
     scene.build(n_envs=n_envs)
     names = [j.name for j in robot.joints if j.n_dofs == 1]
     dofs = [j.dof_start_local for j in robot.joints if j.n_dofs == 1]
@@ -296,10 +300,12 @@ def _gl_build_quad(gs, files, integrator, dt, substeps, n_envs):
     return scene, reset, observe
 
 
-def _mj_build_quad(files, integrator, dt):
+def _mj_build_quad(files, integrator, dt, armature=None):
     from bench_contact import BASE_Z, mujoco_quadruped, standing_pose
 
     m, names = mujoco_quadruped(files["urdf"])  # the same URDF and floor; position actuators kp, kv
+    if armature is not None:
+        m.dof_armature[6:] = armature  # the 12 joints (the free joint's 6 dofs first)
     S.set_mujoco_integrator(m, integrator, dt)
     qs, _ = S.mujoco_state_slices(m)
     q0 = np.zeros(m.nq)
@@ -398,6 +404,12 @@ SCENES: dict[str, WPScene] = {
         "quadruped", "ANYmal B dropped on the ground from 0.62 m, PD holding the standing pose (kp 100, kv 5)",
         1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref, _gl_build_quad,
         _mj_build_quad, genesis=True),
+    "quadruped_armature": WPScene(
+        "quadruped_armature", "the quadruped with Genesis's default armature (0.1 kg m^2 on each of the 12 joints; "
+        "genesis_lite's default too) in both engines",
+        1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref,
+        functools.partial(_gl_build_quad, armature=QUAD_ARMATURE),
+        functools.partial(_mj_build_quad, armature=QUAD_ARMATURE), genesis=False),
     "mpm": WPScene(
         "mpm", f"elastic MPM cube (0.1 m, 1,000 particles, E = 3e5 Pa, nu = 0.2; 64 cells/m) set stretching "
         f"({MPM_STRETCH:g} 1/s) and spinning under gravity; MLS-MPM's explicit scheme, dt x substeps swept",
@@ -417,7 +429,7 @@ def _error(obs, ref, key):
     if not np.all(np.isfinite(obs)):
         return math.inf
     d = obs - ref
-    if key == "quadruped":
+    if key.startswith("quadruped"):
         return float(np.linalg.norm(d, axis=1).max())
     return float(np.abs(d).max())
 

@@ -30,8 +30,7 @@ def main():
     steps = 40 if args.quick else args.steps
 
     gs.init(backend=gs.cpu, precision="64")
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True),
-                     rigid_options=gs.options.RigidOptions(integrator=gs.integrator.implicitfast))
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True))
     scene.add_entity(gs.morphs.Plane())
     arm = scene.add_entity(gs.morphs.URDF(file=panda_urdf(), fixed=True))
     scene.build()

@@ -106,9 +106,10 @@ class RigidOptions(_Options):
     the penalty model (the stiffness scaled up for pairs heavier than 100 kg); joint_limit_stiffness /
     joint_limit_damping the limit springs. contact_damping_ratio (None by default) makes the damper
     mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the
-    reduced mass of the two links, and at least 4 k h (h the step). A legged landing then converges as dt
-    shrinks, which it does not with the fixed damper (a light foot's m / c ~ 1e-5 s); it is not the
-    default because a sliding box's friction is less accurate with it at steps below ~2.5 ms (issue #24).
+    reduced mass of the two links, and at least 4 k h (h the step). A legged landing without rotor inertia
+    (default_armature=None) then converges as dt shrinks, which it does not with the fixed damper (a light
+    foot's m / c ~ 1e-5 s; with the default armature it does); it is not the default because a sliding
+    box's friction is less accurate with it at steps below ~2.5 ms (issue #24).
 
     Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which

@@ -80,8 +80,9 @@ def _check(pos, spin, fingers):
 
 
 def test_a_panda_grasps_a_cube_and_lifts_it(urdf_path):
-    """Lift ramped over 1 s. Measured (2026-11-28): fingers 0.0200 / 0.0200, cube at (0.648, -0.0004, 0.178)
-    (with approximate_implicitfast: 0.651, -0.0004, 0.178)."""
+    """Lift ramped over 1 s. Measured (2026-11-28, the defaults at b4ebdfe: approximate_implicitfast, armature
+    0.1): fingers 0.0200 / 0.0200, cube at (0.651, -0.0004, 0.178) (implicitfast without armature: 0.648,
+    -0.0004, 0.178)."""
     _check(*_grasp_and_lift(urdf_path, ramp_steps=100))
 
 
@@ -89,8 +90,9 @@ def test_a_panda_lifting_a_cube_at_once_keeps_it_between_its_pads(urdf_path):
     """The lift's targets changed at once, as Genesis's franka_cube.py does. Measured (2026-11-28): the
     yank turns the cube between the pads at up to 19 rad/s over the lift's first ~15 steps (the pads
     then 0.8 mm into it); it settles by step 30 and ends at (0.648, -0.0004, 0.181), fingers 0.0200 /
-    0.0200 (Genesis's own franka_cube: 0.652, -0.0004, 0.183); with approximate_implicitfast at (0.652,
-    -0.0004, 0.169). At 82740ed: 37 kN of contact force in the
+    0.0200 (Genesis's own franka_cube: 0.652, -0.0004, 0.183), with implicitfast and no armature; with the
+    defaults at b4ebdfe (approximate_implicitfast, armature 0.1) at (0.651, -0.0004, 0.165). At 82740ed: 37 kN
+    of contact force in the
     lift's first steps, the pads 1.7 cm deep; it ended with the fingers 5.7 mm inside its faces."""
     _check(*_grasp_and_lift(urdf_path, ramp_steps=1))
 
@@ -134,29 +136,29 @@ def _grasp_in_float32(ramp_steps, integrator=None):
 
 
 F32_GAP = ("float32: the pads' forces are differences of kN terms of the fixed contact damper, below float32's "
-           "resolution; with the default implicitfast the fingers close on nothing")
+           "resolution; with the defaults the cube is thrown (ramped) or the fingers close through it (abrupt)")
 
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=F32_GAP)
 def test_a_panda_grasps_a_cube_and_lifts_it_in_float32():
-    """The ramped lift in float32, Genesis's default precision, with the default integrator. Measured
-    (2026-11-28): the fingers end closed (4.6e-11), the cube not held."""
+    """The ramped lift in float32, Genesis's default precision, with the defaults (approximate_implicitfast,
+    armature 0.1). Measured (2026-11-28, at b4ebdfe): the cube thrown to (0.79, 0.98, 2.03), spinning at 403
+    rad/s (before the armature default, approximate_implicitfast held it at (0.652, -0.0004, 0.178))."""
     _check(*_grasp_in_float32(ramp_steps=100))
 
 
 @pytest.mark.slow
-def test_a_panda_grasps_a_cube_in_float32_with_genesis_integrator():
-    """The ramped lift in float32 with Genesis's default integrator, approximate_implicitfast (the PD's kv
-    implicit whether or not saturated, kp explicit). Measured (2026-11-28): fingers 0.0200 / 0.0200, cube at
-    (0.652, -0.0004, 0.178)."""
-    _check(*_grasp_in_float32(ramp_steps=100, integrator="approximate_implicitfast"))
+def test_a_panda_grasps_a_cube_in_float32_with_implicitfast():
+    """The ramped lift in float32 with implicitfast (kp and kv implicit while not saturated). Measured
+    (2026-11-28, at b4ebdfe): fingers 0.0200 / 0.0200, cube at (0.652, -0.0004, 0.178)."""
+    _check(*_grasp_in_float32(ramp_steps=100, integrator="implicitfast"))
 
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=F32_GAP)
 def test_a_panda_lifting_a_cube_at_once_in_float32():
-    """The abrupt lift in float32, with Genesis's integrator too (approximate_implicitfast). Measured
-    (2026-11-28): the cube is thrown to (6.3, -0.80, 0.25), spinning at 316 rad/s, the fingers closed on
-    nothing."""
-    _check(*_grasp_in_float32(ramp_steps=1, integrator="approximate_implicitfast"))
+    """The abrupt lift in float32 with the defaults. Measured (2026-11-28, at b4ebdfe): the fingers close
+    through the cube (1e-9), which stays on the ground at (0.654, -0.007, 0.020); with implicitfast it is
+    thrown to (-4.1, -3.1, 0.033) spinning at 667 rad/s."""
+    _check(*_grasp_in_float32(ramp_steps=1))
