@@ -566,13 +566,15 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         out = torch.stack([torch.stack(lows, 0).amin(0), torch.stack(highs, 0).amax(0)], -2).to(gs.tc_float)
         return self._out(out)
 
+    def _mass_mat(self):
+        """This entity's joint-space mass matrix with the armature on its diagonal, (n_envs, n_dofs, n_dofs)."""
+        d = self._dofs(None)
+        return self._scene._mass_matrix()[:, d][:, :, d] + torch.diag_embed(self._sim.params["armature"][:, d])
+
     def get_mass_mat(self, envs_idx=None):
         """Joint-space mass matrix (armature included) of this entity, (n_dofs, n_dofs); no gradient."""
         self._sim  # noqa: B018 - raises a clear error before build
-        M = self._scene._mass_matrix()
-        d = self._dofs(None)
-        M = M[:, d][:, :, d] + torch.diag_embed(self._sim.params["armature"].detach()[:, d])
-        return self._out(M[self._envs(envs_idx)])
+        return self._out(self._mass_mat().detach()[self._envs(envs_idx)])
 
     def get_links_mass(self, links_idx_local=None, envs_idx=None):
         return self._out(self._sim.params["mass"][self._envs(envs_idx)][:, self._links(links_idx_local)])
@@ -591,7 +593,7 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         _, v = sim.get_state()
         d = self._dofs(None)
         vd = v[:, d]
-        M = self._scene._mass_matrix()[:, d][:, :, d].to(vd.dtype) + torch.diag_embed(sim.params["armature"][:, d])
+        M = self._mass_mat().to(vd.dtype)
         ke = 0.5 * (vd.unsqueeze(1) @ M @ vd.unsqueeze(-1)).reshape(-1)
         return ke, pe
 

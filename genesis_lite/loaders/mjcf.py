@@ -190,7 +190,8 @@ def load_mjcf(morph, material, name) -> EntityModel:
                     joint_axis=np.asarray(m.jnt_axis[j], dtype=float) / np.linalg.norm(m.jnt_axis[j]),
                     limit=lim, effort=effort[j], damping=float(m.dof_damping[d]),
                     frictionloss=float(m.dof_frictionloss[d]),
-                    armature=float(m.dof_armature[d] if keeps_armature is None or keeps_armature[j] else default_armature),
+                    armature=float(m.dof_armature[d] if keeps_armature is None or keeps_armature[j]
+                                   else default_armature),
                     stiffness=float(m.jnt_stiffness[j]), springref=float(m.qpos_spring[qa]) * lin,
                     kp=kp[j], kv=kv[j]))
                 joint_desc[j] = descs[-1]
@@ -233,9 +234,10 @@ def load_mjcf(morph, material, name) -> EntityModel:
 
 
 def _armature_given(path, m, joint_name) -> List[bool]:
-    """Per MuJoCo joint, whether its own <joint> element names an armature (or it is free), as Genesis's
-    default_armature reads the file: it fills in `armature` on the worldbody's <joint> elements that give none,
-    overriding a default class's value; joints of included files keep theirs, as Genesis does not see them.
+    """Per MuJoCo joint, whether its own <joint> element names an armature (read for hinges and slides), as
+    Genesis's default_armature reads the file: it fills in `armature` on the worldbody's <joint> elements that
+    give none, overriding a default class's value; joints of included files keep theirs, as Genesis does not
+    see them.
     The compiled joints follow the elements in document order; where they do not (an <include> or
     <replicate> inside the worldbody), joints are matched by name, and an unnamed one keeps its armature."""
     import xml.etree.ElementTree as ET
@@ -244,16 +246,13 @@ def _armature_given(path, m, joint_name) -> List[bool]:
     for wb in ET.parse(path).getroot().iter("worldbody"):
         elems += [e for e in wb.iter() if e.tag in ("joint", "freejoint")]
 
-    def given(e):
-        return e.tag == "freejoint" or e.get("type") == "free" or "armature" in e.attrib
-
     types = {"free": _FREE, "ball": _BALL, "slide": _SLIDE, "hinge": _HINGE}
     if len(elems) == m.njnt and all((e.tag == "freejoint" and m.jnt_type[j] == _FREE)
                                     or (e.tag == "joint" and types.get(e.get("type"), m.jnt_type[j]) == m.jnt_type[j])
                                     for j, e in enumerate(elems)):
-        return [given(e) for e in elems]
+        return ["armature" in e.attrib for e in elems]
     by_name = {e.get("name"): e for e in elems if e.get("name")}
-    return [given(by_name[n]) if n in by_name else True for n in joint_name]
+    return ["armature" in by_name[n].attrib if n in by_name else True for n in joint_name]
 
 
 def _joint_efforts(m) -> np.ndarray:
