@@ -8,9 +8,17 @@ from typing import Optional
 import numpy as np
 
 
+# Genesis 0.4.5's densities for Rigid(rho=None) (its rigid_link.py): objects, and articulated robots' links
+RHO_OBJECT = 600.0
+RHO_ROBOT = 1500.0
+
+
 @dataclass
 class Rigid:
-    """rho: density (kg/m^3) used for links without a URDF <inertial> and for primitive shapes;
+    """rho: density (kg/m^3) used for links without a URDF <inertial> and for primitive and mesh shapes;
+    None (the default) takes Genesis's: RHO_OBJECT (600) for a body that is not part of an articulated
+    robot (primitives, meshes, a URDF with no hinge or slide joint), RHO_ROBOT (1,500) for the links of a
+    URDF robot that has one (MJCF files carry their own densities: MuJoCo's compiler, 1,000 by default);
     friction: Coulomb coefficient (dimensionless, >= 0) against other rigid bodies. Coupling with MPM
     materials (Genesis's names): needs_coup (the body is a boundary for MPM particles), coup_friction
     (Coulomb coefficient against them), coup_softness (m: width of the band outside the surface over
@@ -20,7 +28,7 @@ class Rigid:
     tensor that requires grad makes it a differentiable parameter (entity.set_gravity_compensation
     changes it after build)."""
 
-    rho: float = 200.0
+    rho: Optional[float] = None
     friction: float = 1.0
     needs_coup: bool = True
     coup_friction: float = 0.1
@@ -32,10 +40,11 @@ class Rigid:
             v = getattr(self, name)
             real = isinstance(v, numbers.Real) or (isinstance(v, np.ndarray) and v.ndim == 0
                                                    and np.issubdtype(v.dtype, np.number))
-            if not (real and not isinstance(v, bool) or (v is None and name == "coup_softness")):
+            if not (real and not isinstance(v, bool) or (v is None and name in ("rho", "coup_softness"))):
                 raise TypeError(f"gs.materials.Rigid({name}={v!r}): give a number, not a {type(v).__name__}")
-        if not (np.isfinite(self.rho) and self.rho > 0):
-            raise ValueError(f"gs.materials.Rigid(rho={self.rho!r}): density must be a positive number (kg/m^3)")
+        if self.rho is not None and not (np.isfinite(self.rho) and self.rho > 0):
+            raise ValueError(f"gs.materials.Rigid(rho={self.rho!r}): density must be None (Genesis's defaults) or a "
+                             "positive number (kg/m^3)")
         if not (np.isfinite(self.friction) and self.friction >= 0):
             raise ValueError(f"gs.materials.Rigid(friction={self.friction!r}): friction must be a finite number >= 0")
         if not (np.isfinite(self.coup_friction) and self.coup_friction >= 0):
@@ -44,6 +53,13 @@ class Rigid:
             raise ValueError(f"gs.materials.Rigid(coup_softness={self.coup_softness!r}): must be None or a number "
                              ">= 0 (m; 0: a hard boundary, as in Genesis)")
         check_gravity_compensation(self.gravity_compensation, "gs.materials.Rigid(gravity_compensation=...)")
+
+    def density(self, robot: bool) -> float:
+        """The density (kg/m^3) that fills a shape with no mass of its own: rho when given, else Genesis's
+        default for an articulated robot's links (robot=True) or for an object."""
+        if self.rho is not None:
+            return float(self.rho)
+        return RHO_ROBOT if robot else RHO_OBJECT
 
 
 def check_gravity_compensation(gc, who):

@@ -310,8 +310,9 @@ def test_arm_and_free_body_structure(arm, free):
         assert body.joints[0].dof_idx_local == [0, 1, 2, 3, 4, 5]
     # the second entity's links come after the first's in the scene
     assert box.links[0].idx == 0 and ball.links[0].idx == 1
-    assert box.get_links_mass().item() == pytest.approx(200.0 * 0.1 * 0.2 * 0.4)  # default rho 200
-    assert ball.get_links_mass().item() == pytest.approx(200.0 * 4.0 / 3.0 * math.pi * 0.1 ** 3)
+    # Genesis's default density for objects, 600 kg/m^3
+    assert box.get_links_mass().item() == pytest.approx(600.0 * 0.1 * 0.2 * 0.4)
+    assert ball.get_links_mass().item() == pytest.approx(600.0 * 4.0 / 3.0 * math.pi * 0.1 ** 3)
 
 
 # ----------------------------------------------------------------------------------------------

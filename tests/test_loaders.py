@@ -283,6 +283,32 @@ def test_link_without_inertial_gets_geometry_mass(tmp_path):
     assert b.mass == 0.0 and not b.geoms
 
 
+def test_default_densities_are_genesis_s(tmp_path):
+    """Rigid() (rho=None) fills shapes that have no mass of their own at Genesis 0.4.5's densities: 1,500 kg/m^3
+    for the links of an articulated robot, 600 for an object (a primitive, a mesh, a URDF with no hinge or slide);
+    Genesis gives these masses for the same files and shapes (a 0.2 x 0.4 x 0.6 m box: 72 kg as a robot's link,
+    28.8 kg as an object). An explicit rho is used for both."""
+    box = '<collision><geometry><box size="0.2 0.4 0.6"/></geometry></collision>'
+    vol = 0.2 * 0.4 * 0.6
+    arm = write(tmp_path, "\n".join([link("base", mass=None, extra=box), link("a", mass=None, extra=box),
+                                      joint("j1", "base", "a")]), "arm.urdf")
+    lone = write(tmp_path, link("base", mass=None, extra=box), "lone.urdf")
+    arm_m = load_urdf(morphs.URDF(file=str(arm)), materials.Rigid(), "arm")
+    assert [l.mass for l in arm_m.links] == pytest.approx([1500.0 * vol] * 2, rel=1e-12)
+    lone_m = load_urdf(morphs.URDF(file=str(lone)), materials.Rigid(), "lone")
+    assert lone_m.links[0].mass == pytest.approx(600.0 * vol, rel=1e-12)
+    b = load_morph(morphs.Box(size=(0.2, 0.4, 0.6)), materials.Rigid(), "box").links[0]
+    assert b.mass == pytest.approx(600.0 * vol, rel=1e-12)
+    f = tmp_path / "cube.stl"
+    trimesh.creation.box(extents=(0.2, 0.4, 0.6)).export(f)
+    assert load_morph(morphs.Mesh(file=str(f)), materials.Rigid(), "m").links[0].mass == pytest.approx(600.0 * vol)
+    # an explicit density is the density, robot or not
+    assert load_urdf(morphs.URDF(file=str(arm)), materials.Rigid(rho=300.0), "arm").links[1].mass == \
+        pytest.approx(300.0 * vol, rel=1e-12)
+    with pytest.raises(ValueError, match="rho"):
+        materials.Rigid(rho=-1.0)
+
+
 def test_collision_shapes_and_mesh_paths(tmp_path):
     pkg = tmp_path / "ws" / "my_pkg"
     (pkg / "meshes").mkdir(parents=True)

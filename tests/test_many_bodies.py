@@ -168,7 +168,8 @@ def test_grad_through_the_normal_rounds():
 
 
 def _pushed_pair(requires_grad=False):
-    """Two 1 kg boxes on the ground 1 mm apart along x (default options, dt = 10 ms)."""
+    """Two 0.6 kg boxes (the default density, 600 kg/m^3) on the ground 1 mm apart along x (default options,
+    dt = 10 ms)."""
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=requires_grad))
     scene.add_entity(gs.morphs.Plane())
     boxes = [scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.101 * i, 0.0, 0.05))) for i in range(2)]
@@ -180,18 +181,20 @@ def _pushed_pair(requires_grad=False):
                          ids=["sideways", "spinning"])
 def test_a_box_pushed_into_a_resting_box_keeps_its_momentum_up_to_coulomb_friction(kick):
     """The first box at 2 m/s towards the second, with 0.1 m/s sideways (or a 0.3 rad/s spin): in one
-    step of 10 ms the ground's friction (mu = 1) can take at most mu (m0 + m1) g h = 0.196 N s of their
-    2 N s of momentum along x, whatever the collision between them does. Found 2026-11-27 (issue #24):
-    0.06 N s was left in both cases (head-on: 1.80, the Coulomb bound to the digit). The Coulomb pass
-    (contact/__init__.py, step 3) predicted, with the boxes' sticking side friction, a reversed slip
-    at one side's ground corners, which therefore stuck: a viscosity mu f2 / eps = 491 N s/m with no
-    bound in the final solve, 34 N of friction against a normal force of 2.4 N. The bound rounds (step
-    5) take the law's secant at the final slip where the friction exceeds Coulomb's bound; measured
-    1.860 N s."""
+    step of 10 ms the ground's friction (mu = 1) can take at most mu g h = 0.098 m/s from each box: 0.196
+    of the 2 m/s their velocities along x sum to, whatever the collision between them does. Found
+    2026-11-27 (issue #24, with 1 kg boxes): 0.06 was left in both cases (head-on: 1.80, the Coulomb
+    bound to the digit). The Coulomb pass (contact/__init__.py, step 3) predicted, with the boxes'
+    sticking side friction, a reversed slip at one side's ground corners, which therefore stuck: a
+    viscosity mu f2 / eps = 491 N s/m with no bound in the final solve, 34 N of friction against a
+    normal force of 2.4 N. The bound rounds (step 5) take the law's secant at the final slip where the
+    friction exceeds Coulomb's bound; measured 1.860. With 0.6 kg boxes (2026-11-28): 1.862 / 1.863; a
+    law brought back by a bound round with the friction pass's sticking viscosity left 0.709 (the boxes
+    spinning at 7 rad/s), before its return was bounded too."""
     scene, boxes = _pushed_pair()
     boxes[0].set_dofs_velocity(np.array(kick))
     scene.step()
-    momentum = sum(float(b.get_dofs_velocity()[0]) for b in boxes)  # 1 kg each (1000 kg/m^3)
+    momentum = sum(float(b.get_dofs_velocity()[0]) for b in boxes)  # per kg: the two masses are equal
     assert 2.0 - 0.2 <= momentum <= 2.0, momentum
     # the boxes met: the second one moves
     assert float(boxes[1].get_dofs_velocity()[0]) > 0.5

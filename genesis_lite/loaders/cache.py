@@ -113,8 +113,8 @@ def cached(path: str, morph, material, name: str, load: Callable):
     except OSError:
         return load()  # the loader raises the error that names the file
     h = hashlib.sha256(_code_fingerprint().encode())
-    for part in (os.path.abspath(path), name, _morph_key(morph), repr(float(material.rho)),
-                 os.environ.get("ROS_PACKAGE_PATH", "")):
+    densities = repr((material.density(robot=False), material.density(robot=True)))
+    for part in (os.path.abspath(path), name, _morph_key(morph), densities, os.environ.get("ROS_PACKAGE_PATH", "")):
         h.update(part.encode())
         h.update(b"\0")
     h.update(data)

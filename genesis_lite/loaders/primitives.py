@@ -3,7 +3,8 @@ geometry toolkit (rotations, mass properties, mesh files) that the URDF loader s
 
 Every body here is one link whose frame is the shape's own frame: primitives are centred on it
 (capsule and cylinder axes along z), a mesh keeps the origin of its file. Mass is
-`material.rho * volume`; inertia is about the centre of mass in the link axes.
+`material.density(robot=False) * volume` (Genesis's 600 kg/m^3 unless rho is given); inertia is about the
+centre of mass in the link axes.
 """
 from __future__ import annotations
 
@@ -266,7 +267,7 @@ def load_primitive(morph, material, name) -> EntityModel:
     """Box, Sphere, Capsule, Cylinder or Plane -> a one-link EntityModel."""
     from genesis_lite import morphs
 
-    rho = float(material.rho)
+    rho = material.density(robot=False)
     if isinstance(morph, morphs.Plane):
         # the plane geom's normal is its +z, so the link is turned to carry +z onto the normal;
         # the normal is read in the frame given by morph.quat (the world for the default quat)
@@ -362,7 +363,7 @@ def _load_mesh(morph, material, name) -> EntityModel:
     V, F = load_mesh_file(path, what)
     V, F = scale_mesh(V, F, morph.scale)
     hull = convex_hull(V, what)
-    hull.density = float(material.rho)
+    hull.density = material.density(robot=False)
     import trimesh
 
     mesh = trimesh.Trimesh(vertices=V, faces=F, process=True)
@@ -378,7 +379,7 @@ def _load_mesh(morph, material, name) -> EntityModel:
     if parts is not None:
         # the solid is the mesh itself when it is closed (a tank's walls, not its hull's volume), else the parts
         body = mesh if mesh.is_volume else trimesh.util.concatenate(parts)
-        body.density = float(material.rho)
+        body.density = material.density(robot=False)
     model = _root_link(morph, name, body.mass, body.center_mass, body.moment_inertia, geoms)
     model.load_warnings = notes
     # cameras draw the file's own surface, not the hull that stands in for it in the physics

@@ -367,8 +367,10 @@ def load_urdf(morph, material, name) -> EntityModel:
 def _load_urdf(morph, material, name) -> EntityModel:
     path = os.path.abspath(os.fspath(morph.file))
     s = float(getattr(morph, "scale", 1.0))
-    rho = float(material.rho)
     robot, capsules = _parse(path)
+    # a link without <inertial> is filled at the material's density: Genesis's default for an articulated
+    # robot's links when the file has a hinge or slide joint, else its default for an object
+    rho = material.density(robot=any(j.type in _MOVING for j in robot.joints))
     links, children, root = _check_tree(path, robot)
     merge = getattr(morph, "merge_fixed_links", True)
     keep = set(getattr(morph, "links_to_keep", ()))

@@ -90,11 +90,25 @@ contact's linear force pulls where another contact stops the body first:
     After the final solve, each contact whose friction at the slip it gives, eta |u_t|, exceeds
     Coulomb's bound mu f2 by more than BOUND_TOL (1 %) takes the law's secant at that slip, eta =
     mu f2 / sqrt(|u_t|^2 + eps^2) (continuously: passes.func_bound_eta), and the system is solved
-    again, at most BOUND_ROUNDS (4) times, stopping at the first round that changes nothing (the
+    again, at most BOUND_ROUNDS (8) times, stopping at the first round that changes nothing (the
     pushed box keeps 1.860 of its 2 N s; the Coulomb floor is 1.804). The viscosities only decrease,
     so A stays positive definite and friction dissipative. A contact within the bound keeps its
     viscosity, however far from the smoothed law (the viscous creep of a sticking foot below eps):
     ANYmal standing runs a round in 1 of 1,385 evaluations, a box sliding in none.
+    The same rounds keep the final system's normal laws to those that push: a law that pulls at the last
+    solution, beyond its round-off, is released (its law and its friction leave the system), and a law
+    released in an earlier round that pushes there comes back, once a step, with the friction pass's
+    viscosity or, where lower, the law's secant at its slip (passes.func_release_decide). The laws of step 4 are those that pushed in the frictionless solve,
+    and friction can pull a body off them: before (2026-11-28) a cube that a Panda's pads lifted by
+    friction stayed glued to the ground, the ground's laws pulling it down with up to 3.6 N against its
+    0.38 N weight; a 38 g cube did not leave the ground at all, and in float32 the grasps threw the cube
+    (tests/test_grasp.py; Genesis's franka_cube scene, benchmarks/franka_cube_precision.py, now ends at
+    z = 0.1850 m in float32 and float64, Genesis 0.1832). Released for good (no return within the step),
+    the points of a pad's face that pulled while the face pushed left its load on two or three points,
+    and the cube spun in the pads; released by pairs of geoms, a pad's face kept a +-23 N couple of
+    points and threw the cube in float32. The set changes are not a line search (step 2b's): a law whose
+    solution lies between its two sets (it pulls when in, pushes when out) ends out, a push of up to ~1 N
+    missing for that step (a box sliding over an edge), rather than in and pulling.
 Steps 1, 2 and 4 factorise, 2b once per round, 3 reuses the last normal factor, 5 factorises once per round. Candidates: the linearisation at the
 start-of-step velocity misses a gap that closes only because the motion changes within the step (two
 boxes falling together, the lower one stopped: their relative velocity is ~0 at the start). A slot whose

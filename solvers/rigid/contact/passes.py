@@ -262,6 +262,7 @@ def func_friction_slots(s: ti.template(), i_b):
             func_friction_slot(s, i_b, i_s)
         else:
             c.sl_in_final[i_b, i_s] = 0
+            c.sl_in_now[i_b, i_s] = 0
 
 
 @ti.func
@@ -292,6 +293,8 @@ def func_friction_slot(s: ti.template(), i_b, i_s):
     c.sl_eta[i_b, i_s] = eta
     c.sl_eta_now[i_b, i_s] = eta
     c.sl_in_final[i_b, i_s] = ti.select(keep, 1, 0)
+    c.sl_in_now[i_b, i_s] = ti.select(keep, 1, 0)
+    c.sl_back[i_b, i_s] = 0
 
 
 @ti.func
@@ -305,6 +308,7 @@ def func_friction_slots_listed(s: ti.template(), i_b):
             func_friction_slot(s, i_b, i_s)
         else:
             c.sl_in_final[i_b, i_s] = 0
+            c.sl_in_now[i_b, i_s] = 0
 
 
 @ti.func
@@ -346,8 +350,9 @@ RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (f
 
 # the bound rounds (after the final solve; step 5 of the package docstring): where a contact's
 # friction at the final slip exceeds Coulomb's bound mu f2 by more than BOUND_TOL, its viscosity becomes
-# the law's secant at that slip and the system is solved again, at most BOUND_ROUNDS times
-BOUND_ROUNDS = 4
+# the law's secant at that slip; where its normal law pulls it leaves the system, and where a law that
+# left pushes again it comes back; the system is solved again, at most BOUND_ROUNDS times
+BOUND_ROUNDS = 8
 BOUND_TOL = 0.01
 
 
@@ -383,25 +388,106 @@ def func_bound_next(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
 
 
 @ti.func
-def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), src: ti.template(),
-                    dst: ti.template(), bank: ti.template()):
-    """A bound round for slot i_s (in the final system) at the link motion (lw, lv) of the last solve:
-    its viscosity src -> dst (func_bound_eta), the change added onto `bank` and recorded in sl_eta_now.
-    Returns 1 if the viscosity changed."""
+def func_normal_at(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
+    """Slot i_s's normal law at the link motion (lw, lv) of a solve, and the scale of its round-off (the
+    sum of its terms' sizes)."""
     c = s.contact
     n = c.sl_n[i_b, i_s]
     u0 = c.sl_u[i_b, i_s]
-    eta = src[i_b, i_s]
-    eta2 = func_bound_next(s, i_b, i_s, lw, lv, eta)
-    de = eta2 - eta
-    nn = n.outer_product(n)
-    u0t = u0 - u0.dot(n) * n
-    func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -de * u0t,
-                  c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn))
-    if ti.static(_distinct(dst, src)):
-        dst[i_b, i_s] = eta2
-    c.sl_eta_now[i_b, i_s] = eta2
-    return ti.select(eta2 < eta, 1, 0)
+    u3 = u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
+    spring = c.sl_wn_normal[i_b, i_s] / c.eval_h[i_b] * (u3 - u0).dot(n)
+    return c.sl_Fn_normal[i_b, i_s] - spring, ti.abs(c.sl_Fn_normal[i_b, i_s]) + ti.abs(spring)
+
+
+@ti.func
+def func_release_decide(s: ti.template(), i_b, lw: ti.template(), lv: ti.template(), rel: ti.template()):
+    """The contacts of the final system whose set a bound round at the link motion (lw, lv) changes: rel 1
+    where a contact in it pulls there, beyond its round-off (released: its law and friction leave the
+    system), 2 where one released in an earlier round pushes there (it comes back, once: a contact that
+    pulls when in and pushes when out, the solution between the two sets, was released and brought back
+    until the rounds ran out, and ended in, pulling 0.85 N), else 0. Returns how many change. The round-off is relative to the law's two terms; in float32 it is 1e-3 (with 1e-5, a 38 g
+    cube squeezed on the ground by a Panda's pads, a law of a few tenths of a newton against terms of tens,
+    was released and brought back on noise, and the cube was spun out of the grasp)."""
+    c = s.contact
+    ROUND_OFF = ti.static(1e-12 if s.dtype == ti.f64 else 1e-3)
+    n = c.n_slots
+    if ti.static(not s.requires_grad):
+        n = c.n_on[i_b]
+    count = 0
+    for k in range(n):
+        i_s = k
+        if ti.static(not s.requires_grad):
+            i_s = c.sl_list[i_b, k]
+        r = 0
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
+            f, a = func_normal_at(s, i_b, i_s, lw, lv)
+            if c.sl_in_now[i_b, i_s] == 1:
+                r = ti.select(f < -ROUND_OFF * a, 1, 0)
+            elif c.sl_back[i_b, i_s] == 0:
+                r = ti.select(f > ROUND_OFF * a, 2, 0)
+                c.sl_back[i_b, i_s] = ti.select(r == 2, 1, 0)
+        rel[i_b, i_s] = r
+        count += ti.select(r > 0, 1, 0)
+    return count
+
+
+@ti.func
+def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), src: ti.template(),
+                    dst: ti.template(), bank: ti.template(), in_src: ti.template(), in_dst: ti.template(),
+                    rel: ti.template()):
+    """A bound round for slot i_s at the link motion (lw, lv) of the last solve, by func_release_decide's
+    choice (rel): a slot in the final system at the round's start (in_src) keeps its normal law, its
+    viscosity src -> dst (func_bound_eta), or is released (rel 1: law and friction out of the system,
+    in_dst 0); a slot released earlier comes back (rel 2: law and the friction pass's viscosity). The
+    change added onto `bank` and recorded in sl_eta_now and sl_in_now. Returns 1 if the system changed."""
+    c = s.contact
+    changed = 0
+    if rel[i_b, i_s] == 2:
+        # released in an earlier round, pushing at the last solution: back, with the friction pass's
+        # viscosity or, where lower, the law's secant at the slip there (within Coulomb's bound: the
+        # friction pass's sticking viscosity mu f2 / eps, brought back by a last round, threw two boxes
+        # pushed into each other into a 7 rad/s spin)
+        n = c.sl_n[i_b, i_s]
+        u0 = c.sl_u[i_b, i_s]
+        u3 = u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
+        u3t = u3 - u3.dot(n) * n
+        sec = c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+        eta2 = ti.min(c.sl_eta[i_b, i_s], sec)
+        nn = n.outer_product(n)
+        u0t = u0 - u0.dot(n) * n
+        func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -eta2 * u0t + c.sl_Fn_normal[i_b, i_s] * n,
+                      c.eval_h[i_b] * eta2 * (ti.Matrix.identity(s.dtype, 3) - nn) + c.sl_wn_normal[i_b, i_s] * nn)
+        if ti.static(_distinct(dst, src)):
+            dst[i_b, i_s] = eta2
+        c.sl_eta_now[i_b, i_s] = eta2
+        in_dst[i_b, i_s] = 1
+        c.sl_in_now[i_b, i_s] = 1
+        changed = 1
+    elif in_src[i_b, i_s] == 1:
+        n = c.sl_n[i_b, i_s]
+        u0 = c.sl_u[i_b, i_s]
+        eta = src[i_b, i_s]
+        eta2 = func_bound_next(s, i_b, i_s, lw, lv, eta)
+        release = rel[i_b, i_s] == 1
+        if release:
+            eta2 = ti.cast(0.0, s.dtype)
+        de = eta2 - eta
+        nn = n.outer_product(n)
+        u0t = u0 - u0.dot(n) * n
+        off = ti.select(release, 1.0, 0.0)
+        func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -de * u0t - off * c.sl_Fn_normal[i_b, i_s] * n,
+                      c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn) - off * c.sl_wn_normal[i_b, i_s] * nn)
+        if ti.static(_distinct(dst, src)):
+            dst[i_b, i_s] = eta2
+        c.sl_eta_now[i_b, i_s] = eta2
+        in_dst[i_b, i_s] = ti.select(release, 0, 1)
+        c.sl_in_now[i_b, i_s] = ti.select(release, 0, 1)
+        changed = ti.select((eta2 < eta) | release, 1, 0)
+    else:
+        if ti.static(_distinct(dst, src)):
+            dst[i_b, i_s] = src[i_b, i_s]
+        in_dst[i_b, i_s] = 0
+    return changed
 
 
 @ti.func
@@ -434,11 +520,12 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
             func_friction_slots_listed(s, i_b)
         else:
             changed = 0
+            func_release_decide(s, i_b, c.link_w_coulomb, c.link_v_coulomb, c.sl_rel)
             for k in range(c.n_on[i_b]):
                 i_s = c.sl_list[i_b, k]
                 if c.sl_in_final[i_b, i_s] == 1:
                     changed |= func_bound_slot(s, i_b, i_s, c.link_w_coulomb, c.link_v_coulomb, c.sl_eta_now,
-                                               c.sl_eta_now, c.bank_friction)
+                                               c.sl_eta_now, c.bank_friction, c.sl_in_now, c.sl_in_now, c.sl_rel)
         solve = changed
         if changed == 1:
             func_friction_tree(s, i_b)
@@ -450,22 +537,24 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
 
 
 @ti.func
-def func_bound_count(s: ti.template(), i_b, e):
+def func_bound_count(s: ti.template(), i_b, e, rel: ti.template()):
     """How many of env i_b's slots a bound round at qacc[e] would change (the gradient path's check
-    before it records a round; it writes only the scratch link motion link_w_report / link_v_report)."""
+    before it records a round), its releases and returns decided into rel (func_release_decide); it writes
+    only those and the scratch link motion link_w_report / link_v_report."""
     c = s.contact
     func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
-    n = 0
+    n = func_release_decide(s, i_b, c.link_w_report, c.link_v_report, rel)
     for i_s in range(c.n_slots):
-        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
+        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_now[i_b, i_s] == 1) & (rel[i_b, i_s] == 0):
             eta = c.sl_eta_now[i_b, i_s]
             n += ti.select(func_bound_next(s, i_b, i_s, c.link_w_report, c.link_v_report, eta) < eta, 1, 0)
     return n
 
 
 def _round_source(c, r: int):
-    """The viscosities bound round r starts from: the friction pass's, or round r - 1's."""
-    return c.sl_eta if r == 0 else c.bnd_eta[r - 1]
+    """The viscosities and the slots in the system bound round r starts from: the friction pass's, or
+    round r - 1's."""
+    return (c.sl_eta, c.sl_in_final) if r == 0 else (c.bnd_eta[r - 1], c.bnd_in[r - 1])
 
 
 def bound_round(r: int, n_lp: int):
@@ -482,10 +571,11 @@ def bound_round(r: int, n_lp: int):
     @ti.func
     def func_round_slots(s: ti.template(), i_b):
         c = s.contact
-        src = ti.static(_round_source(c, r))
+        src, in_src = ti.static(_round_source(c, r))
         for i_s in range(c.n_slots):
-            if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
-                func_bound_slot(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r], src, c.bnd_eta[r], c.bank_bound[r])
+            if c.sl_on[i_b, i_s] == 1:
+                func_bound_slot(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r], src, c.bnd_eta[r], c.bank_bound[r], in_src,
+                                c.bnd_in[r], c.bnd_rel[r])
 
     # each sum one stage (one top-level loop over envs), as in the passes: with tree, dof and project in
     # one stage, Taichi's adjoint of the round was wrong (a gradient off by a factor 37, against finite

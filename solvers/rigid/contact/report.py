@@ -31,16 +31,16 @@ def func_contact_report(s: ti.template(), i_b, e):
     func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
     if ti.static(s.requires_grad):
         for i_s in range(c.n_slots):
-            if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
+            if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_now[i_b, i_s] == 1):
                 func_report_slot(s, i_b, i_s)
             else:
                 func_report_none(s, i_b, i_s)
     else:
         # the other slots' c_fn and c_force are left as they were: read() masks them with sl_on (as it
-        # masks inactive pairs), and sl_in_final is only read where sl_on is set
+        # masks inactive pairs), and sl_in_now is only read where sl_on is set
         for k in range(c.n_on[i_b]):
             i_s = c.sl_list[i_b, k]
-            if c.sl_in_final[i_b, i_s] == 1:
+            if c.sl_in_now[i_b, i_s] == 1:
                 func_report_slot(s, i_b, i_s)
             else:
                 func_report_none(s, i_b, i_s)

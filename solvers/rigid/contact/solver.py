@@ -152,6 +152,10 @@ class ContactSolver:
         # sl_eta: the friction pass's viscosities; sl_eta_now: those in the system now (after the bound
         # rounds: the report's)
         self.sl_eta, self.sl_eta_now, self.sl_in_final = F((B, S)), F((B, S), False), I((B, S))
+        # sl_in_now: in the final system now (the bound rounds release a law that pulls and bring back one
+        # that pushes again: passes.func_release_decide); sl_rel: a round's changes (without gradients)
+        self.sl_in_now, self.sl_rel = I((B, S)), I((B, S))
+        self.sl_back = I((B, S))  # brought back once this step (it is not again)
         # the bound rounds on the gradient path (passes.bound_round): round r's starting solution, the
         # factor it was solved with, its link motion, its viscosities and its bank (without gradients the
         # rounds reuse the report's link motion and bank_friction)
@@ -160,6 +164,7 @@ class ContactSolver:
         self.bnd_fac = [F((B, D, D), False) for _ in range(K)]
         self.bnd_w, self.bnd_v = [V3((B, L)) for _ in range(K)], [V3((B, L)) for _ in range(K)]
         self.bnd_eta = [F((B, S)) for _ in range(K)]
+        self.bnd_in, self.bnd_rel = [I((B, S)) for _ in range(K)], [I((B, S)) for _ in range(K)]
         self.bank_bound = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(K)]
         self.rounds = 0  # the bound rounds the last factor_solve recorded
         self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
@@ -357,9 +362,9 @@ class ContactSolver:
     # solves and Taichi's of the passes, in reverse order.
     def factor_solve(self, s, e: int):
         """qacc[e] of the evaluation e whose dynamics stages just ran (the solve op of the schedule). The
-        bound rounds are recorded while one would change a viscosity (kernel_bound_count; a round that
-        changes none adds exact zeros and solves the same system again, so stopping there changes no
-        number, and the fused step stops at the same round)."""
+        bound rounds are recorded while one would change a viscosity or release a pulling law
+        (kernel_bound_count; a round that changes none adds exact zeros and solves the same system again,
+        so stopping there changes no number, and the fused step stops at the same round)."""
         for which in ("solve_candidates", "relinearise_pass", "solve_normal"):
             self.kernel_run(s, which)
         # the normal rounds, while one changes an env's system (as the fused step's, which stops each env
@@ -373,7 +378,7 @@ class ContactSolver:
             self.kernel_run(s, which)
         s.kernel_mass_solve(e, False)
         self.rounds = 0
-        while self.rounds < len(self.bnd_x) and self.kernel_bound_count(s, e) > 0:
+        while self.rounds < len(self.bnd_x) and self.kernel_bound_count(s, e, self.rounds) > 0:
             self.kernel_bound_keep(s, e, self.rounds)
             self.kernel_run(s, f"bound{self.rounds}")
             s.kernel_mass_solve(e, False)
@@ -421,14 +426,15 @@ class ContactSolver:
         return n
 
     @ti.kernel
-    def kernel_bound_count(self, s: ti.template(), e: ti.i32) -> ti.i32:
-        """How many slots, over the envs, a bound round at qacc[e] would change (passes.func_bound_count)."""
+    def kernel_bound_count(self, s: ti.template(), e: ti.i32, r: ti.template()) -> ti.i32:
+        """How many slots, over the envs, a bound round at qacc[e] would change (passes.func_bound_count),
+        round r's releases and returns decided into bnd_rel[r]."""
         n = 0
         if ti.static(s.serial):
             ti.loop_config(serialize=True)
         for i_b in range(s.cap_envs):
             if i_b < s.n_envs:
-                n += func_bound_count(s, i_b, e)
+                n += func_bound_count(s, i_b, e, self.bnd_rel[r])
         return n
 
     @ti.kernel
