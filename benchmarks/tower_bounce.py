@@ -1,5 +1,5 @@
-"""Genesis's collision/tower scene (50 layers of crossed 0.25 x 2 x 0.1 m boxes, a 12.6 t cylinder dropped on
-top, dt 4 ms, f32) stepped on genesis_lite or on real Genesis, printing every 25 steps: step, highest box z, last
+"""Genesis's collision/tower scene (50 layers of crossed 0.25 x 2 x 0.1 m boxes, a 7.5 t cylinder dropped on
+top (Genesis's default density, 600 kg/m^3, on both sides), dt 4 ms, f32) stepped on genesis_lite or on real Genesis, printing every 25 steps: step, highest box z, last
 box z, cylinder z, largest box |vz|, mean layer spacing, wall time (results/genesis_scripts.md, "tower").
 
     python benchmarks/tower_bounce.py ours 1000                       # this repository's venv

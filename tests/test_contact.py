@@ -1356,7 +1356,9 @@ def test_grad_through_mesh_against_mesh_contact(mesh_files, moving):
                             (lambda x: loss(m, mu, x), {"v": v}, 1e-6)):
         rep = gs.grad.check(fn, inputs, eps=eps, tol=1e-5)
         assert rep.ok, str(rep)
-        assert all(float(g.norm()) > 1e-4 for g in rep.autograd), str(rep)
+        # none trivially zero (measured 2026-11-28, moving: |d/d mu| 6.9e-5, agreeing with the differences to
+        # 1e-7; 1.9e-2 for the mass)
+        assert all(float(g.norm()) > 1e-5 for g in rep.autograd), str(rep)
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # trimesh dividing by the flat mesh's zero volume
