@@ -441,53 +441,35 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
     in_dst 0); a slot released earlier comes back (rel 2: law and the friction pass's viscosity). The
     change added onto `bank` and recorded in sl_eta_now and sl_in_now. Returns 1 if the system changed."""
     c = s.contact
-    changed = 0
-    if rel[i_b, i_s] == 2:
-        # released in an earlier round, pushing at the last solution: back, with the friction pass's
-        # viscosity or, where lower, the law's secant at the slip there (within Coulomb's bound: the
-        # friction pass's sticking viscosity mu f2 / eps, brought back by a last round, threw two boxes
-        # pushed into each other into a 7 rad/s spin)
-        n = c.sl_n[i_b, i_s]
-        u0 = c.sl_u[i_b, i_s]
-        u3 = u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
-        u3t = u3 - u3.dot(n) * n
-        sec = c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
-        eta2 = ti.min(c.sl_eta[i_b, i_s], sec)
+    # single-assignment (DESIGN: a local overwritten in a loop lives on Taichi's autodiff stack)
+    back = rel[i_b, i_s] == 2
+    inside = in_src[i_b, i_s] == 1
+    release = inside & (rel[i_b, i_s] == 1)
+    n = c.sl_n[i_b, i_s]
+    u0 = c.sl_u[i_b, i_s]
+    eta = src[i_b, i_s]
+    u3 = u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
+    u3t = u3 - u3.dot(n) * n
+    # a law brought back: the friction pass's viscosity or, where lower, the law's secant at the slip there
+    # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
+    # round, threw two boxes pushed into each other into a 7 rad/s spin)
+    eta_back = ti.min(c.sl_eta[i_b, i_s],
+                      c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps))
+    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, lw, lv, eta),
+                                                                        eta)))
+    if back | inside:
+        de = eta2 - ti.select(back, 0.0, eta)
+        law = ti.select(back, 1.0, ti.select(release, -1.0, 0.0))
         nn = n.outer_product(n)
         u0t = u0 - u0.dot(n) * n
-        func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -eta2 * u0t + c.sl_Fn_normal[i_b, i_s] * n,
-                      c.eval_h[i_b] * eta2 * (ti.Matrix.identity(s.dtype, 3) - nn) + c.sl_wn_normal[i_b, i_s] * nn)
-        if ti.static(_distinct(dst, src)):
-            dst[i_b, i_s] = eta2
+        func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -de * u0t + law * c.sl_Fn_normal[i_b, i_s] * n,
+                      c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn) + law * c.sl_wn_normal[i_b, i_s] * nn)
         c.sl_eta_now[i_b, i_s] = eta2
-        in_dst[i_b, i_s] = 1
-        c.sl_in_now[i_b, i_s] = 1
-        changed = 1
-    elif in_src[i_b, i_s] == 1:
-        n = c.sl_n[i_b, i_s]
-        u0 = c.sl_u[i_b, i_s]
-        eta = src[i_b, i_s]
-        eta2 = func_bound_next(s, i_b, i_s, lw, lv, eta)
-        release = rel[i_b, i_s] == 1
-        if release:
-            eta2 = ti.cast(0.0, s.dtype)
-        de = eta2 - eta
-        nn = n.outer_product(n)
-        u0t = u0 - u0.dot(n) * n
-        off = ti.select(release, 1.0, 0.0)
-        func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -de * u0t - off * c.sl_Fn_normal[i_b, i_s] * n,
-                      c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn) - off * c.sl_wn_normal[i_b, i_s] * nn)
-        if ti.static(_distinct(dst, src)):
-            dst[i_b, i_s] = eta2
-        c.sl_eta_now[i_b, i_s] = eta2
-        in_dst[i_b, i_s] = ti.select(release, 0, 1)
-        c.sl_in_now[i_b, i_s] = ti.select(release, 0, 1)
-        changed = ti.select((eta2 < eta) | release, 1, 0)
-    else:
-        if ti.static(_distinct(dst, src)):
-            dst[i_b, i_s] = src[i_b, i_s]
-        in_dst[i_b, i_s] = 0
-    return changed
+        c.sl_in_now[i_b, i_s] = ti.select(back | (inside & (not release)), 1, 0)
+    if ti.static(_distinct(dst, src)):
+        dst[i_b, i_s] = eta2
+    in_dst[i_b, i_s] = ti.select(back | (inside & (not release)), 1, 0)
+    return ti.select(back | release | (inside & (eta2 < eta)), 1, 0)
 
 
 @ti.func
