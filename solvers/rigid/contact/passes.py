@@ -83,6 +83,31 @@ def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.t
     return (lv[i_b, la] + lw[i_b, la].cross(pos)) - (lv[i_b, lb] + lw[i_b, lb].cross(pos))
 
 
+# the relative round-off of a law's value in the normal rounds' check (rounds.py), by precision, and in
+# the bound rounds' release check in float32 (func_release_decide: ROUND_OFF_F64 in float64)
+ROUND_OFF_F64, ROUND_OFF_F32 = 1e-12, 1e-5
+ROUND_OFF_RELEASE_F32 = 1e-3
+
+
+@ti.func
+def func_round_span(s: ti.template(), i_b):
+    """How many entries func_round_slot walks: every slot with gradients, the listed ones without."""
+    n = s.contact.n_slots
+    if ti.static(not s.requires_grad):
+        n = s.contact.n_on[i_b]
+    return n
+
+
+@ti.func
+def func_round_slot(s: ti.template(), i_b, k):
+    """Entry k of func_round_span's walk: (slot, whether it is on), in slot order either way."""
+    c = s.contact
+    i_s = k
+    if ti.static(not s.requires_grad):
+        i_s = c.sl_list[i_b, k]
+    return i_s, c.sl_on[i_b, i_s] == 1
+
+
 @ti.func
 def func_normal_after(c: ti.template(), i_b, i_s, u0, u1, n):
     """The normal force the (first pass's) linear law gives at the end-of-step relative velocity u1 (u0
@@ -374,29 +399,36 @@ def _distinct(a, b) -> bool:
 
 
 @ti.func
-def func_bound_next(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), eta):
-    """func_bound_eta for slot i_s of viscosity eta at the link motion (lw, lv) of a solve: its slip
-    speed there (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at
-    rest), Coulomb's bound mu f2 and the law's secant mu f2 / sqrt(|u_t|^2 + eps^2)."""
+def func_slip_at(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
+    """Slot i_s's tangential slip u_t at the link motion (lw, lv) of a solve."""
     c = s.contact
     n = c.sl_n[i_b, i_s]
     u3 = c.sl_u[i_b, i_s] + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
-    u3t = u3 - u3.dot(n) * n
-    bound = c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0)
-    speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * c.eps * c.eps)
-    return func_bound_eta(eta, speed, bound, bound / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps))
+    return u3 - u3.dot(n) * n
 
 
 @ti.func
-def func_normal_at(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
-    """Slot i_s's normal law at the link motion (lw, lv) of a solve, and the scale of its round-off (the
-    sum of its terms' sizes)."""
+def func_coulomb_bound(s: ti.template(), i_b, i_s):
+    """Coulomb's bound mu f2 of slot i_s (f2 its load after the normal solve, at least 0)."""
     c = s.contact
-    n = c.sl_n[i_b, i_s]
-    u0 = c.sl_u[i_b, i_s]
-    u3 = u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
-    spring = c.sl_wn_normal[i_b, i_s] / c.eval_h[i_b] * (u3 - u0).dot(n)
-    return c.sl_Fn_normal[i_b, i_s] - spring, ti.abs(c.sl_Fn_normal[i_b, i_s]) + ti.abs(spring)
+    return c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0)
+
+
+@ti.func
+def func_law_secant(s: ti.template(), i_b, i_s, u3t):
+    """The smoothed friction law's secant at the slip u3t: mu f2 / sqrt(|u_t|^2 + eps^2)."""
+    c = s.contact
+    return func_coulomb_bound(s, i_b, i_s) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+
+
+@ti.func
+def func_bound_next(s: ti.template(), i_b, i_s, u3t, eta):
+    """func_bound_eta for slot i_s of viscosity eta at the slip u3t of a solve (func_slip_at): its slip
+    speed (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at rest),
+    Coulomb's bound and the law's secant."""
+    c = s.contact
+    speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * c.eps * c.eps)
+    return func_bound_eta(eta, speed, func_coulomb_bound(s, i_b, i_s), func_law_secant(s, i_b, i_s, u3t))
 
 
 @ti.func
@@ -405,22 +437,22 @@ def func_release_decide(s: ti.template(), i_b, lw: ti.template(), lv: ti.templat
     where a contact in it pulls there, beyond its round-off (released: its law and friction leave the
     system), 2 where one released in an earlier round pushes there (it comes back, once: a contact that
     pulls when in and pushes when out, the solution between the two sets, was released and brought back
-    until the rounds ran out, and ended in, pulling 0.85 N), else 0. Returns how many change. The round-off is relative to the law's two terms; in float32 it is 1e-3 (with 1e-5, a 38 g
+    until the rounds ran out, and ended in, pulling 0.85 N), else 0. Returns how many change. The
+    round-off is relative to the law's two terms; in float32 it is ROUND_OFF_RELEASE_F32 (with 1e-5, a 38 g
     cube squeezed on the ground by a Panda's pads, a law of a few tenths of a newton against terms of tens,
     was released and brought back on noise, and the cube was spun out of the grasp)."""
     c = s.contact
-    ROUND_OFF = ti.static(1e-12 if s.dtype == ti.f64 else 1e-3)
-    n = c.n_slots
-    if ti.static(not s.requires_grad):
-        n = c.n_on[i_b]
+    ROUND_OFF = ti.static(ROUND_OFF_F64 if s.dtype == ti.f64 else ROUND_OFF_RELEASE_F32)
     count = 0
-    for k in range(n):
-        i_s = k
-        if ti.static(not s.requires_grad):
-            i_s = c.sl_list[i_b, k]
+    for k in range(func_round_span(s, i_b)):
+        i_s, on = func_round_slot(s, i_b, k)
         r = 0
-        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_final[i_b, i_s] == 1):
-            f, a = func_normal_at(s, i_b, i_s, lw, lv)
+        if on & (c.sl_in_final[i_b, i_s] == 1):
+            u0 = c.sl_u[i_b, i_s]
+            f = func_normal_after(c, i_b, i_s, u0, u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv),
+                                  c.sl_n[i_b, i_s])
+            # the scale of its round-off: the sum of its two terms' sizes
+            a = ti.abs(c.sl_Fn_normal[i_b, i_s]) + ti.abs(c.sl_Fn_normal[i_b, i_s] - f)
             if c.sl_in_now[i_b, i_s] == 1:
                 r = ti.select(f < -ROUND_OFF * a, 1, 0)
             elif c.sl_back[i_b, i_s] == 0:
@@ -448,14 +480,12 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
     n = c.sl_n[i_b, i_s]
     u0 = c.sl_u[i_b, i_s]
     eta = src[i_b, i_s]
-    u3 = u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
-    u3t = u3 - u3.dot(n) * n
+    u3t = func_slip_at(s, i_b, i_s, lw, lv)
     # a law brought back: the friction pass's viscosity or, where lower, the law's secant at the slip there
     # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
     # round, threw two boxes pushed into each other into a 7 rad/s spin)
-    eta_back = ti.min(c.sl_eta[i_b, i_s],
-                      c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps))
-    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, lw, lv, eta),
+    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, i_b, i_s, u3t))
+    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, u3t, eta),
                                                                         eta)))
     if back | inside:
         de = eta2 - ti.select(back, 0.0, eta)
@@ -529,7 +559,8 @@ def func_bound_count(s: ti.template(), i_b, e, rel: ti.template()):
     for i_s in range(c.n_slots):
         if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_now[i_b, i_s] == 1) & (rel[i_b, i_s] == 0):
             eta = c.sl_eta_now[i_b, i_s]
-            n += ti.select(func_bound_next(s, i_b, i_s, c.link_w_report, c.link_v_report, eta) < eta, 1, 0)
+            u3t = func_slip_at(s, i_b, i_s, c.link_w_report, c.link_v_report)
+            n += ti.select(func_bound_next(s, i_b, i_s, u3t, eta) < eta, 1, 0)
     return n
 
 

@@ -14,33 +14,13 @@ import taichi as ti
 
 from .banks import func_bank_add, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
 from .linalg import ENV_NORMAL, func_factor_into
-from .passes import (bank_clear_stage, bank_stage, func_link_motion, func_rel_motion, func_relinearise_clear,
-                     func_relinearise_clear_pairs, func_relinearise_cross, func_relinearise_dof,
-                     func_relinearise_project, func_relinearise_tree)
+from .passes import (ROUND_OFF_F32, ROUND_OFF_F64, bank_clear_stage, bank_stage, func_link_motion, func_rel_motion,
+                     func_relinearise_clear, func_relinearise_clear_pairs, func_relinearise_cross,
+                     func_relinearise_dof, func_relinearise_project, func_relinearise_tree, func_round_slot,
+                     func_round_span)
 
 NORMAL_ROUNDS = 8
 LINE_ITERS = 60
-# the relative round-off of a law's value in the rounds' check, by precision
-ROUND_OFF_F64, ROUND_OFF_F32 = 1e-12, 1e-5
-
-
-@ti.func
-def func_round_span(s: ti.template(), i_b):
-    """How many entries func_round_slot walks: every slot with gradients, the listed ones without."""
-    n = s.contact.n_slots
-    if ti.static(not s.requires_grad):
-        n = s.contact.n_on[i_b]
-    return n
-
-
-@ti.func
-def func_round_slot(s: ti.template(), i_b, k):
-    """Entry k of func_round_span's walk: (slot, whether it is on), in slot order either way."""
-    c = s.contact
-    i_s = k
-    if ti.static(not s.requires_grad):
-        i_s = c.sl_list[i_b, k]
-    return i_s, c.sl_on[i_b, i_s] == 1
 
 
 @ti.func
