@@ -62,13 +62,23 @@ class Morph:
 
 @dataclass
 class FileMorph(Morph):
+    """A body or robot from a file. `align` is Genesis's: a free-floating root link's frame moved to its
+    centre of mass and turned to its principal axes of inertia, so that its pose (get_pos, get_quat,
+    get_qpos, get_dofs_position) is that frame's. None (Genesis's default) aligns a basic rigid object (a
+    free root with nothing below it on a hinge or slide joint: a mesh, a one-body URDF or MJCF); True any
+    free root; False keeps the file's frame (as MuJoCo and Pinocchio report it). See loaders/align.py."""
+
     file: str = ""
     scale: float = 1.0
+    align: Optional[bool] = None
 
     def _check(self):
         owner = type(self).__name__
         if not self.file:
             raise ValueError(f"gs.morphs.{owner}: `file` is required")
+        if self.align not in (None, True, False):
+            raise ValueError(f"gs.morphs.{owner}(align={self.align!r}): use None (Genesis's default: align a free "
+                             "rigid object's frame to its centre of mass and principal axes), True or False")
         from .loaders.assets import resolve
 
         # Genesis's relative asset paths ("urdf/panda_bullet/panda.urdf") resolve against the asset folders

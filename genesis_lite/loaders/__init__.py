@@ -5,6 +5,7 @@ import dataclasses
 
 from solvers.rigid.model import EntityModel
 
+from .align import align_model
 from .mjcf import load_mjcf
 from .primitives import load_mesh, load_primitive
 from .urdf import load_urdf
@@ -19,11 +20,12 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
     if material is None:
         material = materials.Rigid()
     if isinstance(morph, morphs.URDF):
-        return _with_default_armature(load_urdf(morph, material, name), morph.default_armature)
+        return align_model(_with_default_armature(load_urdf(morph, material, name), morph.default_armature), morph.align)
     if isinstance(morph, morphs.MJCF):
-        return load_mjcf(morph, material, name)  # its default_armature applied as it reads the file
+        # its default_armature applied as it reads the file
+        return align_model(load_mjcf(morph, material, name), morph.align)
     if isinstance(morph, morphs.Mesh):
-        return load_mesh(morph, material, name)
+        return align_model(load_mesh(morph, material, name), morph.align)
     if isinstance(morph, (morphs.Box, morphs.Sphere, morphs.Capsule, morphs.Cylinder, morphs.Plane)):
         return load_primitive(morph, material, name)
     raise TypeError(
