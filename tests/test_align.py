@@ -43,6 +43,35 @@ def test_a_free_mesh_s_pose_is_genesis_s():
     np.testing.assert_allclose(np.sort(np.diag(I)), np.linalg.eigvalsh(_np(b.get_links_inertia())[0]), rtol=1e-12)
 
 
+LONE = """<?xml version="1.0"?>
+<robot name="lone">
+  <link name="body">
+    <inertial>
+      <origin xyz="0.03 -0.02 0.05" rpy="0.3 -0.2 0.5"/>
+      <mass value="1.3"/>
+      <inertia ixx="0.011" ixy="0.002" ixz="-0.001" iyy="0.017" iyz="0.0015" izz="0.023"/>
+    </inertial>
+    <collision>
+      <origin xyz="0.03 -0.02 0.05" rpy="0 0 0"/>
+      <geometry><box size="0.2 0.15 0.1"/></geometry>
+    </collision>
+  </link>
+</robot>
+"""
+
+
+def test_a_one_body_urdf_s_pose_is_genesis_s(tmp_path):
+    """A one-link URDF (a free rigid object) whose <inertial> is offset, turned and not diagonal: Genesis
+    0.4.5 aligns it from the file's inertia and reports the pose below (float64, its own venv, 2026-11-28)."""
+    f = tmp_path / "lone.urdf"
+    f.write_text(LONE)
+    scene = gs.Scene(show_viewer=False)
+    e = scene.add_entity(gs.morphs.URDF(file=str(f), pos=(0.1, 0.2, 0.3), euler=(10, 20, 30)))
+    scene.build()
+    np.testing.assert_allclose(_np(e.get_pos()), [0.152159438, 0.1973455225, 0.3327467064], atol=1e-9)
+    np.testing.assert_allclose(_np(e.get_quat()), [0.9332253076, 0.1594733368, 0.1140221432, 0.3010942228], atol=1e-9)
+
+
 def _pair(dt, plane, z=0.2):
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), show_viewer=False)
     if plane:
