@@ -72,6 +72,30 @@ def test_a_one_body_urdf_s_pose_is_genesis_s(tmp_path):
     np.testing.assert_allclose(_np(e.get_quat()), [0.9332253076, 0.1594733368, 0.1140221432, 0.3010942228], atol=1e-9)
 
 
+FREE_MJCF = """<mujoco model="free">
+  <worldbody>
+    <body name="thing" pos="0.1 0.2 0.3" euler="10 20 30">
+      <freejoint/>
+      <inertial pos="0.03 -0.02 0.05" quat="0.9 0.1 -0.2 0.3" mass="1.3" diaginertia="0.011 0.017 0.023"/>
+      <geom type="box" size="0.1 0.07 0.05" pos="0.03 -0.02 0.05"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_free_mjcf_body_s_pose_is_genesis_s(tmp_path):
+    """An MJCF body on a <freejoint/> with a turned, offset <inertial>, the model placed at (0.5, 0, 0):
+    Genesis 0.4.5's pose (float64, its own venv, 2026-11-29), to 10 digits."""
+    f = tmp_path / "free.xml"
+    f.write_text(FREE_MJCF)
+    scene = gs.Scene(show_viewer=False)
+    e = scene.add_entity(gs.morphs.MJCF(file=str(f), pos=(0.5, 0.0, 0.0)))
+    scene.build()
+    np.testing.assert_allclose(_np(e.get_pos()), [0.6509118638, 0.1916928898, 0.3337486895], atol=1e-9)
+    np.testing.assert_allclose(_np(e.get_quat()), [0.8053826049, 0.3144146931, -0.0716161719, 0.4973664488], atol=1e-9)
+
+
 def _pair(dt, plane, z=0.2):
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), show_viewer=False)
     if plane:
