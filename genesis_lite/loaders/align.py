@@ -18,6 +18,7 @@ import numpy as np
 
 from solvers.rigid.model import EntityModel, LinkDesc
 
+from ..utils.geom import inv_quat
 from .primitives import mat_to_quat, quat_mul, quat_to_mat
 
 # eigenvalues closer than this fraction of the largest are one (degenerate) group; a frame whose axes
@@ -81,7 +82,13 @@ def _articulated_below(model: EntityModel, root: int) -> bool:
 
 def _reframe(pos, quat, c, R, qR):
     """A pose (pos, quat) in the old link frame, expressed in the frame at c turned by R (quaternion qR)."""
-    return R.T @ (np.asarray(pos, dtype=float) - c), quat_mul(np.array([qR[0], -qR[1], -qR[2], -qR[3]]), quat)
+    return R.T @ (np.asarray(pos, dtype=float) - c), quat_mul(inv_quat(qR), quat)
+
+
+def _reframed(d, c, R, qR):
+    """A geom or visual (pos, quat in the link frame) re-expressed in the new frame."""
+    pos, quat = _reframe(d.pos, d.quat, c, R, qR)
+    return dataclasses.replace(d, pos=pos, quat=quat)
 
 
 def align_model(model: EntityModel, align) -> EntityModel:
@@ -101,13 +108,10 @@ def align_model(model: EntityModel, align) -> EntityModel:
         if not np.any(c) and np.array_equal(R, np.eye(3)):
             continue
         qR = mat_to_quat(R)
-        geoms = [dataclasses.replace(g, **dict(zip(("pos", "quat"), _reframe(g.pos, g.quat, c, R, qR)))) for g in l.geoms]
-        visuals = [dataclasses.replace(v, **dict(zip(("pos", "quat"), _reframe(v.pos, v.quat, c, R, qR))))
-                   for v in l.visuals]
         links[i] = dataclasses.replace(
             l, joint_pos=np.asarray(l.joint_pos, dtype=float) + quat_to_mat(l.joint_quat) @ c,
             joint_quat=quat_mul(l.joint_quat, qR), com=np.zeros(3), inertia=R.T @ np.asarray(l.inertia) @ R,
-            geoms=geoms, visuals=visuals)
+            geoms=[_reframed(g, c, R, qR) for g in l.geoms], visuals=[_reframed(v, c, R, qR) for v in l.visuals])
         for k, child in enumerate(model.links):
             if child.parent == i:
                 p, q = _reframe(child.joint_pos, child.joint_quat, c, R, qR)

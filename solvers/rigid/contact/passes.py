@@ -487,6 +487,7 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
     eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, i_b, i_s, u3t))
     eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, u3t, eta),
                                                                         eta)))
+    stays = back | (inside & (not release))  # in the system after the round
     if back | inside:
         de = eta2 - ti.select(back, 0.0, eta)
         law = ti.select(back, 1.0, ti.select(release, -1.0, 0.0))
@@ -495,10 +496,10 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
         func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], -de * u0t + law * c.sl_Fn_normal[i_b, i_s] * n,
                       c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn) + law * c.sl_wn_normal[i_b, i_s] * nn)
         c.sl_eta_now[i_b, i_s] = eta2
-        c.sl_in_now[i_b, i_s] = ti.select(back | (inside & (not release)), 1, 0)
+        c.sl_in_now[i_b, i_s] = ti.select(stays, 1, 0)
     if ti.static(_distinct(dst, src)):
         dst[i_b, i_s] = eta2
-    in_dst[i_b, i_s] = ti.select(back | (inside & (not release)), 1, 0)
+    in_dst[i_b, i_s] = ti.select(stays, 1, 0)
     return ti.select(back | release | (inside & (eta2 < eta)), 1, 0)
 
 
