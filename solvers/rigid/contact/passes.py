@@ -84,7 +84,7 @@ def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.t
 
 
 # the relative round-off of a law's value in the normal rounds' check (rounds.py), by precision, and in
-# the bound rounds' release check in float32 (func_release_decide: ROUND_OFF_F64 in float64)
+# the bound rounds' release check in float32 (func_release_slot: ROUND_OFF_F64 in float64)
 ROUND_OFF_F64, ROUND_OFF_F32 = 1e-12, 1e-5
 ROUND_OFF_RELEASE_F32 = 1e-3
 
@@ -399,11 +399,18 @@ def _distinct(a, b) -> bool:
 
 
 @ti.func
-def func_slip_at(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
-    """Slot i_s's tangential slip u_t at the link motion (lw, lv) of a solve."""
+def func_u_at(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
+    """Slot i_s's relative velocity at the end of the step for the link motion (lw, lv) of a solve: what a
+    bound round reads of a slot, its normal law's value (func_release_slot) and its slip (func_bound_slot),
+    computed once per slot and round."""
     c = s.contact
-    n = c.sl_n[i_b, i_s]
-    u3 = c.sl_u[i_b, i_s] + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
+    return c.sl_u[i_b, i_s] + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv)
+
+
+@ti.func
+def func_tangential(s: ti.template(), i_b, i_s, u3):
+    """The part of slot i_s's relative velocity u3 in its tangent plane (the slip)."""
+    n = s.contact.sl_n[i_b, i_s]
     return u3 - u3.dot(n) * n
 
 
@@ -423,7 +430,7 @@ def func_law_secant(s: ti.template(), i_b, i_s, u3t):
 
 @ti.func
 def func_bound_next(s: ti.template(), i_b, i_s, u3t, eta):
-    """func_bound_eta for slot i_s of viscosity eta at the slip u3t of a solve (func_slip_at): its slip
+    """func_bound_eta for slot i_s of viscosity eta at the slip u3t of a solve (func_tangential): its slip
     speed (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at rest),
     Coulomb's bound and the law's secant."""
     c = s.contact
@@ -432,46 +439,38 @@ def func_bound_next(s: ti.template(), i_b, i_s, u3t, eta):
 
 
 @ti.func
-def func_release_decide(s: ti.template(), i_b, lw: ti.template(), lv: ti.template(), rel: ti.template()):
-    """The contacts of the final system whose set a bound round at the link motion (lw, lv) changes: rel 1
-    where a contact in it pulls there, beyond its round-off (released: its law and friction leave the
-    system), 2 where one released in an earlier round pushes there (it comes back, once: a contact that
-    pulls when in and pushes when out, the solution between the two sets, was released and brought back
-    until the rounds ran out, and ended in, pulling 0.85 N), else 0. Returns how many change. The
+def func_release_slot(s: ti.template(), i_b, i_s, u3):
+    """Whether a bound round at slot i_s's relative velocity u3 (func_u_at) changes its set, for a slot in the
+    final system: 1 where it is in the system now and pulls there, beyond its round-off (released: its law
+    and friction leave the system), 2 where it was released in an earlier round and pushes there (it comes
+    back, once: a contact that pulls when in and pushes when out, the solution between the two sets, was
+    released and brought back until the rounds ran out, and ended in, pulling 0.85 N), else 0. The
     round-off is relative to the law's two terms; in float32 it is ROUND_OFF_RELEASE_F32 (with 1e-5, a 38 g
     cube squeezed on the ground by a Panda's pads, a law of a few tenths of a newton against terms of tens,
     was released and brought back on noise, and the cube was spun out of the grasp)."""
     c = s.contact
     ROUND_OFF = ti.static(ROUND_OFF_F64 if s.dtype == ti.f64 else ROUND_OFF_RELEASE_F32)
-    count = 0
-    for k in range(func_round_span(s, i_b)):
-        i_s, on = func_round_slot(s, i_b, k)
-        r = 0
-        if on & (c.sl_in_final[i_b, i_s] == 1):
-            u0 = c.sl_u[i_b, i_s]
-            f = func_normal_after(c, i_b, i_s, u0, u0 + func_rel_motion(s, i_b, i_s, c.sl_pos[i_b, i_s], lw, lv),
-                                  c.sl_n[i_b, i_s])
-            # the scale of its round-off: the sum of its two terms' sizes
-            a = ti.abs(c.sl_Fn_normal[i_b, i_s]) + ti.abs(c.sl_Fn_normal[i_b, i_s] - f)
-            if c.sl_in_now[i_b, i_s] == 1:
-                r = ti.select(f < -ROUND_OFF * a, 1, 0)
-            elif c.sl_back[i_b, i_s] == 0:
-                r = ti.select(f > ROUND_OFF * a, 2, 0)
-                c.sl_back[i_b, i_s] = ti.select(r == 2, 1, 0)
-        rel[i_b, i_s] = r
-        count += ti.select(r > 0, 1, 0)
-    return count
+    r = 0
+    f = func_normal_after(c, i_b, i_s, c.sl_u[i_b, i_s], u3, c.sl_n[i_b, i_s])
+    # the scale of its round-off: the sum of its two terms' sizes
+    a = ti.abs(c.sl_Fn_normal[i_b, i_s]) + ti.abs(c.sl_Fn_normal[i_b, i_s] - f)
+    if c.sl_in_now[i_b, i_s] == 1:
+        r = ti.select(f < -ROUND_OFF * a, 1, 0)
+    elif c.sl_back[i_b, i_s] == 0:
+        r = ti.select(f > ROUND_OFF * a, 2, 0)
+        c.sl_back[i_b, i_s] = ti.select(r == 2, 1, 0)
+    return r
 
 
 @ti.func
-def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template(), src: ti.template(),
-                    dst: ti.template(), bank: ti.template(), in_src: ti.template(), in_dst: ti.template(),
-                    rel: ti.template()):
-    """A bound round for slot i_s at the link motion (lw, lv) of the last solve, by func_release_decide's
-    choice (rel): a slot in the final system at the round's start (in_src) keeps its normal law, its
-    viscosity src -> dst (func_bound_eta), or is released (rel 1: law and friction out of the system,
-    in_dst 0); a slot released earlier comes back (rel 2: law and the friction pass's viscosity). The
-    change added onto `bank` and recorded in sl_eta_now and sl_in_now. Returns 1 if the system changed."""
+def func_bound_slot(s: ti.template(), i_b, i_s, u3, src: ti.template(), dst: ti.template(), bank: ti.template(),
+                    in_src: ti.template(), in_dst: ti.template(), rel: ti.template()):
+    """A bound round for slot i_s at its relative velocity u3 after the last solve (func_u_at), by
+    func_release_slot's choice (rel): a slot in the final system at the round's start (in_src) keeps its
+    normal law, its viscosity src -> dst (func_bound_eta), or is released (rel 1: law and friction out of
+    the system, in_dst 0); a slot released earlier comes back (rel 2: law and the friction pass's
+    viscosity). The change added onto `bank` and recorded in sl_eta_now and sl_in_now. Returns 1 if the
+    system changed."""
     c = s.contact
     # single-assignment (DESIGN: a local overwritten in a loop lives on Taichi's autodiff stack)
     back = rel[i_b, i_s] == 2
@@ -480,7 +479,7 @@ def func_bound_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.templa
     n = c.sl_n[i_b, i_s]
     u0 = c.sl_u[i_b, i_s]
     eta = src[i_b, i_s]
-    u3t = func_slip_at(s, i_b, i_s, lw, lv)
+    u3t = func_tangential(s, i_b, i_s, u3)
     # a law brought back: the friction pass's viscosity or, where lower, the law's secant at the slip there
     # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
     # round, threw two boxes pushed into each other into a 7 rad/s spin)
@@ -533,12 +532,16 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
             func_friction_slots_listed(s, i_b)
         else:
             changed = 0
-            func_release_decide(s, i_b, c.link_w_coulomb, c.link_v_coulomb, c.sl_rel)
+            # each slot's choice (func_release_slot) reads only its own state, so it is made just before
+            # the slot's round: the same choices as deciding every slot first
             for k in range(c.n_on[i_b]):
                 i_s = c.sl_list[i_b, k]
+                c.sl_rel[i_b, i_s] = 0
                 if c.sl_in_final[i_b, i_s] == 1:
-                    changed |= func_bound_slot(s, i_b, i_s, c.link_w_coulomb, c.link_v_coulomb, c.sl_eta_now,
-                                               c.sl_eta_now, c.bank_friction, c.sl_in_now, c.sl_in_now, c.sl_rel)
+                    u3 = func_u_at(s, i_b, i_s, c.link_w_coulomb, c.link_v_coulomb)
+                    c.sl_rel[i_b, i_s] = func_release_slot(s, i_b, i_s, u3)
+                    changed |= func_bound_slot(s, i_b, i_s, u3, c.sl_eta_now, c.sl_eta_now, c.bank_friction,
+                                               c.sl_in_now, c.sl_in_now, c.sl_rel)
         solve = changed
         if changed == 1:
             func_friction_tree(s, i_b)
@@ -552,16 +555,23 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
 @ti.func
 def func_bound_count(s: ti.template(), i_b, e, rel: ti.template()):
     """How many of env i_b's slots a bound round at qacc[e] would change (the gradient path's check
-    before it records a round), its releases and returns decided into rel (func_release_decide); it writes
-    only those and the scratch link motion link_w_report / link_v_report."""
+    before it records a round), its releases and returns decided into rel (func_release_slot); it writes
+    only those, sl_back and the scratch link motion link_w_report / link_v_report."""
     c = s.contact
     func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
-    n = func_release_decide(s, i_b, c.link_w_report, c.link_v_report, rel)
-    for i_s in range(c.n_slots):
-        if (c.sl_on[i_b, i_s] == 1) & (c.sl_in_now[i_b, i_s] == 1) & (rel[i_b, i_s] == 0):
-            eta = c.sl_eta_now[i_b, i_s]
-            u3t = func_slip_at(s, i_b, i_s, c.link_w_report, c.link_v_report)
-            n += ti.select(func_bound_next(s, i_b, i_s, u3t, eta) < eta, 1, 0)
+    n = 0
+    for k in range(func_round_span(s, i_b)):
+        i_s, on = func_round_slot(s, i_b, k)
+        r = 0
+        if on & (c.sl_in_final[i_b, i_s] == 1):
+            u3 = func_u_at(s, i_b, i_s, c.link_w_report, c.link_v_report)
+            r = func_release_slot(s, i_b, i_s, u3)
+            # (a slot in the system now is in the final one: only those are released and brought back)
+            if (r == 0) & (c.sl_in_now[i_b, i_s] == 1):
+                eta = c.sl_eta_now[i_b, i_s]
+                n += ti.select(func_bound_next(s, i_b, i_s, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
+        rel[i_b, i_s] = r
+        n += ti.select(r > 0, 1, 0)
     return n
 
 
@@ -588,8 +598,8 @@ def bound_round(r: int, n_lp: int):
         src, in_src = ti.static(_round_source(c, r))
         for i_s in range(c.n_slots):
             if c.sl_on[i_b, i_s] == 1:
-                func_bound_slot(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r], src, c.bnd_eta[r], c.bank_bound[r], in_src,
-                                c.bnd_in[r], c.bnd_rel[r])
+                func_bound_slot(s, i_b, i_s, func_u_at(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r]), src, c.bnd_eta[r],
+                                c.bank_bound[r], in_src, c.bnd_in[r], c.bnd_rel[r])
 
     # each sum one stage (one top-level loop over envs), as in the passes: with tree, dof and project in
     # one stage, Taichi's adjoint of the round was wrong (a gradient off by a factor 37, against finite

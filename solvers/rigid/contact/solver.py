@@ -153,7 +153,7 @@ class ContactSolver:
         # rounds: the report's)
         self.sl_eta, self.sl_eta_now, self.sl_in_final = F((B, S)), F((B, S), False), I((B, S))
         # sl_in_now: in the final system now (the bound rounds release a law that pulls and bring back one
-        # that pushes again: passes.func_release_decide); sl_rel: a round's changes (without gradients)
+        # that pushes again: passes.func_release_slot); sl_rel: a round's changes (without gradients)
         self.sl_in_now, self.sl_rel = I((B, S)), I((B, S))
         self.sl_back = I((B, S))  # brought back once this step (it is not again)
         # the bound rounds on the gradient path (passes.bound_round): round r's starting solution, the
