@@ -122,7 +122,12 @@ def test_the_abrupt_lift_of_a_heavy_cube_does_not_turn_it(urdf_path):
     with a pad held by a few points: the cube tilts at 1.8 rad/s in that step; with the MJCF Panda a 128-192 g
     cube then keeps turning at 2-7 rad/s while held (Genesis 0.4.5: 0.04 rad/s; 52afb4e: 0.01). The rounds
     release every law that pulls at once and bring one back once; choosing the releases by step 2b's exact line
-    search instead (a prototype) still turns the cube, so the final system's own solution lets go of the rows."""
+    search instead (a prototype) still turns the cube, so the final system's own solution lets go of the rows.
+    Traced further (2026-11-29, MJCF Panda, 192 g, float64): with no limit on returns the releases cycle with a
+    period of three rounds; changing only the worst law a round, the viscosities held while the set changes,
+    reaches a set exact for its viscosities, and the cube still tilts at 1.3 rad/s: the pads' viscosities
+    (secants at intermediate rounds' slips, 0.07-0.19 N s/m against the friction pass's 3-5; bounds from the
+    frictionless loads, a quarter apart between the pads) make the tilt, not the set search."""
     spins = []
     _grasp_and_lift(urdf_path, ramp_steps=1, rho=3000.0, lift_steps=60,
                     watch=lambda franka, cube: spins.append(float(np.linalg.norm(_np(cube.get_ang())))))
