@@ -13,8 +13,8 @@ velocity:
     approaching (v_n < 0): the normal part is removed, the tangential part slides with Coulomb
     friction mu (it loses mu |v_n| of speed, never reverses), blended in over a band of width
     `softness` outside the surface (smoothstep of the signed distance: 1 inside, 0 beyond the band)
-    deeper inside (phi < -EXPEL_DEPTH dx): v_n is raised to at least
-    min(EXPEL_RATE (|phi| - EXPEL_DEPTH dx), EXPEL_CELLS dx) / h, so material that got into the body
+    deeper inside (phi < -D dx, D = EXPEL_DEPTH_LIGHT, or EXPEL_DEPTH for a heavy link): v_n is raised to
+    at least min(EXPEL_RATE (|phi| - D dx), EXPEL_CELLS dx) / h, so material that got into the body
     leaves it along the normal instead of staying in
 
 The momentum the node loses, m (v - v_new), is the impulse the MPM material gives the body: divided by
@@ -74,6 +74,16 @@ EXPEL_CELLS_HEAVY = 0.01
 # Only material deeper than EXPEL_DEPTH cells is pushed: nearer the surface, pushing granular material
 # kept it flowing around a sphere resting in sand (the sphere crept at 2 cm/s instead of a few mm/s).
 EXPEL_DEPTH = 0.5
+# A light link's push starts deeper, EXPEL_DEPTH_LIGHT cells: a node holds mass from particles up to 1.5 cells
+# away along each axis (the quadratic B-spline), so a node less than 1.5 cells inside a face may hold only
+# material that is wholly outside it, and pushing that material made Genesis's grasp_soft_cube drop the cube:
+# the Panda's fingers (a 1 N squeeze) rested on the cube with no particle inside them, yet 3 fringe nodes
+# 0.5-1 cell inside a finger (grid nodes off the cube's centre line: MPMOptions(lower_bound=(.., -0.1, ..))
+# at 128 cells/m) were pushed into it every substep, the cube slid down the fingers during the lift and fell
+# out of them in the hold (particles' mean z 0.056 m; 0.088 m with this depth, as on Genesis, which pushes
+# nothing out). A heavy link keeps EXPEL_DEPTH: the jelly a 4 t box crushes stayed in it (76 particles) with
+# the push from 1.5 cells.
+EXPEL_DEPTH_LIGHT = 1.5
 
 
 @ti.data_oriented
@@ -308,12 +318,13 @@ class RigidMPMCoupler:
         vn = v_rel.dot(n)
         t = ti.min(ti.max(1.0 - phi / self.softness, 0.0), 1.0)
         alpha = has * t * t * (3.0 - 2.0 * t)
-        # a node deeper inside the body than EXPEL_DEPTH cells must also leave it: at least `push`
-        # outward (see EXPEL_RATE, and EXPEL_RATE_HEAVY for a heavy link); 0 elsewhere, where the rule is
-        # the no-approach one alone
-        over = ti.max(-phi - EXPEL_DEPTH * self.dx, 0.0)
-        push_light = ti.min(over * EXPEL_RATE, EXPEL_CELLS * self.dx) / h
-        push_heavy = ti.min(over * EXPEL_RATE_HEAVY, EXPEL_CELLS_HEAVY * self.dx) / h
+        # a node deeper inside the body than EXPEL_DEPTH_LIGHT cells (EXPEL_DEPTH for a heavy link) must also
+        # leave it: at least `push` outward (see EXPEL_RATE, and EXPEL_RATE_HEAVY for a heavy link); 0
+        # elsewhere, where the rule is the no-approach one alone
+        over_light = ti.max(-phi - EXPEL_DEPTH_LIGHT * self.dx, 0.0)
+        over_heavy = ti.max(-phi - EXPEL_DEPTH * self.dx, 0.0)
+        push_light = ti.min(over_light * EXPEL_RATE, EXPEL_CELLS * self.dx) / h
+        push_heavy = ti.min(over_heavy * EXPEL_RATE_HEAVY, EXPEL_CELLS_HEAVY * self.dx) / h
         push = ti.select(self.rigid.link_mass[i_b, l] > HEAVY_MASS, push_heavy, push_light)
         approach = ti.cast(vn < push, float)
         vt = v_rel - vn * n

@@ -54,6 +54,28 @@ def test_box_resting_on_an_elastic_block_feels_its_weight():
     assert abs(box.get_pos()[2].item() - (3 / dens + 0.1 + 0.025)) < 1.0 / dens
 
 
+def test_a_body_beside_an_elastic_block_does_not_push_it_away():
+    """No gravity, a fixed plate 11 mm from an elastic block's outermost particles (the block's face, 1 mm
+    from the plate): a row of grid nodes lies 0.97 cells inside the plate and holds mass only from particles
+    outside it (the quadratic B-spline reaches 1.5 cells). Nothing touches, so nothing may move. Before
+    2026-11-29 the coupling pushed such nodes out of a light body as if material had got in (its push
+    started 0.5 cells deep): the block drifted 2.6 cm away from the plate in 200 steps, and in Genesis's
+    grasp_soft_cube the Panda's fingers pushed the soft cube so and it slid out of them."""
+    dens = 32
+    scene = _scene(density=dens, upper=(0.4, 0.4, 0.3), gravity=(0.0, 0.0, 0.0))
+    block = scene.add_entity(gs.morphs.Box(pos=(0.2, 0.2, 3 / dens + 0.05), size=(0.1, 0.1, 0.1)),
+                             material=gs.materials.MPM.Elastic(E=5e4, nu=0.3))
+    plate = scene.add_entity(gs.morphs.Box(pos=(0.301, 0.2, 3 / dens + 0.05), size=(0.1, 0.2, 0.1), fixed=True),
+                             material=gs.materials.Rigid(rho=500))
+    scene.build()
+    x0 = block.get_particles_pos().numpy().copy()
+    assert abs(x0[..., 0].max() - 0.24) < 1e-9  # the outermost particles, 11 mm from the plate
+    for _ in range(100):
+        scene.step()
+        assert np.abs(plate.get_links_mpm_force().numpy()).max() < 1e-12
+    assert np.abs(block.get_particles_pos().numpy() - x0).max() < 1e-12
+
+
 # slow (suite time, ~30 s): the coupled boundary holding a body is checked by default by the box resting
 # on an elastic block
 @pytest.mark.slow
