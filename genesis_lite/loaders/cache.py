@@ -6,8 +6,9 @@ loaded `EntityModel` is plain numpy data, so it is pickled under ~/.cache/genesi
 $GS_CACHE_DIR/models) keyed by everything the loader reads:
 - the file's bytes and absolute path, the entity's name, the morph's fields, the material's density and
   ROS_PACKAGE_PATH;
-- the source of the loader modules and of the model dataclasses, and the versions of yourdfpy,
-  trimesh and numpy (a change in any of them makes new keys);
+- the source of the loader modules, of the model dataclasses and of the collision geoms module (a mesh's
+  hull is stored with its SDF planes), and the versions of yourdfpy, trimesh, scipy and numpy (a change in
+  any of them makes new keys);
 - every mesh file the loader opened or found (path, mtime, size) and every candidate path it found
   missing, checked again on each hit, so an edited, added or removed mesh file is re-read.
 Warnings the loader emitted are stored and emitted again on a hit. A failed load is never cached.
@@ -73,13 +74,14 @@ def _code_fingerprint() -> str:
         import numpy as np
 
         from solvers.rigid import model
+        from solvers.rigid.collision import geoms  # hull_planes: a mesh's SDF planes, stored with its hull
 
         h = hashlib.sha256(f"format {FORMAT} numpy {np.__version__}".encode())
         here = os.path.dirname(os.path.abspath(__file__))
-        for p in [os.path.join(here, n) for n in _SOURCES] + [os.path.abspath(model.__file__)]:
+        for p in [os.path.join(here, n) for n in _SOURCES] + [os.path.abspath(m.__file__) for m in (model, geoms)]:
             with open(p, "rb") as f:
                 h.update(f.read())
-        for dist in ("yourdfpy", "trimesh"):
+        for dist in ("yourdfpy", "trimesh", "scipy"):
             try:
                 h.update(f"{dist} {metadata.version(dist)}".encode())
             except metadata.PackageNotFoundError:

@@ -14,6 +14,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
+from solvers.rigid.collision.geoms import hull_planes
 from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, VisualDesc
 
 from .cache import note_file
@@ -151,8 +152,9 @@ def mesh_hull(vertices) -> Optional[dict]:
         return None
     try:
         hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
-        return {"vertices": np.asarray(hull.vertices, dtype=float), "centroid": np.asarray(hull.centroid, dtype=float),
-                "volume": float(hull.volume), "is_volume": bool(hull.is_volume)}
+        hv = np.asarray(hull.vertices, dtype=float)
+        return {"vertices": hv, "centroid": np.asarray(hull.centroid, dtype=float),
+                "volume": float(hull.volume), "is_volume": bool(hull.is_volume), "planes": hull_planes(hv)}
     except Exception:
         return None
 

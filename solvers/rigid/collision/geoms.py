@@ -26,7 +26,9 @@ BOXEDGE_TOL = 0.02
 # face's rectangle at most once (it is convex), so at most 8 crossings
 N_BOXFACE = 8
 
-# k-DOP directions: 3 axes, 6 edge diagonals, 4 corner diagonals, each with both signs
+# A mesh collides as the intersection of N_KDOP half-spaces around its convex hull (hull_planes): the
+# planes of the hull's own faces, chosen to fit it, or, when qhull cannot split the hull into them, the
+# k-DOP of these fixed directions: 3 axes, 6 edge diagonals, 4 corner diagonals, each with both signs
 _D = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1), (0, 1, 1), (0, 1, -1),
       (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1)]
 KDOP_DIRS = np.array([d for d in _D] + [tuple(-x for x in d) for d in _D], dtype=float)
@@ -55,7 +57,9 @@ class GeomTable:
     center: np.ndarray          # (G, 3) centre in the geom frame (mesh: hull centroid)
     rbound: np.ndarray          # (G,) bounding radius about `center` (plane: inf)
     beta: np.ndarray            # (G,) face-choice bias length of its SDF
-    kdop: np.ndarray            # (G, 26) k-DOP plane offsets (meshes)
+    kdop: np.ndarray            # (G, N_KDOP) plane offsets d (meshes: n . x <= d inside; hull_planes)
+    kdop_dirs: np.ndarray       # (G, N_KDOP, 3) the planes' unit normals n in the geom frame (meshes)
+    half_thick: np.ndarray      # (G,) half the thinnest extent (see contact/report.geom_half_thickness)
     points: List[np.ndarray]    # per geom: hull sample points in the geom frame (meshes)
     names: List[str]            # "entity 'x', link 'y', <type> geom #k" for messages
     entity_start: List[int] = field(default_factory=list)
@@ -106,7 +110,52 @@ def _mesh_hull_points(g, what: str, max_points: int):
                                 "it has no inside to push out of; use a closed mesh that encloses a volume, a "
                                 "primitive shape, or remove the <collision> element")
     P = _farthest_points(hv, max_points)
-    return P, hv, hc
+    if h is not None and "planes" in h:
+        kn, kd = np.asarray(h["planes"][0], dtype=float), np.asarray(h["planes"][1], dtype=float)
+    else:
+        kn, kd = hull_planes(hv)
+    return P, hv, hc, kn, kd
+
+
+def hull_planes(H: np.ndarray, k: int = N_KDOP):
+    """(normals (k, 3), offsets (k,)): k half-spaces n . x <= d whose intersection holds the convex hull of
+    the points H and fits it: the hull's bounding box (6 planes), then, one at a time, the plane of the
+    hull's face that the intersection's corner farthest outside the hull lies farthest beyond (a cutting
+    plane), until k planes or the intersection is the hull (to 1e-9 of its size); unused entries repeat
+    the first plane. With the fixed k-DOP directions (KDOP_DIRS) before 2026-11-29, a Panda finger's mesh
+    (Genesis's MJCF) reached ~5 mm past its hull at the pads, and the soft cube of Genesis's
+    grasp_soft_cube met the finger's volume where Genesis's met the pads. Falls back to the fixed k-DOP
+    where qhull cannot build the hull or the intersection."""
+    H = np.asarray(H, dtype=float).reshape(-1, 3)
+    lo, hi = H.min(0), H.max(0)
+    size = float((hi - lo).max())
+    eye = np.eye(3)
+    N = [*eye, *(-eye)]
+    D = [*hi, *(-lo)]
+    try:
+        from scipy.spatial import ConvexHull, HalfspaceIntersection
+
+        eq = ConvexHull(H).equations  # n . x + b <= 0 inside, n unit
+        fn, fd = eq[:, :3], -eq[:, 3]
+        # one plane per face (qhull splits a face into triangles): merge equal planes
+        _, first = np.unique(np.round(np.c_[fn, fd / max(size, 1e-12)] * 1e7), axis=0, return_index=True)
+        fn, fd = fn[np.sort(first)], fd[np.sort(first)]
+        inner = H.mean(0)
+        while len(N) < k:
+            corners = HalfspaceIntersection(np.c_[np.array(N), -np.array(D)], inner).intersections
+            beyond = corners @ fn.T - fd  # (corners, faces): how far each corner is beyond each face plane
+            worst = beyond.max(1)
+            i = int(np.argmax(worst))
+            if worst[i] <= 1e-9 * size:
+                break
+            j = int(np.argmax(beyond[i]))
+            N.append(fn[j])
+            D.append(fd[j])
+    except Exception:  # qhull: a degenerate hull or intersection; the fixed directions always bound it
+        N, D = list(KDOP_DIRS), list((H @ KDOP_DIRS.T).max(0))
+    N, D = np.array(N[:k], dtype=float), np.array(D[:k], dtype=float)
+    pad = k - len(N)
+    return np.r_[N, np.repeat(N[:1], pad, 0)], np.r_[D, np.repeat(D[:1], pad)]
 
 
 def link_is_dynamic(flat) -> np.ndarray:  # flat: the scene's flatten.FlatModel
@@ -120,7 +169,7 @@ def link_is_dynamic(flat) -> np.ndarray:  # flat: the scene's flatten.FlatModel
 
 
 def build_geoms(models, max_mesh_points: int) -> GeomTable:
-    types, link, ent, pos, quat, size, fric, center, rb, beta, kdop, pts, names = ([] for _ in range(13))
+    types, link, ent, pos, quat, size, fric, center, rb, beta, kdop, kdirs, thick, pts, names = ([] for _ in range(15))
     starts, counts = [], []
     nl = 0
     for i_e, m in enumerate(models):
@@ -142,7 +191,7 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                 if not (np.isfinite(mu) and mu >= 0):
                     raise ContactBuildError(f"{what}: friction {mu} must be a finite number >= 0")
                 c = np.zeros(3)
-                kd = np.zeros(N_KDOP)
+                kd, kn = np.zeros(N_KDOP), np.zeros((N_KDOP, 3))
                 P = np.zeros((0, 3))
                 if g.type == "plane":
                     r, b = np.inf, 1.0
@@ -155,16 +204,17 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                 elif g.type == "cylinder":
                     r, b = float(np.hypot(sz[0], sz[1])), 0.5 * float(min(sz[0], sz[1]))
                 else:
-                    P, H, c = _mesh_hull_points(g, what, max_mesh_points)
-                    # the k-DOP is built from the full hull; contacts use the reduced point set
-                    kd = (H @ KDOP_DIRS.T).max(0)
+                    P, H, c, kn, kd = _mesh_hull_points(g, what, max_mesh_points)
+                    # the planes fit the full hull; contacts use the reduced point set
                     r = float(np.sqrt(((H - c) ** 2).sum(1).max()))
-                    ext = kd[:3] + kd[N_KDOP // 2: N_KDOP // 2 + 3]
-                    b = 0.25 * float(ext.min())
+                    b = 0.25 * float(np.ptp(H, 0).min())
+                    # half the thinnest width across the planes' normals
+                    t = 0.5 * float((kd + (-(H @ kn.T)).max(0)).min())
                 types.append(GEOM_CODE[g.type]); link.append(nl + i_l); ent.append(i_e)
                 pos.append(np.asarray(g.pos, dtype=float)); quat.append(np.asarray(g.quat, dtype=float))
                 size.append(sz); fric.append(mu); center.append(c); rb.append(r); beta.append(b)
-                kdop.append(kd); pts.append(P); names.append(what)
+                kdop.append(kd); kdirs.append(kn); pts.append(P); names.append(what)
+                thick.append(t if g.type == "mesh" else np.nan)
         counts.append(len(types) - starts[-1])
         nl += m.n_links
     G = len(types)
@@ -172,7 +222,8 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
     return GeomTable(np.array(types, dtype=np.int32).reshape(G), np.array(link, dtype=np.int32).reshape(G),
                      np.array(ent, dtype=np.int32).reshape(G), arr(pos, (G, 3)), arr(quat, (G, 4)),
                      arr(size, (G, 3)), arr(fric, (G,)), arr(center, (G, 3)), arr(rb, (G,)), arr(beta, (G,)),
-                     arr(kdop, (G, N_KDOP)), pts, names, starts, counts)
+                     arr(kdop, (G, N_KDOP)), arr(kdirs, (G, N_KDOP, 3)), arr(thick, (G,)), pts, names, starts,
+                     counts)
 
 
 def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool, no_contact=()):

@@ -1,10 +1,11 @@
 """Collision, Taichi side: the signed distance functions of the geom types (exact for plane, sphere, capsule,
-box and cylinder; a mesh's convex hull through its k-DOP) and the closest points of two segments.
+box and cylinder; a mesh's convex hull through planes of its faces, geoms.hull_planes) and the closest
+points of two segments.
 """
 import taichi as ti
 
 from ... import taichi_compat
-from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_KDOP
+from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, N_KDOP
 
 # ------------------------------------------------------------------------------------------------
 # Narrow phase (Taichi), in the single-assignment form of the other differentiated stages (every local
@@ -72,7 +73,9 @@ def func_sdf_cylinder(q, r, hl, chat, beta):
 
 @ti.func
 def func_kdop_plane(c: ti.template(), g, q, chat, beta, k: ti.template()):
-    dk = ti.Vector([KDOP_DIRS[k, 0], KDOP_DIRS[k, 1], KDOP_DIRS[k, 2]])
+    """Plane k of mesh geom g (geoms.hull_planes): its value n . q - d at q, that value with the face-choice
+    bias, and its normal n."""
+    dk = c.geom_kdop_dir[g, k]
     v = dk.dot(q) - c.geom_kdop[g, k]
     return v, v + beta * dk.dot(chat), dk
 
@@ -94,8 +97,9 @@ def func_kdop_best(c: ti.template(), g, q, chat, beta, k: ti.template()):
 
 @ti.func
 def func_sdf_kdop(c: ti.template(), g, q, chat, beta):
-    """Signed distance to the geom's k-DOP: inside, the plane of least penetration with the face-choice
-    bias; outside (a plane distance > 0), the largest plane distance (a lower bound of the distance)."""
+    """Signed distance to the mesh's planes (geoms.hull_planes): inside, the plane of least penetration with
+    the face-choice bias; outside (a plane distance > 0), the largest plane distance (a lower bound of the
+    distance)."""
     bv, bs, bn, ov, on = func_kdop_best(c, g, q, chat, beta, 0)
     return ti.select(ov > 0, ov, bv), ti.select(ov > 0, on, bn)
 

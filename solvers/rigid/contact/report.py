@@ -3,7 +3,7 @@ API's readers) and the deep-penetration watch (ContactPenetrationWarning, deep_c
 import numpy as np
 import taichi as ti
 
-from ..collision import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_SPHERE, N_KDOP
+from ..collision import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_SPHERE
 from .law import HEAVY_MASS
 from .passes import func_link_motion, func_normal_after, func_rel_motion
 
@@ -100,7 +100,8 @@ def _user_stacklevel() -> int:
 
 def geom_half_thickness(geoms) -> np.ndarray:
     """(G,) half the thinnest extent of each geom (box: smallest half size; sphere, capsule: radius;
-    cylinder: radius or half length; mesh: half the thinnest k-DOP slab; plane: inf)."""
+    cylinder: radius or half length; mesh: half its hull's thinnest width across its SDF's plane normals,
+    collision.hull_planes; plane: inf)."""
     out = np.full(geoms.n, np.inf)
     for g in range(geoms.n):
         t, sz = int(geoms.type[g]), np.asarray(geoms.size[g], dtype=float)
@@ -111,8 +112,7 @@ def geom_half_thickness(geoms) -> np.ndarray:
         elif t == GEOM_CYLINDER:
             out[g] = min(sz[0], sz[1])
         elif t == GEOM_MESH:
-            k = np.asarray(geoms.kdop[g], dtype=float)
-            out[g] = 0.5 * (k[:N_KDOP // 2] + k[N_KDOP // 2:]).min()
+            out[g] = geoms.half_thick[g]
     return out
 
 

@@ -95,6 +95,7 @@ class ContactSolver:
         # deep-penetration watch
         self.geom_thick = F(G, False)
         self.geom_kdop = F((G, N_KDOP), False)
+        self.geom_kdop_dir = V3((G, N_KDOP), False)  # the planes' normals (collision.hull_planes)
         # the friction parameter [env, geom]; the scene sees its block through geom_friction
         self.geom_mu = F((B, G))
         self.link_dyn = I(L)
@@ -262,7 +263,7 @@ class ContactSolver:
         assert np.all(np.diff(plan.np_slot_pair) >= 0), "slots must be stored by pair"
         c = lambda a, t: np.ascontiguousarray(np.asarray(a, dtype=t))  # noqa: E731
         self.kernel_load(c(plan.cfg_i, np.int32),
-                         c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf),
+                         c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf), c(geoms.kdop_dirs, npf),
                          c(np.broadcast_to(geoms.friction, (n_envs, G)), npf), dyn,
                          c([[p[0], p[1], s0] for p, s0 in zip(plan.pairs, pair_s0)], np.int32),
                          c(pair_s0[-1:], np.int32), slot_i, c(slot_f, npf),
@@ -271,7 +272,8 @@ class ContactSolver:
 
     @ti.kernel
     def kernel_load(self, cfg_i: ti.types.ndarray(), geom_i: ti.types.ndarray(),
-                    geom_f: ti.types.ndarray(), kdop: ti.types.ndarray(), mu: ti.types.ndarray(),
+                    geom_f: ti.types.ndarray(), kdop: ti.types.ndarray(), kdop_dir: ti.types.ndarray(),
+                    mu: ti.types.ndarray(),
                     dyn: ti.types.ndarray(), pair: ti.types.ndarray(), pair_end: ti.types.ndarray(), slot_i: ti.types.ndarray(),
                     slot_f: ti.types.ndarray(), cross_i: ti.types.ndarray(), cross_f: ti.types.ndarray(),
                     perm: ti.types.ndarray()):
@@ -294,6 +296,8 @@ class ContactSolver:
             self.geom_thick[g] = geom_f[g, 20]
             for k in range(kdop.shape[1]):
                 self.geom_kdop[g, k] = kdop[g, k]
+                for d in ti.static(range(3)):
+                    self.geom_kdop_dir[g, k][d] = kdop_dir[g, k, d]
         for i_b, g in ti.ndrange(mu.shape[0], mu.shape[1]):
             self.geom_mu[i_b, g] = mu[i_b, g]
         for i in range(dyn.shape[0]):
