@@ -323,11 +323,10 @@ class RigidMPMCoupler:
         # a node deeper inside the body than EXPEL_DEPTH_LIGHT cells (EXPEL_DEPTH for a heavy link) must also
         # leave it: at least `push` outward (see EXPEL_RATE, and EXPEL_RATE_HEAVY for a heavy link); 0
         # elsewhere, where the rule is the no-approach one alone
-        over_light = ti.max(-phi - EXPEL_DEPTH_LIGHT * self.dx, 0.0)
-        over_heavy = ti.max(-phi - EXPEL_DEPTH * self.dx, 0.0)
-        push_light = ti.min(over_light * EXPEL_RATE, EXPEL_CELLS * self.dx) / h
-        push_heavy = ti.min(over_heavy * EXPEL_RATE_HEAVY, EXPEL_CELLS_HEAVY * self.dx) / h
-        push = ti.select(self.rigid.link_mass[i_b, l] > HEAVY_MASS, push_heavy, push_light)
+        heavy = self.rigid.link_mass[i_b, l] > HEAVY_MASS
+        over = ti.max(-phi - ti.select(heavy, EXPEL_DEPTH, EXPEL_DEPTH_LIGHT) * self.dx, 0.0)
+        push = ti.select(heavy, ti.min(over * EXPEL_RATE_HEAVY, EXPEL_CELLS_HEAVY * self.dx),
+                         ti.min(over * EXPEL_RATE, EXPEL_CELLS * self.dx)) / h
         approach = ti.cast(vn < push, float)
         vt = v_rel - vn * n
         vt_norm = ti.sqrt(vt.dot(vt) + TINY)

@@ -191,7 +191,7 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                 if not (np.isfinite(mu) and mu >= 0):
                     raise ContactBuildError(f"{what}: friction {mu} must be a finite number >= 0")
                 c = np.zeros(3)
-                kd, kn = np.zeros(N_KDOP), np.zeros((N_KDOP, 3))
+                kd, kn, t = np.zeros(N_KDOP), np.zeros((N_KDOP, 3)), np.nan  # planes, half thickness: meshes
                 P = np.zeros((0, 3))
                 if g.type == "plane":
                     r, b = np.inf, 1.0
@@ -214,7 +214,7 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                 pos.append(np.asarray(g.pos, dtype=float)); quat.append(np.asarray(g.quat, dtype=float))
                 size.append(sz); fric.append(mu); center.append(c); rb.append(r); beta.append(b)
                 kdop.append(kd); kdirs.append(kn); pts.append(P); names.append(what)
-                thick.append(t if g.type == "mesh" else np.nan)
+                thick.append(t)
         counts.append(len(types) - starts[-1])
         nl += m.n_links
     G = len(types)

@@ -263,7 +263,8 @@ class ContactSolver:
         assert np.all(np.diff(plan.np_slot_pair) >= 0), "slots must be stored by pair"
         c = lambda a, t: np.ascontiguousarray(np.asarray(a, dtype=t))  # noqa: E731
         self.kernel_load(c(plan.cfg_i, np.int32),
-                         c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf), c(geoms.kdop_dirs, npf),
+                         c(np.stack([geoms.type, geoms.link], -1), np.int32), c(geom_f, npf), c(geoms.kdop, npf),
+                         c(geoms.kdop_dirs, npf),
                          c(np.broadcast_to(geoms.friction, (n_envs, G)), npf), dyn,
                          c([[p[0], p[1], s0] for p, s0 in zip(plan.pairs, pair_s0)], np.int32),
                          c(pair_s0[-1:], np.int32), slot_i, c(slot_f, npf),
