@@ -29,7 +29,10 @@ reads the gradients of its inputs out of the fields.
 
 With gradients, the MPM part of a substep (its two stages and the coupling between them) is one call
 on the Tape (MPMSim.record_substep): the grid is scratch that the next substep overwrites, so its
-adjoint replays these same stages (`_mpm_substep` with replay=True) under a nested Tape.
+adjoint replays these same stages (`_mpm_substep` with replay=True) under a nested Tape. A step node of
+a scene whose MPM nothing couples also keeps the step's substeps as its forward left them
+(`substep_states`, up to a budget per rollout): its backward loads them into the solver's slots and
+records the substeps without computing them again.
 
 The bridges' protocol is in bridges/__init__.py.
 """
@@ -138,7 +141,7 @@ class Simulator:
         if self.coupler is not None:
             self.coupler.couple(i, grad, replay)
         else:
-            self.mpm.grid_update(i)
+            self.mpm.grid_update(i, replay)
         if self.coupler is not None and self.coupler.attached:
             self.coupler.g2p_attached(i, grad)
         else:
@@ -205,17 +208,33 @@ class Simulator:
         return tuple(tuple(b.state_from_outputs(o))
                      for b, o in zip(self.bridges, self._split(outs, [b.n_outputs for b in self.bridges])))
 
-    def backward_step(self, per, context, grads, needs):
-        """Gradients of one step's inputs given the gradients of its outputs."""
+    def substep_states(self):
+        """What a step node keeps besides its inputs: the MPM substeps of the step just run (MPMSim.substep_states)
+        when nothing couples them to rigid bodies and no checkpoints are asked for, else None. A coupled
+        step's backward recomputes its substeps (the coupler's wrench feeds the rigid substeps recorded
+        with them); a checkpointed rollout keeps nothing per step by request."""
+        if self.mpm is None or self.coupler is not None or self.buffer.every is not None:
+            return None
+        return self.mpm.substep_states()
+
+    def backward_step(self, per, context, grads, needs, substeps=None):
+        """Gradients of one step's inputs given the gradients of its outputs (`substeps`: the step's kept
+        MPM substeps, substep_states, recorded on the Tape without being computed again)."""
         step, counts, contexts = context
         self._load(per, contexts)
         for b in self.bridges:
             b.clear_grads()
         out_grads = self._split(grads, [b.n_outputs for b in self.bridges])
-        with ti.ad.Tape(loss=self.loss, clear_gradients=False):
-            self._run(grad=True)
-            for b, g in zip(self.bridges, out_grads):
-                b.vjp(g, self.loss)
+        if substeps is not None:
+            self.mpm.load_substeps(substeps)
+        try:
+            with ti.ad.Tape(loss=self.loss, clear_gradients=False):
+                self._run(grad=True)
+                for b, g in zip(self.bridges, out_grads):
+                    b.vjp(g, self.loss)
+        finally:
+            if substeps is not None:
+                self.mpm.substeps_done()
         result, state_grads = [], []
         with incoming_grads(grads, self.nan_watch):
             for b, n in zip(self.bridges, self._split(needs, counts)):

@@ -805,7 +805,7 @@ def _table() -> List[Case]:
     # (each MPM scene compiles its kernels anew, ~20-40 s: one scene in the default run carries every input)
     add("mpm_four", ("elastic.particles_pos", "elastic.E", "elastic.nu", "elastoplastic.position",
                      "elastoplastic.yield_stress", "sand.velocity", "sand.friction_angle", "liquid.particles_vel",
-                     "liquid.viscosity", "liquid.particles_force"),
+                     "liquid.viscosity", "liquid.particles_force", "sand.gravity"),
         ("elastic.particles_pos", "elastoplastic.particles_vel", "elastoplastic.pos", "sand.vel", "liquid.state"))
     MAT_KEY = {"ElastoPlastic": "cube.yield_stress", "Sand": "cube.friction_angle", "Liquid": "cube.viscosity"}
     for m in MPM_MATERIALS:
@@ -813,6 +813,7 @@ def _table() -> List[Case]:
         slow(f"mpm_{m.lower()}", ins, ("cube.particles_pos", "cube.pos"))
     slow("mpm_elastic", ("cube.particles_vel", "cube.E"), ("cube.particles_pos",), V(n_envs=3))
     slow("mpm_sand", ("cube.particles_vel", "cube.friction_angle"), ("cube.particles_pos",), V(checkpoint_every=2))
+    slow("mpm_sand", ("cube.gravity", "cube.particles_force"), ("cube.particles_pos", "cube.vel"))  # floor friction
     slow("mpm_elastoplastic", ("cube.particles_vel", "cube.yield_stress"), ("cube.particles_pos",), V(process="first"))
     slow("mpm_liquid", ("cube.particles_vel", "cube.viscosity"), ("cube.particles_pos",), V(process="after"))
     slow("mpm_elastic", ("cube.particles_vel", "cube.E", "cube.nu"), ("cube.particles_pos",), V(precision="32"))

@@ -451,9 +451,52 @@ def test_the_one_launch_substep_gives_the_staged_substeps_numbers():
         assert torch.allclose(vf, vs, rtol=0, atol=1e-10), (vf - vs).abs().max()
 
 
+def test_kept_substeps_give_the_recomputed_substeps_gradients_and_are_not_recomputed(monkeypatch):
+    """A step node keeps its MPM substeps as its forward left them (bridges/mpm.py substep_states), up to a
+    budget per rollout, and its backward records them on the Tape without computing them again; the steps
+    past the budget recompute theirs. All kept, none kept and half kept give the same gradients of every
+    input, and the backward computes exactly the substeps of the steps that kept none."""
+    import genesis_lite.bridges.mpm as bridge
+
+    scene = _scene(dt=4e-3, substeps=3, requires_grad=True, density=32)
+    cube = scene.add_entity(gs.morphs.Box(pos=(0.25, 0.25, 0.15), size=(0.08, 0.08, 0.08)),
+                            material=gs.materials.MPM.ElastoPlastic(E=2e4, nu=0.3, yield_stress=300.0))
+    scene.build()
+    sim = scene._simulator
+    computed = []
+    stages = sim._mpm_substep
+    monkeypatch.setattr(sim, "_mpm_substep", lambda i, grad, replay=False: (computed.append(replay), stages(i, grad, replay)))
+    n, per_step = cube.n_particles, 3 * cube.n_particles * 33 * 8  # 3 substeps of x, v, C, F and stress (f64)
+
+    def gradients(budget):
+        monkeypatch.setattr(bridge, "KEEP_SUBSTEPS_BYTES", budget)
+        scene.reset()
+        v = torch.tensor([0.3, -0.2, -1.2], **F64, requires_grad=True)
+        E = torch.tensor(2e4, **F64, requires_grad=True)
+        f = torch.linspace(-0.02, 0.02, n * 3, **F64).reshape(n, 3).requires_grad_(True)
+        cube.set_velocity(v)
+        cube.set_material(E=E)
+        for _ in range(4):
+            cube.set_particles_force(f)
+            scene.step()
+        loss = (cube.get_particles_pos() ** 2).sum() + 0.1 * (cube.get_particles_vel() ** 2).sum()
+        computed.clear()
+        loss.backward()
+        return [v.grad, E.grad, f.grad], computed.count(False)
+
+    g_all, fwd_all = gradients(4 * per_step)
+    g_none, fwd_none = gradients(0)
+    g_half, fwd_half = gradients(2 * per_step)
+    assert (fwd_all, fwd_none, fwd_half) == (0, 4 * 3, 2 * 3)
+    for a, b, c in zip(g_all, g_none, g_half):
+        assert torch.allclose(a, b, rtol=1e-12, atol=0) and torch.allclose(a, c, rtol=1e-12, atol=0), (a, b, c)
+    assert g_all[0].abs().min() > 0 and g_all[1].abs() > 0
+
+
 @pytest.mark.slow
 def test_checkpointing_gives_identical_gradients_and_keeps_one_state_per_step():
-    """Saved for backward: one particle state per step (not per substep), or per checkpoint."""
+    """Saved for backward: per step its input state and its substeps (x, v, C, F and the stress of each, which its
+    backward then need not recompute); with checkpoints one state per checkpoint, and the window's."""
     def run(checkpoint_every):
         scene = _scene(requires_grad=True, density=32, checkpoint_every=checkpoint_every, substeps=5)
         cube = scene.add_entity(gs.morphs.Box(pos=(0.25, 0.25, 0.14), size=(0.06, 0.06, 0.06)),
@@ -478,7 +521,8 @@ def test_checkpointing_gives_identical_gradients_and_keeps_one_state_per_step():
     g_full, states_full, _ = run(None)
     g_ckpt, states_ckpt, buf = run(4)
     assert torch.allclose(g_full, g_ckpt, rtol=1e-12, atol=0), (g_full, g_ckpt)
-    assert 12 <= states_full < 13.5, states_full  # 12 steps, not 12 x 5 substeps
+    # 12 steps' inputs (24 numbers a particle) and their 5 substeps each (33 numbers: x, v, C, F, stress)
+    assert 12 * (24 + 5 * 33) / 24 <= states_full < 12 * (24 + 5 * 33) / 24 + 1.5, states_full
     assert states_ckpt < 2.5, states_ckpt  # the buffer holds checkpoints (3) + one window (4), not the steps
     assert len(buf.checkpoints) == 3
 

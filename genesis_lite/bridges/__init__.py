@@ -16,6 +16,8 @@ out of the solver's Taichi fields, and is the solver's part of the scene's step 
     untracked_step_done()          a step without gradients ran: the state now lives in the fields
     read_outputs(), state_from_outputs(outs), set_state(*state), state()
     clear_grads(), vjp(grads, loss), input_grads(needs, step)    the step node's backward
+    (MPMSim alone: substep_states(), load_substeps(kept), substeps_done(): the substeps a step node keeps,
+    Simulator.substep_states)
     new_rollout(state)             scene.reset()
 
 A new solver is a new module here (and its stage in Simulator._substep).

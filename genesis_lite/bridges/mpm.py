@@ -23,6 +23,9 @@ from ..materials import MPM as _MPM_MATERIALS, sand_alpha
 Liquid = _MPM_MATERIALS.Liquid
 
 MATERIAL_KEYS = ("E", "nu", "yield_stress", "friction_angle", "viscosity")
+# A rollout's step nodes keep their substeps (substep_states) while the kept copies of the rollout take
+# no more than this; the steps after recompute their substeps in their backward, as with checkpoints
+KEEP_SUBSTEPS_BYTES = 2 << 30
 
 
 class MPMSim:
@@ -42,6 +45,7 @@ class MPMSim:
         self.device = gs.device
         self.requires_grad = sim_options.requires_grad
         self.sim = None
+        self._kept_bytes = 0  # this rollout's kept substeps (substep_states)
         x0 = np.concatenate([e._x0 for e in entities])
         vol = np.concatenate([np.full(e.n_particles, e._vol) for e in entities])
         mass = np.concatenate([np.full(e.n_particles, e._vol * e.material.rho) for e in entities])
@@ -275,8 +279,8 @@ class MPMSim:
     def substep_pre_coupling(self, i, grad, replay=False):
         self.solver.substep_pre_coupling(i, grad, replay)
 
-    def grid_update(self, i):
-        self.solver.grid_update(i)
+    def grid_update(self, i, replay=False):
+        self.solver.grid_update(i, replay)
 
     def substep_post_coupling(self, i, grad, replay=False):
         self.solver.substep_post_coupling(i, grad, replay)
@@ -293,6 +297,29 @@ class MPMSim:
     def record_substep(self, i, stages):
         """Substep i as one call on the scene's Tape; stages(i, grad, replay) runs its stages."""
         self.solver.record_substep(i, stages)
+
+    def substep_states(self):
+        """The step's substeps as its forward left them in the solver's slots (x, v, C, F after each substep,
+        the stress of each), for its node to keep, so that its backward records them on its Tape without
+        computing them again (load_substeps); None once the rollout's copies would pass KEEP_SUBSTEPS_BYTES."""
+        B, P, S = self.B, self.n_particles, self.solver.n_slots - 1
+        nbytes = S * B * P * 33 * torch.finfo(self.dtype).bits // 8
+        if self._kept_bytes + nbytes > KEEP_SUBSTEPS_BYTES:
+            return None
+        e = lambda *s: torch.empty(S, B, P, *s, dtype=self.dtype, device=self.device)  # noqa: E731
+        kept = (e(3), e(3), e(3, 3), e(3, 3), e(3, 3))
+        self.solver.kernel_get_substeps(*kept)
+        self._kept_bytes += nbytes
+        return kept
+
+    def load_substeps(self, kept):
+        """A kept step's substeps back into the slots (after `load` has put its inputs in slot 0); the
+        solver's record_substep then records without recomputing until substeps_done()."""
+        self.solver.kernel_set_substeps(*kept)
+        self.solver.substeps_loaded = True
+
+    def substeps_done(self):
+        self.solver.substeps_loaded = False
 
     def untracked_step_done(self):
         self._state = None
@@ -358,6 +385,7 @@ class MPMSim:
 
     # ---------------------------------------------------------------- rollouts
     def new_rollout(self, state):
+        self._kept_bytes = 0
         self.reset_controls()
         self.rebuild_params()
         self.set_state(*state)

@@ -35,15 +35,21 @@ class StepFunction(torch.autograd.Function):
         ctx.owner = weakref.ref(sim)
         ctx.token = sim.rollout_token
         ctx.extra = sim.step_context()
-        ctx.save_for_backward(*sim.to_save(inputs))
-        return sim.forward_step()
+        saved = sim.to_save(inputs)
+        outs = sim.forward_step()
+        kept = sim.substep_states() or ()  # what the step's backward need not recompute
+        ctx.n_kept = len(kept)
+        ctx.save_for_backward(*saved, *kept)
+        return outs
 
     @staticmethod
     def backward(ctx, *grads):
         sim = _owner(ctx)
         sim.check_token(ctx.token, "step")
-        saved = sim.restore(ctx.saved_tensors, ctx.extra)
-        in_grads = sim.backward_step(saved, ctx.extra, grads, ctx.needs_input_grad[1:])
+        tensors = ctx.saved_tensors
+        n = len(tensors) - ctx.n_kept
+        saved = sim.restore(tensors[:n], ctx.extra)
+        in_grads = sim.backward_step(saved, ctx.extra, grads, ctx.needs_input_grad[1:], tensors[n:] or None)
         return (None,) + tuple(in_grads)
 
 

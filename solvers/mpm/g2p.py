@@ -84,4 +84,4 @@ def func_g2p_adjoint(s: ti.template(), i_b, i_p, src, dst, dt, atomic: ti.templa
             s.grid_v.grad[i_b, I] = s.grid_v.grad[i_b, I] + wt * g_node
         sw = g_node.dot(s.grid_v[i_b, I])
         g_fx += sw * func_weight_grad(w, dw, i, j, k)
-    s.x.grad[src, i_b, i_p] += gxn + s.inv_dx * g_fx
+    s.x.grad[src, i_b, i_p] = s.x.grad[src, i_b, i_p] + gxn + s.inv_dx * g_fx

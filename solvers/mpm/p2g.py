@@ -101,8 +101,8 @@ def func_p2g_adjoint(s: ti.template(), i_b, i_p, src, dt):
     fxd = fx * s.dx
     gA = ti.Matrix.cols([s.dx * g0 - fxd[0] * g_q, s.dx * g1 - fxd[1] * g_q, s.dx * g2 - fxd[2] * g_q])
     g_fx -= s.dx * (affine.transpose() @ g_q)
-    s.v.grad[src, i_b, i_p] += m * g_q
-    s.f_ext.grad[i_b, i_p] += dt * g_q
-    s.C.grad[src, i_b, i_p] += m * gA
-    s.tau.grad[src, i_b, i_p] += ks * gA
-    s.x.grad[src, i_b, i_p] += s.inv_dx * g_fx
+    s.v.grad[src, i_b, i_p] = s.v.grad[src, i_b, i_p] + m * g_q
+    s.f_ext.grad[i_b, i_p] = s.f_ext.grad[i_b, i_p] + dt * g_q
+    s.C.grad[src, i_b, i_p] = s.C.grad[src, i_b, i_p] + m * gA
+    s.tau.grad[src, i_b, i_p] = s.tau.grad[src, i_b, i_p] + ks * gA
+    s.x.grad[src, i_b, i_p] = s.x.grad[src, i_b, i_p] + s.inv_dx * g_fx

@@ -19,7 +19,12 @@ adjoints in reverse, followed by the adjoint of the constitutive update (the SVD
 hand-written, constitutive.py; the others Taichi's). The constitutive update itself is not replayed:
 its outputs (F of the next slot, tau of this one) are kept. The two transfers have written-out
 adjoints (p2g.func_p2g_adjoint, g2p.func_g2p_adjoint; Taichi's own are the same sums, its g2p one
-with an atomic add per node and component); the grid update and a coupler's stages keep Taichi's.
+with an atomic add per node and component), and so has the grid update (grid.func_grid_velocity_adjoint);
+a coupler's stages keep Taichi's. The written-out adjoints add into a particle's or a node's own
+adjoints with plain adds (one thread owns each; Taichi's `+=` on a field is an atomic add, a
+compare-and-swap loop on the CPU). When the step's backward has loaded the substeps its forward left
+(kernel_set_substeps, genesis_lite/bridges/mpm.py substep_states), record_substep records the substep
+without computing it (`substeps_loaded`).
 Particle to grid adds the same way with and without gradients (func_p2g_all), so a rollout's numbers
 do not depend on requires_grad.
 
@@ -46,7 +51,7 @@ from .constitutive import (AD_MATERIALS, MAT_ELASTIC, MAT_LIQUID, MAT_NEOHOOKEAN
                            func_corotated_polar_adjoint,
                            func_principal, func_svd_adjoint)
 from .g2p import func_g2p, func_g2p_adjoint
-from .grid import func_grid_velocity, func_walls
+from .grid import func_grid_velocity, func_grid_velocity_adjoint, func_walls
 from .p2g import func_p2g, func_p2g_adjoint
 from .svd import POLAR_TOL, func_polar, func_svd3
 
@@ -115,6 +120,9 @@ class MPMSolver:
         self.has_ad = any(m in AD_MATERIALS for m in self.mats)
         self.n_slots = n_slots
         self._region = None  # see `region`
+        # the slots of the step being recorded on a Tape already hold its substeps, as its forward left them
+        # (kernel_set_substeps): record_substep records without computing them again
+        self.substeps_loaded = False
         # particle to grid of the no-gradient substep without atomics, one thread per env's grid
         # (kernel_substep_nograd), where that beats atomic adds from every thread: on the CPU with fewer
         # than 5 threads per env (one thread adds without atomics in a fifth of the time it takes with them,
@@ -139,6 +147,7 @@ class MPMSolver:
         self.substeps = substeps
         self.h = dt / substeps
         self.cfg_i.from_numpy(np.array([len(x0)], np.int32))
+        self.substeps_loaded = False
         if hasattr(self, "nan_env"):
             self.nan_env.fill(0)  # no record of an earlier scene's divergence
         self._fill(x0, vol, mass, mat, gravity)
@@ -197,7 +206,8 @@ class MPMSolver:
 
         @ti.ad.grad_replaced
         def record_substep(i, stages):
-            stages(i, True, False)
+            if not self.substeps_loaded:
+                stages(i, True, False)
 
         @ti.ad.grad_for(record_substep)
         def record_substep_grad(i, stages):
@@ -234,7 +244,16 @@ class MPMSolver:
         def g2p_grad(src, dst):
             self.kernel_g2p_grad(src, dst, self.h)
 
+        @ti.ad.grad_replaced
+        def grid_update(i):
+            self.kernel_grid_update(self.h, i, *self.region)
+
+        @ti.ad.grad_for(grid_update)
+        def grid_update_grad(i):
+            self.kernel_grid_update_grad(self.h, i, *self.region)
+
         self.clear_grid = clear_grid
+        self.grid_update_replay = grid_update
         self.p2g_replay = p2g
         self.g2p_replay = g2p
         # record_substep(i, stages): substep i as one call on the scene's Tape, where stages(i, grad, replay)
@@ -288,9 +307,13 @@ class MPMSolver:
                 self.kernel_constitutive_ad(src, dst, self.h)
             self.kernel_p2g_fwd(src, self.h)
 
-    def grid_update(self, i):
-        """Grid velocities of substep i with gravity and the domain walls (a scene without a coupler)."""
-        self.kernel_grid_update(self.h, i, *self.region)
+    def grid_update(self, i, replay=False):
+        """Grid velocities of substep i with gravity and the domain walls (a scene without a coupler);
+        replay: see substep_pre_coupling."""
+        if replay:
+            self.grid_update_replay(i)
+        else:
+            self.kernel_grid_update(self.h, i, *self.region)
 
     def substep_post_coupling(self, i, grad, replay=False):
         """Substep i from the grid's velocities on: grid-to-particle (replay: see substep_pre_coupling)."""
@@ -432,10 +455,10 @@ class MPMSolver:
                     gFt, gmu, glam = func_corotated_polar_adjoint(Ft, R, self.mu[i_b, i_p], self.lam[i_b, i_p],
                                                                   self.tau.grad[src, i_b, i_p])
                     gFt += self.F.grad[dst, i_b, i_p]  # F_new = F_trial
-                    self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
-                    self.F.grad[src, i_b, i_p] += A.transpose() @ gFt
-                    self.mu.grad[i_b, i_p] += gmu
-                    self.lam.grad[i_b, i_p] += glam
+                    self.C.grad[src, i_b, i_p] = self.C.grad[src, i_b, i_p] + h * gFt @ self.F[src, i_b, i_p].transpose()
+                    self.F.grad[src, i_b, i_p] = self.F.grad[src, i_b, i_p] + A.transpose() @ gFt
+                    self.mu.grad[i_b, i_p] = self.mu.grad[i_b, i_p] + gmu
+                    self.lam.grad[i_b, i_p] = self.lam.grad[i_b, i_p] + glam
             if mat != MAT_NEOHOOKEAN and mat != MAT_LIQUID and not polar:
                 A, Ft = self.func_trial(i_b, i_p, src, h)
                 U, s, V = func_svd3(Ft)
@@ -443,13 +466,13 @@ class MPMSolver:
                                                        self.yield_stress[i_b, i_p], self.alpha[i_b, i_p], True, self.mats)
                 gFt, dG, dT = func_svd_adjoint(U, s, V, hs, Jh, t, Jt, self.F.grad[dst, i_b, i_p],
                                                self.tau.grad[src, i_b, i_p])
-                self.C.grad[src, i_b, i_p] += h * gFt @ self.F[src, i_b, i_p].transpose()
-                self.F.grad[src, i_b, i_p] += A.transpose() @ gFt
+                self.C.grad[src, i_b, i_p] = self.C.grad[src, i_b, i_p] + h * gFt @ self.F[src, i_b, i_p].transpose()
+                self.F.grad[src, i_b, i_p] = self.F.grad[src, i_b, i_p] + A.transpose() @ gFt
                 gp = dh.transpose() @ dG + dt.transpose() @ dT
-                self.mu.grad[i_b, i_p] += gp[0]
-                self.lam.grad[i_b, i_p] += gp[1]
-                self.yield_stress.grad[i_b, i_p] += gp[2]
-                self.alpha.grad[i_b, i_p] += gp[3]
+                self.mu.grad[i_b, i_p] = self.mu.grad[i_b, i_p] + gp[0]
+                self.lam.grad[i_b, i_p] = self.lam.grad[i_b, i_p] + gp[1]
+                self.yield_stress.grad[i_b, i_p] = self.yield_stress.grad[i_b, i_p] + gp[2]
+                self.alpha.grad[i_b, i_p] = self.alpha.grad[i_b, i_p] + gp[3]
 
     @ti.func
     def func_constitutive_ad(self, i_b, i_p, src, dst, h):
@@ -498,6 +521,19 @@ class MPMSolver:
         for i_b, i, j, k in ti.ndrange(self.n_envs, n0, n1, n2):
             I = ti.Vector([l0 + i, l1 + j, l2 + k])
             self.grid_v[i_b, I] = func_walls(self, func_grid_velocity(self, i_b, I, h), I)
+
+    @ti.kernel
+    def kernel_grid_update_grad(self, h: float, sub: ti.i32, l0: ti.i32, l1: ti.i32, l2: ti.i32, n0: ti.i32,
+                                n1: ti.i32, n2: ti.i32):
+        """Adjoint of kernel_grid_update (grid.func_grid_velocity_adjoint), gravity's adjoint summed per chunk
+        of nodes (one atomic add per chunk instead of one per node)."""
+        n = n0 * n1 * n2
+        for i_b, c in ti.ndrange(self.n_envs, self.n_chunks):
+            acc = ti.Vector.zero(float, 3)
+            for k in range(c * n // self.n_chunks, (c + 1) * n // self.n_chunks):
+                I = ti.Vector([l0 + k // (n1 * n2), l1 + (k // n2) % n1, l2 + k % n2])
+                acc += func_grid_velocity_adjoint(self, i_b, I, h)
+            self.gravity.grad[i_b] += acc
 
     @ti.kernel
     def kernel_substep_nograd(self, h: float, pre: ti.template(), grid: ti.template(), post: ti.template()):
@@ -573,6 +609,33 @@ class MPMSolver:
             self.v[0, i_b, i_p] = self.v[slot, i_b, i_p]
             self.C[0, i_b, i_p] = self.C[slot, i_b, i_p]
             self.F[0, i_b, i_p] = self.F[slot, i_b, i_p]
+
+    @ti.kernel
+    def kernel_get_substeps(self, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                            F: ti.types.ndarray(), tau: ti.types.ndarray()):
+        """The step's substeps as its forward left them: slots 1.. of x, v, C, F into [slot - 1] and the stress
+        of every substep (tau's slots) into [substep] (the copy a step node keeps, MPMSim.substep_states)."""
+        for t, i_b, i_p in ti.ndrange(self.n_slots - 1, self.n_envs, self.n_particles):
+            for a in ti.static(range(3)):
+                x[t, i_b, i_p, a] = self.x[t + 1, i_b, i_p][a]
+                v[t, i_b, i_p, a] = self.v[t + 1, i_b, i_p][a]
+                for b in ti.static(range(3)):
+                    C[t, i_b, i_p, a, b] = self.C[t + 1, i_b, i_p][a, b]
+                    F[t, i_b, i_p, a, b] = self.F[t + 1, i_b, i_p][a, b]
+                    tau[t, i_b, i_p, a, b] = self.tau[t, i_b, i_p][a, b]
+
+    @ti.kernel
+    def kernel_set_substeps(self, x: ti.types.ndarray(), v: ti.types.ndarray(), C: ti.types.ndarray(),
+                            F: ti.types.ndarray(), tau: ti.types.ndarray()):
+        """kernel_get_substeps' copy back into the slots (a step's backward, before its Tape)."""
+        for t, i_b, i_p in ti.ndrange(self.n_slots - 1, self.n_envs, self.n_particles):
+            for a in ti.static(range(3)):
+                self.x[t + 1, i_b, i_p][a] = x[t, i_b, i_p, a]
+                self.v[t + 1, i_b, i_p][a] = v[t, i_b, i_p, a]
+                for b in ti.static(range(3)):
+                    self.C[t + 1, i_b, i_p][a, b] = C[t, i_b, i_p, a, b]
+                    self.F[t + 1, i_b, i_p][a, b] = F[t, i_b, i_p, a, b]
+                    self.tau[t, i_b, i_p][a, b] = tau[t, i_b, i_p, a, b]
 
     @ti.kernel
     def kernel_vjp(self, slot: ti.i32, gx: ti.types.ndarray(), gv: ti.types.ndarray(), gC: ti.types.ndarray(),
