@@ -25,6 +25,15 @@ def func_wall(s: ti.template(), v, I, d: ti.template()):
     face (up to the plane that particles are kept behind, solver.BOUND) loses its velocity into the
     wall, and Coulomb friction (the coefficient wall_friction[d] of the faces normal to axis d, 0 by
     default as in Genesis) slows its tangential velocity by mu |v_n|, never reversing it."""
+    n, vn, into, vt, vt_norm = func_wall_frame(s, v, I, d)
+    slide = vt * ti.max(0.0, 1.0 + ti.static(s.wall_friction[d]) * vn / vt_norm)
+    return into * slide + (1.0 - into) * v
+
+
+@ti.func
+def func_wall_frame(s: ti.template(), v, I, d: ti.template()):
+    """The wall's inward normal n at node I (0 away from the faces normal to axis d), v's normal part vn,
+    whether v goes into the wall (`into`, a 0/1 mask), v's tangential part vt and its smoothed norm."""
     low = ti.cast(I[d] <= s.bound, float)
     high = ti.cast(I[d] >= s.grid_res[d] - 1 - s.bound, float)
     n = ti.Vector([1.0 if d == 0 else 0.0, 1.0 if d == 1 else 0.0, 1.0 if d == 2 else 0.0]) * (low - high)
@@ -32,8 +41,7 @@ def func_wall(s: ti.template(), v, I, d: ti.template()):
     into = ti.cast(vn < 0.0, float) * (low + high)
     vt = v - vn * n
     vt_norm = ti.sqrt(vt.dot(vt) + 1e-12)  # 1e-6 m/s smoothing keeps 1/vt_norm^2 finite in float32
-    slide = vt * ti.max(0.0, 1.0 + ti.static(s.wall_friction[d]) * vn / vt_norm)
-    return into * slide + (1.0 - into) * v
+    return n, vn, into, vt, vt_norm
 
 
 @ti.func
@@ -47,13 +55,7 @@ def func_walls(s: ti.template(), v, I):
 def func_wall_adjoint(s: ti.template(), v, g_out, I, d: ti.template()):
     """Adjoint of func_wall: the adjoint of its input v from that of its output, with the same choices of
     branch as Taichi's reverse mode (the 0/1 masks are constants; max(0, r) passes to r where r > 0)."""
-    low = ti.cast(I[d] <= s.bound, float)
-    high = ti.cast(I[d] >= s.grid_res[d] - 1 - s.bound, float)
-    n = ti.Vector([1.0 if d == 0 else 0.0, 1.0 if d == 1 else 0.0, 1.0 if d == 2 else 0.0]) * (low - high)
-    vn = v.dot(n)
-    into = ti.cast(vn < 0.0, float) * (low + high)
-    vt = v - vn * n
-    vt_norm = ti.sqrt(vt.dot(vt) + 1e-12)
+    n, vn, into, vt, vt_norm = func_wall_frame(s, v, I, d)
     mu = ti.static(s.wall_friction[d])
     r = 1.0 + mu * vn / vt_norm
     g_slide = into * g_out
