@@ -13,9 +13,9 @@ import sys
 import time
 
 import numpy as np
+import genesis_lite as gs  # before torch: its OpenMP threads then sleep between ops (README)
 import torch
 
-import genesis_lite as gs
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from example_utils import parse_args, progress, pyplot, save_figure, summary, write_csv  # noqa: E402

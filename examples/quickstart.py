@@ -15,9 +15,9 @@ the two gradients as bars).
 import time
 
 import numpy as np
+import genesis_lite as gs  # before torch: its OpenMP threads then sleep between ops (README)
 import torch
 
-import genesis_lite as gs
 from example_utils import panda_urdf, parse_args, progress, pyplot, save_figure, summary, write_csv
 
 F64 = dict(dtype=torch.float64)

@@ -8,9 +8,9 @@ import os
 import sys
 import time
 
+import genesis_lite as gs  # before torch: its OpenMP threads then sleep between ops (README)
 import torch
 
-import genesis_lite as gs
 from genesis_lite.morphs import URDF  # noqa: F401  (gs.morphs.URDF below, as in the original)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))

@@ -12,6 +12,13 @@ import time
 
 import numpy as np
 
+# torch's OpenMP threads spin for a while after each of its parallel ops (GNU OpenMP's default active wait),
+# on the cores that Taichi's threads need for the kernel launched next: with 2 cores, a 1,024-env Panda's
+# 100-step rollout spent ~0.25 s of its 0.75 s forward in a control upload of 0.13 ms when they sleep at
+# once (benchmarks/results/omp_wait.md). Read when torch loads its OpenMP runtime: effective when
+# genesis_lite is imported before torch; a value the user set is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 # Lighter Taichi front-end bookkeeping and launches (same IR; solvers/taichi_compat), before any kernel
 # is decorated.
 from solvers import taichi_compat  # noqa: E402  (isort: skip)

@@ -96,6 +96,18 @@ def test_default_threads_per_process(monkeypatch):
         gs.default_num_threads()
 
 
+def test_importing_genesis_lite_first_makes_torch_s_openmp_threads_sleep():
+    """Imported before torch, genesis_lite sets OMP_WAIT_POLICY=PASSIVE for torch's OpenMP runtime (README,
+    "Threads"), and a value the user set is kept. In fresh processes: the variable is read when torch loads."""
+    code = "import os, genesis_lite, torch; print(os.environ.get('OMP_WAIT_POLICY'))"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.stdout.split()[-1] == "PASSIVE", out.stderr[-2000:]
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_WAIT_POLICY": "ACTIVE"}, capture_output=True,
+                         text=True, timeout=300)
+    assert out.stdout.split()[-1] == "ACTIVE", out.stderr[-2000:]
+
+
 def test_a_stale_kernel_cache_lock_is_removed_and_a_live_one_kept(tmp_path):
     """A Taichi cache lock (ticache.lock) left by a killed process would keep every later process from
     the kernel cache; one a running process holds (recent) must stay."""
