@@ -442,9 +442,12 @@ def install_fast_launch() -> bool:
             d["_gs_ret"] = bool(int_ret)
             d["_gs_cache"] = {}
         rt = self.runtime
+        # a forward kernel launched while a Tape records (outside a grad_replaced call) goes on the Tape, as
+        # Taichi's own __call__ puts it there (Tape.insert), right before the fast launch below; a validating
+        # Tape compiles another kernel, which Taichi's path does
+        tape = rt.target_tape if (not rt.grad_replaced and self.autodiff_mode in plain_modes) else None
         if (plan is None or kwargs or len(args) != len(self.arguments) or rt.fwd_mode_manager
-                or (rt.target_tape and not rt.grad_replaced and self.autodiff_mode in plain_modes)
-                or self.has_print):
+                or (tape is not None and tape.validation) or self.has_print):
             return original(self, *args, **kwargs)
         temps, floats, ints, arrays = plan
         # a kernel whose one template argument is an object (a data-oriented class's kernel) and that
@@ -508,6 +511,8 @@ def install_fast_launch() -> bool:
             else:
                 ctx.set_arg_external_array_with_shape((j,), int(v.data_ptr()), v.element_size() * v.nelement(),
                                                       tuple(v.shape), 0)
+        if tape is not None:
+            tape.insert(self, args)
         prog = rt.prog
         try:
             data = hit.data
