@@ -51,17 +51,18 @@ from .grad.growth import GrowthMonitor
 from .grad.indexing import incoming_grads
 
 
-_TAPE_LOSS = {}
+_TAPE_LOSS = []
 
 
-def tape_loss(dtype):
-    """The 0-d field every scene's Tape names as its loss. It is a token: Taichi seeds its adjoint with 1,
-    and the solvers' vjp kernels accumulate into scalars of their own. One per precision for the process
-    (gs.init is once per process): a field per scene cost each scene a new SNode tree (memory Taichi keeps)
-    and a compile of its fill kernel."""
-    if dtype not in _TAPE_LOSS:
-        _TAPE_LOSS[dtype] = ti.field(dtype, shape=(), needs_grad=True)
-    return _TAPE_LOSS[dtype]
+def tape_loss(dtype=None):
+    """The loss every Tape of the process names (the scenes' step Tapes, the MPM substeps' nested ones): a token,
+    which no kernel reads (the solvers' vjp kernels accumulate into scalars of their own). A 0-d torch tensor:
+    a Tape zeroes its loss on entry and seeds its adjoint with 1 on exit, which for a Taichi field are two
+    launches of a fill kernel per Tape (two per step and two per MPM substep in a backward), for a tensor two
+    torch calls; nor does a tensor take an SNode tree. `dtype` is accepted for older callers and ignored."""
+    if not _TAPE_LOSS:
+        _TAPE_LOSS.append(torch.zeros((), dtype=torch.float64, requires_grad=True))
+    return _TAPE_LOSS[0]
 
 
 class Simulator:
@@ -83,7 +84,7 @@ class Simulator:
         self.growth = GrowthMonitor()  # warns when a backward pass blows the gradient up (grad/growth.py)
         self.buffer = StepBuffer(sim_options.checkpoint_every, self._replay_step) if self.requires_grad else None
         # the Tape's loss: <gradient torch hands a node's outputs, those outputs>
-        self.loss = tape_loss(gs.ti_float) if self.requires_grad else None
+        self.loss = tape_loss() if self.requires_grad else None
         for b in self.bridges:
             b.sim = self
 

@@ -562,7 +562,7 @@ def test_tape_validation_of_one_step_of_each_solver():
                          # update that Taichi differentiates
                          lambda: (mpm.kernel_constitutive_ad(0, 1, mpm.h) if mpm.has_ad else None,
                                   sim._mpm_substep(0, True, replay=True))):
-            with ti.ad.Tape(loss=sim.loss, validation=True, clear_gradients=False):
+            with ti.ad.Tape(loss=ti.field(ti.f64, shape=(), needs_grad=True), validation=True, clear_gradients=False):
                 launches()
         print("validated")
     """)

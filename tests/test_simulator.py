@@ -64,7 +64,7 @@ def test_without_a_coupler_the_mpm_grid_update_takes_its_place(grad):
     _simulator(log, coupler=False, substeps=1)._run(grad=grad)
     if grad:
         assert log == [("mpm", "record_substep", 0), ("mpm", "substep_pre_coupling", 0, True, False),
-                       ("mpm", "grid_update", 0), ("mpm", "substep_post_coupling", 0, True, False),
+                       ("mpm", "grid_update", 0, False), ("mpm", "substep_post_coupling", 0, True, False),
                        ("rigid", "substep", 0, True, 1)]
     else:
         assert log == [("mpm", "substep_uncoupled", 0), ("rigid", "substep", 0, False, 1)]

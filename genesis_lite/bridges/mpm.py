@@ -67,6 +67,10 @@ class MPMSim:
             sim_options.dt, sim_options.substeps, sim_options.gravity, gs.ti_float, self.requires_grad,
             mpm_options.wall_friction)
         weakref.finalize(self, SOLVER_POOL.release, self.solver)
+        if self.requires_grad:
+            from ..simulator import tape_loss
+
+            self.solver.replay_loss = tape_loss()
         self._mass_np, self._vol_np = mass, vol
         if self.emitter_entities:
             self.solver.kernel_set_particle_mass(self.n_fixed, self.n_particles, 0.0, 0.0)

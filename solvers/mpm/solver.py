@@ -180,8 +180,9 @@ class MPMSolver:
         self.chunk_lo = ti.Vector.field(3, ti.i32, shape=self.n_chunks)
         self.chunk_hi = ti.Vector.field(3, ti.i32, shape=self.n_chunks)
         # the loss of the nested Tape that replays a substep in its adjoint: nothing reads it (the
-        # adjoints start from the grid's and particles' own), but a Tape needs a scalar to seed
-        self.replay_loss = ti.field(f, shape=(), needs_grad=True) if g else None
+        # adjoints start from the grid's and particles' own), but a Tape needs a scalar to seed; the scene's
+        # bridge gives the process's token (genesis_lite/simulator.py tape_loss)
+        self.replay_loss = None
         self.vjp_loss = ti.field(f, shape=(), needs_grad=True) if g else None  # see kernel_vjp
         # the adjoints zeroed before a step's backward; not the grid's, which every substep's adjoint
         # zeroes in its own region (kernel_clear_grid_grads) and no kernel reads outside it
