@@ -38,6 +38,7 @@ The bridges' protocol is in bridges/__init__.py.
 """
 from __future__ import annotations
 
+import functools
 from typing import List
 
 import taichi as ti
@@ -51,26 +52,20 @@ from .grad.growth import GrowthMonitor
 from .grad.indexing import incoming_grads
 
 
-_TAPE_LOSS = []
-
-
-def tape_loss(dtype=None):
+@functools.cache
+def tape_loss():
     """The loss every Tape of the process names (the scenes' step Tapes, the MPM substeps' nested ones): a token,
     which no kernel reads (the solvers' vjp kernels accumulate into scalars of their own). A 0-d torch tensor:
     a Tape zeroes its loss on entry and seeds its adjoint with 1 on exit, which for a Taichi field are two
     launches of a fill kernel per Tape (two per step and two per MPM substep in a backward), for a tensor two
-    torch calls; nor does a tensor take an SNode tree. `dtype` is accepted for older callers and ignored."""
-    if not _TAPE_LOSS:
-        _TAPE_LOSS.append(torch.zeros((), dtype=torch.float64, requires_grad=True))
-    return _TAPE_LOSS[0]
+    torch calls; nor does a tensor take an SNode tree."""
+    return torch.zeros((), dtype=torch.float64, requires_grad=True)
 
 
 class Simulator:
     """rigid, mpm: the scene's solver bridges (RigidSim, MPMSim) or None; coupler: its CouplerBridge or None."""
 
     def __init__(self, rigid, mpm, coupler, sim_options):
-        import genesis_lite as gs
-
         self.rigid, self.mpm, self.coupler = rigid, mpm, coupler
         # the bridges with state, in the order of the step node's inputs and outputs
         self.bridges: List = [b for b in (mpm, rigid) if b is not None]

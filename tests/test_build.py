@@ -109,7 +109,7 @@ def test_second_robot_with_gradients_compiles_nothing(compiled):
     scene, pend = _scene(PENDULUM, requires_grad=True)
     got = grads(scene, pend)
     assert scene.rigid_solver.reused_core
-    # nothing, not even the fill kernel of the Tape's loss field (one for every scene: simulator.py tape_loss)
+    # nothing (the Tapes' loss is a torch token, simulator.py tape_loss: no fill kernel, no field per scene)
     assert not compiled, f"the second robot compiled {compiled}"
     _fresh()
     fresh = _scene(PENDULUM, requires_grad=True)

@@ -284,8 +284,8 @@ def test_a_second_coupled_scene_of_its_class_compiles_nothing_and_gives_the_same
     compiled.clear()
     again, reused = _pushed_jelly([0.8, 0.0, 0.1, 0.0, 0.3, 0.0])
     assert reused == (True, True, True)
-    # nothing at all: not even the fill kernel of the Tape's loss field, which every scene shares
-    # (simulator.py tape_loss; a field per scene compiled it again each time)
+    # nothing at all (the Tapes' loss is a torch token, simulator.py tape_loss: a loss field per scene
+    # compiled its fill kernel again each time)
     assert not compiled, f"the second coupled scene compiled {compiled}"
     for a, b in zip(first, again):
         torch.testing.assert_close(a, b, rtol=0, atol=0)

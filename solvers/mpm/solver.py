@@ -643,8 +643,8 @@ class MPMSolver:
                    gF: ti.types.ndarray()):
         """vjp_loss += <gradients torch hands the step's output state, that state in `slot`>: the scalar whose
         adjoint the step's Tape propagates. It is the solver's own, its adjoint seeded to 1 by
-        kernel_clear_grads, rather than the Tape's loss field, which is new with every scene: a kernel taking
-        that field would compile again for each scene of the class. d(Tape loss)/d(vjp_loss) = 1 either way."""
+        kernel_clear_grads: the Tape's loss is a torch token no kernel reads (genesis_lite/simulator.py
+        tape_loss), and a kernel taking a field of a scene would compile again for each scene of the class."""
         for i_b, i_p in ti.ndrange(self.n_envs, self.n_particles):
             acc = 0.0
             for a in ti.static(range(3)):

@@ -45,9 +45,8 @@ def kernel_get_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
 def kernel_vjp(s: ti.template(), slot: ti.i32, g: ti.types.ndarray()):
     """vjp_loss += <g, state in `slot`>: the scalar whose adjoint a step's ti.ad.Tape propagates, g
     being the gradient torch hands the step's output state (packed like kernel_get_state). The
-    scalar is the core's own, its adjoint seeded to 1 by kernel_clear_grads, rather than the Tape's
-    loss field: a kernel taking a field argument compiles once per field, the Tape's loss is one
-    per scene, and d(Tape loss)/d(vjp_loss) = 1 either way."""
+    scalar is the core's own, its adjoint seeded to 1 by kernel_clear_grads: the Tape's loss is a torch
+    token no kernel reads (genesis_lite/simulator.py tape_loss)."""
     if ti.static(s.serial):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):

@@ -337,8 +337,9 @@ def _install_light_traceback():
 # arguments) pair and for everything unusual, and remembers the compiled kernel it used. Later
 # launches with the same template arguments (the same objects, checked through weak references, or
 # equal ints / floats / bools / strings) and only scalar run-time arguments set those scalars into a
-# launch context and launch the same compiled kernel. They fall back to Taichi's call while a tape
-# records (`ti.ad.Tape` must see the launch), in forward-mode autodiff, for kernels with print or a
+# launch context and launch the same compiled kernel; a forward kernel launched while a `ti.ad.Tape`
+# records is put on the Tape first, as Taichi's call puts it. They fall back to Taichi's call while a
+# validating Tape records (it compiles other kernels), in forward-mode autodiff, for kernels with print or a
 # return value other than one signed integer, when a field was created since (Taichi must place it
 # first), and after `ti.reset()` (the kernel's compiled instances are gone). A kernel returning one
 # signed integer (the rigid step's count of envs with a NaN, read after every step) has it read from
