@@ -314,6 +314,93 @@ def _mj_build_quad(files, integrator, dt, armature=None):
     return m, q0, np.zeros(m.nv), lambda st: st[:, qs][:, :3], standing_pose(names)  # targets held throughout
 
 
+# a Panda pushing a box ---------------------------------------------------------------------------------------------
+
+PUSH_T = 1.0  # s
+PUSH_SAMPLES = (0.5, 1.0)  # s: mid-push, and after
+PUSH_REF = ("RK4", 1e-4)
+PUSH_REF_CHECK = ("RK4", 2e-4)
+
+
+def _push_files(tmp):
+    return {"arm": S.write_panda_pusher(tmp),
+            "box": S.write_box_urdf(tmp, size=S.PUSH_BOX_SIZE, mass=S.PUSH_BOX_MASS, name="push_box")}
+
+
+def _push_ref(files):
+    return Reference("fine", f"the same engine, float64, {PUSH_REF[0]} at dt = {PUSH_REF[1]:g} s "
+                     f"(its difference from dt = {PUSH_REF_CHECK[1]:g} s is shown as the reference's error)",
+                     fine=PUSH_REF, check=PUSH_REF_CHECK)
+
+
+def _gl_build_push(gs, files, integrator, dt, substeps, n_envs):
+    """The arm (joint limits off, as in MuJoCo's model: the start pose is near joint 6's; gravity compensated, so
+    that the PD holds the sphere's height) and the box on a floor, every geom of friction PUSH_MU; the PD's target
+    held from the start."""
+    scene = gs.Scene(**_gl_opts(gs, integrator, dt, substeps, collision=True, limits=False))
+    mat = gs.materials.Rigid(friction=S.PUSH_MU)
+    scene.add_entity(gs.morphs.Plane(), material=mat)
+    arm = scene.add_entity(gs.morphs.URDF(file=str(files["arm"]), fixed=True),
+                           material=gs.materials.Rigid(friction=S.PUSH_MU, gravity_compensation=1.0))
+    box = scene.add_entity(gs.morphs.URDF(file=str(files["box"]), fixed=False, pos=S.PUSH_BOX_POS), material=mat)
+    scene.build(n_envs=n_envs)
+    n = arm.n_dofs
+    arm.set_dofs_damping(np.zeros(n))
+    arm.set_dofs_armature(np.full(n, S.PUSH_ARMATURE))
+    arm.set_dofs_frictionloss(np.zeros(n))
+    arm.set_dofs_kp(np.full(n, S.PUSH_KP))
+    arm.set_dofs_kv(np.full(n, S.PUSH_KV))
+    arm.set_dofs_position(_gl_tile(S.PUSH_Q0, n_envs, gs.tc_float))
+    state = scene.get_state()
+    target = _gl_tile(S.PUSH_QT, n_envs, gs.tc_float)
+
+    def reset():
+        scene.reset(state)
+        arm.control_dofs_position(target)  # reset() clears controls
+
+    def observe():
+        return box.get_pos().detach().cpu().numpy().reshape(max(n_envs, 1), 3)
+
+    return scene, reset, observe
+
+
+def _mj_build_push(files, integrator, dt):
+    """MuJoCo's model of the same files: the arm's sphere and the box collide with each other and the floor
+    (elliptic cones, friction PUSH_MU on every geom), position actuators kp / kv on the 7 joints."""
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(str(files["arm"]))
+    for j in spec.joints:
+        j.limited = mujoco.mjtLimited.mjLIMITED_FALSE
+    for g in spec.geoms:
+        g.contype, g.conaffinity = 1, 0  # the sphere: against the floor and the box, as in genesis_lite
+        g.friction = [S.PUSH_MU, g.friction[1], g.friction[2]]
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], contype=1, conaffinity=1,
+                            friction=[S.PUSH_MU, 0.005, 0.0001])
+    names = [j.name for j in spec.joints]
+    for b in spec.bodies:
+        b.gravcomp = 1.0  # the arm's links (the box comes after): full gravity compensation, as in genesis_lite
+    box = S.mujoco_free_box(spec, "push_box", S.PUSH_BOX_POS, S.PUSH_BOX_SIZE, S.PUSH_BOX_MASS)
+    box.geoms[0].friction = [S.PUSH_MU, 0.005, 0.0001]
+    for name in names:
+        a = spec.add_actuator()
+        a.target, a.trntype = name, mujoco.mjtTrn.mjTRN_JOINT
+        a.set_to_position(kp=S.PUSH_KP, kv=S.PUSH_KV)
+    m = spec.compile()
+    m.opt.gravity[:] = (0.0, 0.0, -S.G)
+    m.dof_damping[:] = 0.0
+    m.dof_frictionloss[:] = 0.0
+    m.dof_armature[:] = 0.0
+    m.dof_armature[:7] = S.PUSH_ARMATURE
+    m.opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    S.set_mujoco_integrator(m, integrator, dt)
+    qs, _ = S.mujoco_state_slices(m)
+    q0 = np.zeros(m.nq)
+    q0[:7] = S.PUSH_Q0
+    q0[7:] = [*S.PUSH_BOX_POS, 1.0, 0.0, 0.0, 0.0]
+    return m, q0, np.zeros(m.nv), lambda st: st[:, qs][:, 7:10], S.PUSH_QT  # targets held throughout
+
+
 # elastic MPM block -------------------------------------------------------------------------------------------------
 # A 0.1 m elastic cube (1,000 particles on the 0.01 m lattice, 64 cells per metre on [0, 0.5]^3), the bench's
 # material (E = 3e5 Pa, nu = 0.2, rho = 1000 kg/m^3: waves at 18 m/s, so the CFL check of genesis_lite allows
@@ -410,6 +497,11 @@ SCENES: dict[str, WPScene] = {
         1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref,
         functools.partial(_gl_build_quad, armature=QUAD_ARMATURE),
         functools.partial(_mj_build_quad, armature=QUAD_ARMATURE), genesis=False),
+    "push": WPScene(
+        "push", f"Panda pushing a box ({S.PUSH_BOX_SIZE} m cube, {S.PUSH_BOX_MASS} kg, mu = {S.PUSH_MU}) with a sphere "
+        f"on its hand, PD (kp {S.PUSH_KP:g}, kv {S.PUSH_KV:g}, armature {S.PUSH_ARMATURE:g}) to a pose 0.14 m ahead",
+        PUSH_T, PUSH_SAMPLES, f"norm(box pos - ref) at t = {PUSH_SAMPLES} s (m)", _push_files, _push_ref,
+        _gl_build_push, _mj_build_push),
     "mpm": WPScene(
         "mpm", f"elastic MPM cube (0.1 m, 1,000 particles, E = 3e5 Pa, nu = 0.2; 64 cells/m) set stretching "
         f"({MPM_STRETCH:g} 1/s) and spinning under gravity; MLS-MPM's explicit scheme, dt x substeps swept",
@@ -431,6 +523,8 @@ def _error(obs, ref, key):
     d = obs - ref
     if key.startswith("quadruped"):
         return float(np.linalg.norm(d, axis=1).max())
+    if key == "push":  # positions (x, y, z) at each sample time
+        return float(np.linalg.norm(d.reshape(d.shape[0], -1, 3), axis=2).max())
     return float(np.abs(d).max())
 
 

@@ -74,6 +74,37 @@ def write_panda_arm(out_dir=None) -> Path:
     return path
 
 
+# A Panda pushing a box (work-precision's manipulation row): the 7-dof arm of write_panda_arm with a sphere on
+# the hand between the fingertips (its only collision shape), PD-driven (Genesis's default gains, its default
+# armature) from a pose with the sphere touching the box's back face to one 0.14 m further on; the box slides on
+# the floor ahead of it. Joint angles from genesis_lite's inverse kinematics of panda_link7 (z axis down) at
+# x = 0.33 and 0.47 m, z = 0.292 m: the sphere's centre at z = 0.085 m, 5.5 cm above the floor. The arm's gravity
+# is compensated in both engines (genesis_lite's gravity_compensation, MuJoCo's gravcomp): under the PD alone it
+# sagged 3-6 cm and the sphere dragged on the floor.
+PUSH_Q0 = np.array([0.2405, -0.0088, -0.2434, -2.936, -0.01, 2.9274, 0.0069])  # rad
+PUSH_QT = np.array([0.1539, 0.2644, -0.1388, -2.4944, 0.096, 2.7548, -0.0692])  # rad
+PUSH_SPHERE = (0.03, 0.1)  # m: radius, and its offset along the hand's z axis from the hand's origin
+PUSH_BOX_SIZE, PUSH_BOX_MASS = 0.1, 0.4  # m, kg
+PUSH_BOX_POS = (0.41, 0.0, 0.05)  # m: its back face at the sphere's front
+PUSH_MU = 0.5
+PUSH_KP, PUSH_KV, PUSH_ARMATURE = 100.0, 10.0, 0.1  # N m/rad, N m s/rad, kg m^2
+
+
+def write_panda_pusher(out_dir=None) -> Path:
+    """write_panda_arm's 7-dof Panda with one collision sphere on panda_hand (PUSH_SPHERE); the hand is merged
+    into panda_link7 by every reader."""
+    path = write_panda_arm(out_dir)
+    tree = ET.parse(path)
+    for link in tree.getroot().findall("link"):
+        if link.get("name") == "panda_hand":
+            c = ET.SubElement(link, "collision")
+            ET.SubElement(c, "origin", {"xyz": f"0 0 {PUSH_SPHERE[1]}", "rpy": "0 0 0"})
+            ET.SubElement(ET.SubElement(c, "geometry"), "sphere", {"radius": str(PUSH_SPHERE[0])})
+    out = path.parent / "panda_pusher.urdf"
+    tree.write(out, encoding="unicode")
+    return out
+
+
 def write_box_urdf(out_dir=None, size=BOX_SIZE, mass=BOX_MASS, name="box") -> Path:
     """A single-link URDF: a solid cube of edge `size` (m) and `mass` (kg) with its box collision shape."""
     i = mass * (2 * size * size) / 12.0
