@@ -91,8 +91,8 @@ def solver_pair(ref_tree, urdf, n_envs, steps, repeats):
     opts = gs.options.RigidOptions()
     model = load_morph(gs.morphs.URDF(file=urdf, fixed=True), gs.materials.Rigid(), "panda")
     make = lambda cls: cls([model], max(n_envs, 1), 0.01, 1, int(opts.integrator), (0.0, 0.0, -9.81),  # noqa: E731
-                           gs.ti_float, False, opts.enable_joint_limit, opts.joint_limit_stiffness,
-                           opts.joint_limit_damping, contact_options=None, mimic=opts.enable_mimic,
+                           gs.ti_float, False, opts.enable_joint_limit, 1e4, 1e2,  # the limit springs: the ref tree's
+                           contact_options=None, mimic=opts.enable_mimic,
                            specialize=opts.specialize_kernels)
     here, ref = make(RigidSolver), make(RefSolver)
     t_here, t_ref = [], []

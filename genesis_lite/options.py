@@ -103,8 +103,15 @@ class RigidOptions(_Options):
     enable_collision / enable_joint_limit
     switch contacts and joint limits; enable_self_collision lets non-adjacent links of one entity
     collide. contact_stiffness (N/m per contact point) and contact_damping (N s/m per contact point) set
-    the penalty model (the stiffness scaled up for pairs heavier than 100 kg); joint_limit_stiffness /
-    joint_limit_damping the limit springs. contact_damping_ratio (None by default) makes the damper
+    the penalty model (the stiffness scaled up for pairs heavier than 100 kg). Joint limits are Genesis's (and
+    MuJoCo's) soft constraint by default: past a limit by d, the constraint asks for the reference acceleration
+    -b v - k imp d (b = 2 / (0.95 tc), k = 1 / (0.95 tc)^2, tc = max(constraint_timeconst, 2 substep dt), imp
+    0.9 -> 0.95 over the first mm or mrad) with an impedance that scales with the joint's inverse weight
+    (M^-1)_jj at the initial configuration (recomputed when set_dofs_armature changes the armature), and
+    lets go while the joint leaves the limit faster than that (tests/test_joint_limits.py: MuJoCo's
+    trajectories to 1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default)
+    select penalty springs instead (either one given; the other then 1e4 / 1e2), genesis_lite's limits
+    before 2026-11-29. contact_damping_ratio (None by default) makes the damper
     mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the
     reduced mass of the two links, and at least 4 k h (h the step). A legged landing without rotor inertia
     (default_armature=None) then converges as dt shrinks, which it does not with the fixed damper (a light
@@ -138,8 +145,9 @@ class RigidOptions(_Options):
     contact_stiffness: float = 1e6
     contact_damping: float = 4e4
     contact_damping_ratio: Optional[float] = None
-    joint_limit_stiffness: float = 1e4
-    joint_limit_damping: float = 1e2
+    joint_limit_stiffness: Optional[float] = None
+    joint_limit_damping: Optional[float] = None
+    constraint_timeconst: float = 0.01
     enable_mimic: bool = True
     check_nan: bool = True
     contact_smoothing: float = 5e-6
@@ -147,7 +155,8 @@ class RigidOptions(_Options):
     max_mesh_contact_points: int = 32
     ignore_unsupported_pairs: bool = False
     specialize_kernels: Optional[bool] = None
-    # Genesis's names. dt / gravity: None takes SimOptions'; a value must agree with SimOptions' (one
+    # Genesis's names (constraint_timeconst above: the joint-limit constraint's time constant, s). dt / gravity:
+    # None takes SimOptions'; a value must agree with SimOptions' (one
     # scene steps every solver with one dt and one gravity: gs.Scene checks). The constraint solver's
     # settings (constraint_solver, iterations, tolerance, ls_iterations, ls_tolerance), the collision
     # pair budget (max_collision_pairs) and box_box_detection are accepted: genesis_lite's contact is a
@@ -196,9 +205,11 @@ class RigidOptions(_Options):
                       "use gs.integrator.approximate_implicitfast, implicitfast, Euler or RK4")
         for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping"):
             v = getattr(self, name)
+            if v is None and name.startswith("joint_limit"):
+                continue
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
                 self._err(name, v, "must be a finite number >= 0")
-        for name in ("contact_smoothing", "friction_smoothing", "contact_damping_ratio"):
+        for name in ("contact_smoothing", "friction_smoothing", "contact_damping_ratio", "constraint_timeconst"):
             v = getattr(self, name)
             if name == "contact_damping_ratio" and v is None:
                 continue

@@ -230,6 +230,20 @@ def build_arm(v, plane=False):
         "arm.dofs_kp": np.array([12.0, 8.0, 4.0]), "arm.dofs_kv": np.array([0.6, 0.4, 0.2])})
 
 
+def build_arm_limit(v):
+    """The skewed arm of build_arm started past two of its joint limits (+-3 rad): joint 1 0.04 rad past its
+    upper limit and still moving out, joint 2 0.02 rad past its lower one and moving back in. Genesis's limit
+    constraint (the default) pushes joint 1 back in the first step, and the solve releases both once they move
+    in faster than the constraint's reference acceleration asks (actuation.func_limit_release: joint 2 in the
+    first step, joint 1 from the second), so the gradient runs through an active constraint, through released
+    ones (their terms taken back out of the final system) and through the inverse weights, which follow the
+    armature (set_dofs_armature: Genesis's (M^-1)_jj at the initial configuration)."""
+    b = build_arm(v)
+    b.defaults.update({"arm.dofs_position": np.array([3.04, -3.02, 0.8]),
+                       "arm.dofs_velocity": np.array([2.0, 0.5, 0.4])})
+    return b
+
+
 def build_gripper(v, plane=False):
     """assets/urdf/mimic_gripper.urdf fixed 1 m up: a skewed revolute wrist and two prismatic fingers, the
     second a <mimic> of the first (b = -1.5 a + 0.01), folded into its leader in every factorisation and
@@ -442,6 +456,7 @@ SCENES: Dict[str, Callable[[Variation], Built]] = {
     "plank_stack": build_plank_stack,
     "arm": build_arm,
     "arm_plane": lambda v: build_arm(v, plane=True),
+    "arm_limit": build_arm_limit,
     "gripper": build_gripper,
     "gripper_plane": lambda v: build_gripper(v, plane=True),
     "go2": build_go2,
@@ -733,6 +748,14 @@ def _table() -> List[Case]:
     slow("arm", ARM_STATE, ARM_OUT, V(process="first"))
     slow("arm", ARM_STATE + ARM_PD, ARM_OUT, V(precision="32"))
     slow("arm_plane", ARM_STATE, ARM_OUT)
+    # joint limits (Genesis's constraint, one-sided): active and released in the horizon; the inverse
+    # weights' dependence on the armature
+    LIMIT = ("arm.dofs_position", "arm.dofs_velocity", "arm.ctrl_position", "arm.dofs_kp", "arm.dofs_armature",
+             "arm.links_mass", "arm.links_inertia")
+    add("arm_limit", LIMIT, ARM_OUT + ("arm.dofs_position",))
+    for integ in ("Euler", "RK4"):
+        slow("arm_limit", LIMIT, ARM_OUT, V(integrator=integ))
+    slow("arm_limit", LIMIT[:6], ARM_OUT, V(n_envs=3))
     slow("arm_plane", ARM_PD, ARM_OUT, V(integrator="RK4"))
     # applied link wrenches and gravity compensation on the skewed arm: the pose (dofs_position), the centres
     # of mass (links_COM) and the masses (links_mass) set the levers and axes that ref / local take from the

@@ -19,12 +19,14 @@ import numpy as np
 import taichi as ti
 import torch
 
+from solvers.rigid.actuation import LIMITS_CONSTRAINT
 from solvers.rigid.model import JOINT_NV
 from solvers.rigid.solver import RigidSolver
 
 from ..errors import GenesisException
 from ..grad.functions import OutputFunction
 from ..grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
+from ..utils.geom import quat_to_R as _quat_to_R
 
 # name -> (solver field, trailing shape, axis it is indexed by). The core's parameters travel packed in one
 # tensor (RigidSolver.param_layout); contact friction lives in the contact solver's own field.
@@ -39,6 +41,8 @@ PARAMS = {
     "kv": ("dof_kv", (), "dof"),
     "stiffness": ("dof_stiffness", (), "dof"),
     "gravity": ("gravity", (3,), "env"),
+    # not set by the user: the joint-limit constraint's (M^-1)_jj at qpos0, a function of the armature (_invweight)
+    "invweight": ("dof_invweight", (), "dof"),
     "friction": ("contact.geom_friction", (), "geom"),  # only when the scene has contacts
     "gravity_compensation": ("applied_gcomp", (), "link"),  # only when the solver has applied wrenches
 }
@@ -46,6 +50,18 @@ PARAMS = {
 OPTIONAL_PARAMS = {"friction": "contact", "gravity_compensation": "applied"}
 DEFAULT_KP, DEFAULT_KV = 100.0, 10.0  # Genesis's gains of a joint whose file sets none (N m/rad, N m s/rad)
 CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dofs)
+
+
+def _limit_springs(rigid_options):
+    """(stiffness, damping) of the joint-limit springs when either option is given (the other at
+    SPRING_DEFAULTS), else (None, None): Genesis's limit constraint."""
+    k, d = rigid_options.joint_limit_stiffness, rigid_options.joint_limit_damping
+    if k is None and d is None:
+        return None, None
+    return (SPRING_DEFAULTS[0] if k is None else k), (SPRING_DEFAULTS[1] if d is None else d)
+
+
+SPRING_DEFAULTS = (1e4, 1e2)  # N m/rad (N/m), N m s/rad (N s/m): the limit springs' gains when one is given
 
 
 class RigidSim:
@@ -71,12 +87,12 @@ class RigidSim:
                         g.friction = float(ent.material.friction)
         self.solver = RigidSolver(models, self.B, sim_options.dt, sim_options.substeps, int(rigid_options.integrator),
                                   sim_options.gravity, gs.ti_float, self.requires_grad,
-                                  rigid_options.enable_joint_limit, rigid_options.joint_limit_stiffness,
-                                  rigid_options.joint_limit_damping,
+                                  rigid_options.enable_joint_limit, *_limit_springs(rigid_options),
                                   contact_options=rigid_options if rigid_options.enable_collision else None,
                                   mimic=rigid_options.enable_mimic, external_wrench=external_wrench,
                                   specialize=rigid_options.specialize_kernels,
-                                  applied_wrench=any(_has_gravity_compensation(e) for e in scene.rigid_entities))
+                                  applied_wrench=any(_has_gravity_compensation(e) for e in scene.rigid_entities),
+                                  limit_timeconst=rigid_options.constraint_timeconst)
         s = self.solver
         self.n_qs, self.n_dofs, self.n_links = s.n_qs, s.n_dofs, s.n_links
         self.sim = None  # the scene's Simulator, set when it takes this bridge
@@ -87,6 +103,8 @@ class RigidSim:
         self.param_base = {k: torch.as_tensor(v, device=self.device).to(self.dtype) for k, v in base.items()
                            if k in self.core_params}
         self._default_gains(scene.rigid_entities)
+        self._limit_mass = self._limited_mass_blocks(scene.rigid_entities, rigid_options)
+        self.param_base["invweight"] = self._invweight(self.param_base["armature"])
         if s.contact is not None:
             self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
         # the applied wrench accumulated for the next step: a numpy (B, n_links, 6) array of what needs no
@@ -112,6 +130,48 @@ class RigidSim:
         self._nan_count = 0  # envs with a NaN record, as the last fused launch returned it
         if s.applied is not None:
             self._applied_on()
+
+    def _limited_mass_blocks(self, entities, rigid_options):
+        """[(dof slice, M0)]: for each entity with a finite joint limit under the limit constraint (the
+        default), its joint-space mass matrix without armature at its initial configuration (1, n, n),
+        from the model's inertias: Genesis's dofs_invweight is computed there, once at build and again
+        when set_dofs_armature changes the armature (v0.4.5 rigid_solver.py _init_invweight_and_meaninertia;
+        masses set later leave it as it is), and so is ours (_invweight)."""
+        if not (rigid_options.enable_joint_limit and self.solver.limit_model == LIMITS_CONSTRAINT):
+            return []
+        lim = self.solver.flat.np_dof_limit
+        q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
+        blocks = []
+        for ent in entities:
+            d0, n = ent._dof_start, ent.n_dofs
+            if n == 0 or not np.isfinite(lim[d0:d0 + n]).any():
+                continue
+            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
+            ls = slice(ent._link_start, ent._link_start + ent.n_links)
+            mass = self.param_base["mass"][:1, ls].double()
+            com = self.param_base["com"][:1, ls].double()
+            inertia = self.param_base["inertia"][:1, ls].double()
+            fk = ent.forward_kinematics(q)
+            M = torch.zeros(1, n, n, dtype=torch.float64)
+            for i in range(ent.n_links):
+                J = ent._jacobian_at(q, i, com[0, i], fk=fk)  # (1, 6, n): the COM's velocity, the link's rate
+                R = _quat_to_R(fk[1][:, i])
+                I_w = R @ inertia[:, i] @ R.transpose(-1, -2)
+                M = M + mass[:, i, None, None] * J[:, :3].transpose(-1, -2) @ J[:, :3]
+                M = M + J[:, 3:].transpose(-1, -2) @ I_w @ J[:, 3:]
+            blocks.append((slice(d0, d0 + n), M))
+        return blocks
+
+    def _invweight(self, armature):
+        """(B, n_dofs) the limit constraint's inverse weights: diag((M0 + diag(armature))^-1) per entity with
+        limits (1 elsewhere: unused), differentiable in the armature."""
+        out = torch.ones_like(armature)
+        for d, M0 in self._limit_mass:
+            M = M0.to(armature.dtype) + torch.diag_embed(armature[:, d])
+            out = index_put(out, torch.arange(self.B, device=self.device),
+                            torch.arange(d.start, d.stop, device=self.device),
+                            torch.diagonal(torch.linalg.inv(M), dim1=-2, dim2=-1))
+        return out
 
     def _default_gains(self, entities):
         """Genesis's PD gains for what the model leaves unset: kp 100, kv 10 on revolute and prismatic
@@ -374,6 +434,9 @@ class RigidSim:
         self.param_ops[name].append((values, envs, idx))
         self.params[name] = index_put(self.params[name], envs, idx, values)
         self._params_dirty.add(name)
+        if name == "armature" and self._limit_mass:
+            self.params["invweight"] = self._invweight(self.params["armature"])
+            self._params_dirty.add("invweight")
 
     def rebuild_params(self):
         """A new rollout: parameter tensors are recomposed from the user's setter calls so a leaf
@@ -390,6 +453,9 @@ class RigidSim:
                 p = index_put(p, envs, idx, remake() if remake is not None else values.detach())
             self.params[name] = p
             self._params_dirty.add(name)
+        if self.param_ops["armature"] and self._limit_mass:
+            self.params["invweight"] = self._invweight(self.params["armature"])
+            self._params_dirty.add("invweight")
 
     def set_force_range(self, lo, hi, envs, idx):
         self.force_lo = index_put(self.force_lo, envs, idx, lo.detach())

@@ -1,7 +1,9 @@
 """Stages 4-5, passive and actuation forces, assembled with the bias into the generalised force.
 
-Diagonal stiffness K and damping D are treated implicitly, (M + h D + h^2 K) qacc = f(q, v) - h K v:
-with every integrator, the joint-limit springs (stiff by design); with implicitfast, the joint damping,
+Joint limits are Genesis's soft constraint by default (func_limit_constraint: a term on M's diagonal and in
+the force, linear in qacc, released by the solve where it would pull: func_limit_release), or, on request,
+penalty springs. Diagonal stiffness K and damping D are treated implicitly, (M + h D + h^2 K) qacc = f(q, v) -
+h K v: with every integrator, the joint-limit springs (stiff by design); with implicitfast, the joint damping,
 the friction-loss slope and the PD's kp and kv while the actuator is not saturated (a saturated one no
 longer responds to q or v); with approximate_implicitfast (Genesis's default integrator, v0.4.5
 rigid/abd/forward_dynamics.py, func_compute_mass_matrix's first-order correction), the joint damping,
@@ -29,6 +31,87 @@ from .math3d import func_add, func_euler_xyz_quat, func_quat_log, func_quat_mul
 
 CTRL_FORCE, CTRL_POSITION, CTRL_VELOCITY = 0, 1, 2
 FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh friction loss
+# joint-limit models (RigidCore.limits_on): none, the penalty springs (RigidOptions.joint_limit_stiffness /
+# joint_limit_damping), Genesis's soft constraint (the default)
+LIMITS_OFF, LIMITS_SPRING, LIMITS_CONSTRAINT = 0, 1, 2
+# the constraint's impedance (MuJoCo's solimp, Genesis's default joint sol_params): dmin, dmax, width (rad or
+# m), mid; power 2, which the interpolation below writes out
+IMP_DMIN, IMP_DMAX, IMP_WIDTH, IMP_MID = 0.9, 0.95, 1e-3, 0.5
+LIMIT_MIN_DIAG = 1e-15  # Genesis's floor of the constraint's regulariser invweight (1 - imp) / imp
+
+
+def limit_gains(timeconst: float, dampratio: float = 1.0):
+    """(k, b) of the limit constraint's reference acceleration aref = -b v - k imp d (MuJoCo's solref as
+    Genesis reads it: b = 2 / (dmax timeconst), k = 1 / (dmax^2 timeconst^2 dampratio^2))."""
+    return 1.0 / (IMP_DMAX * IMP_DMAX * timeconst * timeconst * dampratio * dampratio), 2.0 / (IMP_DMAX * timeconst)
+
+
+@ti.func
+def func_limit_constraint(s: ti.template(), i_b, i_d, on, q, v, lo, hi):
+    """Genesis's joint limit (v0.4.5 constraint/solver.py add_joint_limit_constraints), a soft constraint
+    on the acceleration while the joint is past a limit by d = min(q - lo, hi - q) < 0: with j = +1 at the
+    lower limit and -1 at the upper, the constraint force j f with f = D (aref - j qacc), D = imp / ((1 -
+    imp) invweight), aref = -b j v - k imp d, imp rising from dmin to dmax over the first `width` of
+    penetration. Linear in qacc, it joins the solve as D on M's diagonal and j D aref in the force (the
+    minimiser of Genesis's constraint cost while the constraint pushes; func_limit_release lets go of one
+    that pulls at the solution). Returns (force, diagonal term, j), zero where `on` is false."""
+    d_lo = q - lo
+    d_hi = hi - q
+    d = ti.min(d_lo, d_hi)
+    active = on and d < 0.0
+    j = ti.select(d_lo < d_hi, 1.0, -1.0)
+    x = ti.min(ti.max(-d, 0.0) / IMP_WIDTH, 1.0)
+    y = ti.select(x < IMP_MID, 2.0 * x * x, 1.0 - 2.0 * (1.0 - x) * (1.0 - x))
+    imp = IMP_DMIN + y * (IMP_DMAX - IMP_DMIN)
+    aref = -s.limit_d * j * v - s.limit_k * imp * d
+    D = 1.0 / ti.max(s.dof_invweight[i_b, i_d] * (1.0 - imp) / imp, LIMIT_MIN_DIAG)
+    return ti.select(active, j * D * aref, 0.0), ti.select(active, D, 0.0), ti.select(active, j, 0.0)
+
+
+LIMIT_ROUNDS = 4  # solves again after releasing pulling limit constraints, at most (each round releases >= 1)
+
+
+@ti.func
+def func_limit_release(s: ti.template(), i_b, e):
+    """Genesis's limit constraint is one-sided: at the solution qacc[e] of the system with every active limit,
+    one whose force j (lim_f - lim_D qacc) pulls (the joint would leave the limit faster than its reference
+    acceleration asks) is released: its terms leave M's diagonal and the force (dof_lim_off), as the active
+    set of Genesis's Newton solve drops it. Returns how many it released; the caller solves again (the same
+    final solve) while one is. A released limit stays out for the evaluation (releases only: the rounds end).
+    Differentiable as the system it leaves (func_limit_release_grad)."""
+    n = 0
+    for i_d in range(s.n_dofs):
+        D = s.dof_lim_D[i_b, i_d]
+        if D > 0.0 and s.dof_lim_off[i_b, i_d] == 0:
+            if s.dof_lim_j[i_b, i_d] * (s.dof_lim_f[i_b, i_d] - D * s.qacc[e, i_b, i_d]) < 0.0:
+                s.dof_lim_off[i_b, i_d] = 1
+                s.mass_mat[i_b, i_d, i_d] = s.mass_mat[i_b, i_d, i_d] - D
+                s.force[i_b, i_d] = s.force[i_b, i_d] - s.dof_lim_f[i_b, i_d]
+                n += 1
+    return n
+
+
+@ti.func
+def func_limit_rounds_next(s: ti.template(), i_b, e, r):
+    """After a final solve in the fused step: r + 1 when round r released a limit constraint (solve again),
+    else -1 (done; also past LIMIT_ROUNDS, or without limit constraints)."""
+    nxt = -1
+    if s.limits_on == LIMITS_CONSTRAINT and r < LIMIT_ROUNDS:
+        if func_limit_release(s, i_b, e) > 0:
+            nxt = r + 1
+    return nxt
+
+
+@ti.func
+def func_limit_release_grad(s: ti.template(), i_b, e, y: ti.template()):
+    """Adjoint of the releases, right after the final solve's adjoint (y[0, i_b] = A^-1 qacc_bar, which that
+    adjoint added to force_bar and, as -y qacc^T, to M_bar): a released limit's terms were subtracted from the
+    final system after the dynamics added them, so the final solve's share of their adjoints is taken back
+    out (what the earlier solves of a contact scene, made with the limit in, gave them stays)."""
+    for i_d in range(s.n_dofs):
+        if s.dof_lim_off[i_b, i_d] == 1:
+            s.dof_lim_f.grad[i_b, i_d] = s.dof_lim_f.grad[i_b, i_d] - y[0, i_b, i_d]
+            s.dof_lim_D.grad[i_b, i_d] = s.dof_lim_D.grad[i_b, i_d] + y[0, i_b, i_d] * s.qacc[e, i_b, i_d]
 
 
 @ti.func
@@ -117,12 +200,19 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         # joint-limit springs, one-sided; their damping acts only while moving further out
         lim_lo = s.dof_limit_lo[i_d]
         lim_hi = s.dof_limit_hi[i_d]
-        below = s.limits_on and i_q >= 0 and q < lim_lo
-        above = s.limits_on and i_q >= 0 and q > lim_hi
+        springs = s.limits_on == LIMITS_SPRING
+        below = springs and i_q >= 0 and q < lim_lo
+        above = springs and i_q >= 0 and q > lim_hi
         lim_f = ti.select(below, s.limit_k * (lim_lo - q) - s.limit_d * ti.min(v, 0.0),
                           ti.select(above, s.limit_k * (lim_hi - q) - s.limit_d * ti.max(v, 0.0), 0.0))
         lim_K = ti.select(below or above, s.limit_k, 0.0)
         lim_D = ti.select((below and v < 0) or (above and v > 0), s.limit_d, 0.0)
+        con_f, con_D, con_j = func_limit_constraint(s, i_b, i_d, s.limits_on == LIMITS_CONSTRAINT and i_q >= 0, q,
+                                                    v, lim_lo, lim_hi)
+        s.dof_lim_D[i_b, i_d] = con_D
+        s.dof_lim_f[i_b, i_d] = con_f
+        s.dof_lim_j[i_b, i_d] = con_j
+        s.dof_lim_off[i_b, i_d] = 0
         # stiffness/damping treated implicitly: PD and passive terms with the implicit integrators only,
         # joint-limit springs always (they are constraints, stiff by design). approximate_implicitfast
         # (Genesis's): kv whether or not the actuator is saturated, kp never
@@ -130,11 +220,11 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         K = lim_K + s.implicit_on * (1.0 - kv_only) * kp * free_act
         D = lim_D + s.implicit_on * (kv * (free_act + kv_only * (1.0 - free_act)) + damp
                                      + fl * (1.0 - th * th) / FRICTIONLOSS_VEL)
-        s.force[i_b, i_d] = tau - damp * v - spring - fl * th - s.bias[i_b, i_d] + lim_f - h * K * v
+        s.force[i_b, i_d] = tau - damp * v - spring - fl * th - s.bias[i_b, i_d] + lim_f + con_f - h * K * v
         # Genesis's dofs_state.force (get_dofs_force): actuator, damping and spring less the bias; its joint
         # limits and friction loss are constraints, not part of it
         s.dof_qf[i_b, i_d] = tau - damp * v - spring - s.bias[i_b, i_d]
-        diag = s.dof_armature[i_b, i_d] + h * D + h * h * K
+        diag = s.dof_armature[i_b, i_d] + h * D + h * h * K + con_D
         if ti.static(s.requires_grad):
             s.mass_mat[i_b, i_d, i_d] += diag
         else:  # see math3d.func_add

@@ -9,7 +9,7 @@ One compile serves every robot. Taichi bakes the fields a kernel touches, and ev
 reads while compiling, into the compiled kernel, keyed by the object that owns the kernel. So the
 fields and kernels live in a RigidCore whose fields are sized by a capacity class (envs, elements:
 links/dofs/qs, state slots) rather than by the scene, and the scene's sizes (n_envs, n_links, n_dofs,
-n_qs) and options (joint-limit springs, implicit terms) are read at run time from its small `cfg`
+n_qs) and options (the joint-limit model and its gains, implicit terms) are read at run time from its small `cfg`
 fields (see `_runtime`). A scene takes a core of its class from the pool (pool.py) and gives it back
 when it dies, so a second scene of that class, any robot, compiles nothing.
 
@@ -23,7 +23,8 @@ state_io.py.
 import taichi as ti
 
 from .. import taichi_compat
-from .actuation import func_generalized_force
+from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_generalized_force, func_limit_release,
+                        func_limit_release_grad, func_limit_rounds_next)
 from .bias import BIAS, func_link_forces
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
 from .external import AppliedWrench, func_applied_wrench
@@ -153,6 +154,13 @@ class RigidCore:
         self.link_mass, self.link_com, self.link_inertia = s3(), v3(), m3()
         self.dof_damping, self.dof_armature, self.dof_frictionloss = s3(), s3(), s3()
         self.dof_kp, self.dof_kv, self.dof_stiffness = s3(), s3(), s3()
+        # the joint-limit constraint's inverse weight (M^-1)_jj at qpos0 (actuation.func_limit_constraint)
+        self.dof_invweight = s3()
+        # the limit constraint of the evaluation: its term on M's diagonal and in the force, its direction
+        # (+1 lower limit, -1 upper), and whether the solve released it (actuation.func_limit_release)
+        self.dof_lim_D, self.dof_lim_f = s3(), s3()
+        self.dof_lim_j = s3(False)
+        self.dof_lim_off = ti.field(ti.i32)
         self.dof_force_lo, self.dof_force_hi = s3(False), s3(False)
         self.gravity = v3()
         # controls
@@ -176,7 +184,8 @@ class RigidCore:
         self.solve_tmp = s3(False)
         elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
                 self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.dof_force_lo,
-                self.dof_force_hi, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos,
+                self.dof_force_hi, self.dof_invweight, self.dof_lim_D, self.dof_lim_f, self.dof_lim_j,
+                self.dof_lim_off, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos,
                 self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
                 self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m,
                 self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force,
@@ -200,11 +209,11 @@ class RigidCore:
         state = [self.qpos, self.qvel, self.qacc, self.qvel_move]
         params = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
                   self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.gravity, self.ctrl_force,
-                  self.ctrl_pos, self.ctrl_vel]
+                  self.ctrl_pos, self.ctrl_vel, self.dof_invweight]
         scratch = [self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J,
                    self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w,
                    self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f,
-                   self.mass_mat, self.bias, self.force]
+                   self.mass_mat, self.bias, self.force, self.dof_lim_D, self.dof_lim_f]
         self.zero_plan = ZeroPlan([self.mass_mat, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v], [], N)
         self.grad_fields0 = [x.grad for x in params + scratch] if g else []
         self.grad_fields1 = [x.grad for x in state] if g else []
@@ -324,6 +333,26 @@ class RigidCore:
             self.contact.factor_solve(self, e)
         else:
             self.kernel_mass_solve(e, False)
+            self.release_limits(e)
+
+    def release_limits(self, e: int):
+        """The final solve again while it releases limit constraints that pull (actuation.func_limit_release;
+        the gradient path's form of the fused step's rounds)."""
+        if self.limits_on == LIMITS_CONSTRAINT:
+            r = 0
+            while r < LIMIT_ROUNDS and self.kernel_limit_release(e) > 0:
+                self.kernel_mass_solve(e, False)
+                r += 1
+
+    @ti.kernel
+    def kernel_limit_release(self, e: ti.i32) -> ti.i32:
+        n = 0
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                n += func_limit_release(self, i_b, e)
+        return n
 
     def kernel_solve_grad(self, e: int):
         if self.has_contact:
@@ -341,8 +370,10 @@ class RigidCore:
             if i_b < self.n_envs:
                 if ti.static(adjoint and self.dense_solve):
                     func_solve_grad_dense(self, i_b, e)
+                    func_limit_release_grad(self, i_b, e, self.contact.solve_tmp)
                 elif ti.static(adjoint):
                     func_solve_grad(self, i_b, e)
+                    func_limit_release_grad(self, i_b, e, self.solve_tmp)
                 elif ti.static(self.dense_solve):
                     func_factor_solve_dense(self, i_b, e)
                 else:
@@ -385,10 +416,15 @@ class RigidCore:
                     elif op == OP_SOLVE:
                         if ti.static(self.has_contact):
                             func_contact_solve(self, i_b, e)
-                        elif ti.static(self.dense_solve):
-                            func_factor_solve_dense(self, i_b, e)
                         else:
-                            func_factor_solve(self, i_b, e)
+                            # the solve, then again while it releases limit constraints that pull
+                            r = 0
+                            while r >= 0:
+                                if ti.static(self.dense_solve):
+                                    func_factor_solve_dense(self, i_b, e)
+                                else:
+                                    func_factor_solve(self, i_b, e)
+                                r = func_limit_rounds_next(self, i_b, e, r)
                     else:
                         for stage in ti.static(INTEGRATE):
                             stage(self, i_b, kind, e, base, src, dst, h)

@@ -30,7 +30,7 @@ import taichi as ti
 from ..taichi_compat.adstack import require as require_ad_stack
 from ..taichi_compat.compile_options import AdjointCompile, ForwardCompile
 from . import state_io
-from .actuation import func_generalized_force
+from .actuation import LIMITS_CONSTRAINT, LIMITS_OFF, LIMITS_SPRING, func_generalized_force, limit_gains
 from .contact import ContactPlan
 from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
                    I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
@@ -71,8 +71,9 @@ class RigidSolver:
     NO_NAN = NO_NAN
 
     def __init__(self, models: List[EntityModel], n_envs: int, dt: float, substeps: int, integrator: int,
-                 gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k: float, limit_d: float,
-                 contact_options=None, mimic=False, external_wrench=False, specialize=None, applied_wrench=False):
+                 gravity, dtype, requires_grad: bool, enable_joint_limit: bool, limit_k, limit_d,
+                 contact_options=None, mimic=False, external_wrench=False, specialize=None, applied_wrench=False,
+                 limit_timeconst=0.01):
         self.models = models
         self.dtype = dtype
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
@@ -85,9 +86,17 @@ class RigidSolver:
         self.implicit_kv_only = 1.0 if integrator == Integrator.approximate_implicitfast else 0.0
         self.requires_grad = requires_grad
         self.enable_joint_limit = enable_joint_limit
-        self.limits_on = bool(enable_joint_limit)
-        self.limit_k = limit_k
-        self.limit_d = limit_d
+        # joint limits: penalty springs when limit_k / limit_d are numbers, else Genesis's constraint with the
+        # time constant limit_timeconst (actuation.func_limit_constraint; its gains ride in the same cfg slots)
+        self.limit_model = (LIMITS_OFF if not enable_joint_limit else
+                            LIMITS_SPRING if limit_k is not None else LIMITS_CONSTRAINT)
+        self.limits_on = self.limit_model != LIMITS_OFF
+        if self.limit_model == LIMITS_CONSTRAINT:
+            # Genesis: the time constant at least twice the substep (rigid_solver.py _sanitize_sol_params)
+            self.limit_timeconst = max(float(limit_timeconst), 2.0 * dt / substeps)
+            self.limit_k, self.limit_d = limit_gains(self.limit_timeconst)
+        else:
+            self.limit_k, self.limit_d = limit_k, limit_d
         self.flat = FlatModel(models, bool(mimic))
         self.n_links, self.n_qs, self.n_dofs = self.flat.n_links, self.flat.n_qs, self.flat.n_dofs
         self._schedule()
@@ -192,11 +201,11 @@ class RigidSolver:
     def _cfg(self):
         cfg = [0] * N_CFG_I + [0.0] * N_CFG_F
         cfg[I_ENVS], cfg[I_LINKS], cfg[I_DOFS], cfg[I_QS] = self.n_envs, self.n_links, self.n_dofs, self.n_qs
-        cfg[I_QPOS_LEN], cfg[I_QVEL_LEN], cfg[I_LIMITS_ON] = self.flat.qpos_len, self.flat.qvel_len, int(self.limits_on)
+        cfg[I_QPOS_LEN], cfg[I_QVEL_LEN], cfg[I_LIMITS_ON] = self.flat.qpos_len, self.flat.qvel_len, self.limit_model
         cfg[I_ELEMS] = max(self.n_links, self.n_dofs, self.n_qs, 1)
         cfg[I_ANC] = len(self.flat.np_anc_pairs)
-        cfg[N_CFG_I + F_LIMIT_K] = float(self.limit_k)
-        cfg[N_CFG_I + F_LIMIT_D] = float(self.limit_d)
+        cfg[N_CFG_I + F_LIMIT_K] = float(self.limit_k or 0.0)
+        cfg[N_CFG_I + F_LIMIT_D] = float(self.limit_d or 0.0)
         cfg[N_CFG_I + F_IMPLICIT_ON] = float(self.implicit_on)
         cfg[N_CFG_I + F_IMPLICIT_KV_ONLY] = float(self.implicit_kv_only)
         return cfg
@@ -206,7 +215,7 @@ class RigidSolver:
         L, D = self.n_links, self.n_dofs
         return [("mass", L), ("com", 3 * L), ("inertia", 9 * L), ("damping", D), ("armature", D),
                 ("frictionloss", D), ("kp", D), ("kv", D), ("stiffness", D), ("gravity", 3), ("force_lo", D),
-                ("force_hi", D)]
+                ("force_hi", D), ("invweight", D)]
 
     def initial_params(self, gravity):
         """numpy (n_envs, ...) arrays of every parameter of param_layout as built from the models."""
@@ -220,7 +229,8 @@ class RigidSolver:
                 "damping": tile(m.np_dof_damping), "armature": tile(m.np_dof_armature),
                 "frictionloss": tile(m.np_dof_frictionloss), "kp": tile(zeros), "kv": tile(zeros),
                 "stiffness": tile(m.np_dof_stiffness),
-                "gravity": tile(np.asarray(gravity, dtype=float)), "force_lo": tile(-eff), "force_hi": tile(eff)}
+                "gravity": tile(np.asarray(gravity, dtype=float)), "force_lo": tile(-eff), "force_hi": tile(eff),
+                "invweight": tile(np.ones(self.n_dofs))}
 
     def _fill_info(self, gravity):
         m = self.flat

@@ -11,7 +11,7 @@ import taichi as ti
 # Every torch tensor passed to a kernel costs ~30 us here, so each crossing packs its data in one:
 # state x = [qpos | qvel] (B, n_qs + n_dofs), controls c = [force; pos; vel] (B, 3, n_dofs),
 # parameters p = [mass | com | inertia | damping | armature | frictionloss | kp | kv | stiffness | gravity |
-# force_lo | force_hi] (B, 13 n_links + 8 n_dofs + 3), see param_layout.
+# force_lo | force_hi | invweight] (B, 13 n_links + 9 n_dofs + 3), see param_layout.
 
 
 @ti.kernel
@@ -123,6 +123,7 @@ def kernel_set_params(s: ti.template(), p: ti.types.ndarray()):
                 s.dof_stiffness[i_b, i] = p[i_b, o + 5 * D + i]
                 s.dof_force_lo[i_b, i] = p[i_b, o + 6 * D + 3 + i]
                 s.dof_force_hi[i_b, i] = p[i_b, o + 7 * D + 3 + i]
+                s.dof_invweight[i_b, i] = p[i_b, o + 8 * D + 3 + i]
             for k in ti.static(range(3)):
                 s.gravity[i_b][k] = p[i_b, o + 6 * D + k]
 
@@ -130,7 +131,7 @@ def kernel_set_params(s: ti.template(), p: ti.types.ndarray()):
 @ti.kernel
 def kernel_get_param_grads(s: ti.template(), g: ti.types.ndarray()):
     """Adjoints of the differentiable parameters into g, packed like kernel_set_params without the
-    force range (B, 13 n_links + 6 n_dofs + 3)."""
+    force range (B, 13 n_links + 7 n_dofs + 3)."""
     if ti.static(s.serial):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
@@ -151,6 +152,7 @@ def kernel_get_param_grads(s: ti.template(), g: ti.types.ndarray()):
                 g[i_b, o + 3 * D + i] = s.dof_kp.grad[i_b, i]
                 g[i_b, o + 4 * D + i] = s.dof_kv.grad[i_b, i]
                 g[i_b, o + 5 * D + i] = s.dof_stiffness.grad[i_b, i]
+                g[i_b, o + 6 * D + 3 + i] = s.dof_invweight.grad[i_b, i]
             for k in ti.static(range(3)):
                 g[i_b, o + 6 * D + k] = s.gravity.grad[i_b][k]
 

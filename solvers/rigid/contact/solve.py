@@ -8,6 +8,7 @@ from .passes import (BOUND_ROUNDS, func_coulomb_listed, func_friction_or_bound, 
                      func_link_motion, func_relinearise_listed)
 from .rounds import func_normal_round_listed, func_normal_rounds
 from .report import func_contact_report
+from ..actuation import func_limit_rounds_next
 
 
 @ti.func
@@ -66,17 +67,28 @@ def func_contact_solve(s: ti.template(), i_b, e):
         # the friction pass (phase 1), then the final solve, then bound rounds (phase 2) while one
         # changes the system: one loop, so that the two passes share one copy of their sums and the
         # final solve is compiled once
+        # then (phase 3) the final solve again while it releases a joint-limit constraint that pulls
+        # (actuation.func_limit_release; ContactSolver.factor_solve's order)
         rounds = 0
+        limit_round = 0
         go = 1
         while go == 1:
-            solve = func_friction_or_bound(s, i_b, phase)
+            solve = 1
+            if phase < 3:
+                solve = func_friction_or_bound(s, i_b, phase)
             go = 0
             if solve == 1:
                 func_final_solve(s, i_b, e)
-                if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
-                    rounds += 1
-                    func_keep_for_bound(s, i_b, e)
-                    phase = 2
+                if phase < 3:
+                    if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
+                        rounds += 1
+                        func_keep_for_bound(s, i_b, e)
+                        phase = 2
+                        go = 1
+            if go == 0:
+                limit_round = func_limit_rounds_next(s, i_b, e, limit_round)
+                if limit_round > 0:
+                    phase = 3
                     go = 1
     func_contact_report(s, i_b, e)
 
@@ -113,6 +125,7 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
     rnd = 0
     rounds = 0
     normal_rounds = 0
+    limit_round = 0
     if c.n_on[i_b] == 0:
         rnd = 3
     while rnd < 4:
@@ -127,7 +140,9 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
         if rnd == 3:
             func_static_store(s, y, s.qacc, e, i_b)
             rnd = 4
-            if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
+            if limit_round > 0:  # a limit round's solve: no bound rounds after it (func_contact_solve's phase 3)
+                phase = 3
+            elif (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
                 rounds += 1
                 func_keep_for_bound(s, i_b, e)
                 phase = 2
@@ -148,6 +163,10 @@ def func_contact_solve_rounds(s: ti.template(), i_b, e):
             if nxt == 2:
                 func_coulomb_listed(s, i_b)
             rnd = nxt
-        if phase > 0:
+        if (phase == 1) | (phase == 2):
             if func_friction_or_bound(s, i_b, phase) == 1:
+                rnd = 3
+        if rnd == 4:  # the final solution: solve again while it releases a limit constraint that pulls
+            limit_round = func_limit_rounds_next(s, i_b, e, limit_round)
+            if limit_round > 0:
                 rnd = 3

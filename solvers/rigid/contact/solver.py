@@ -388,6 +388,7 @@ class ContactSolver:
             self.kernel_run(s, f"bound{self.rounds}")
             s.kernel_mass_solve(e, False)
             self.rounds += 1
+        s.release_limits(e)
         self.kernel_report(s, e)
 
     def solve_grad(self, s, e: int):

@@ -1,0 +1,115 @@
+"""Joint limits: Genesis's (and MuJoCo's) soft limit constraint, the default (solvers/rigid/actuation.py,
+func_limit_constraint and func_limit_release).
+
+- Against MuJoCo on the same file: a double pendulum thrown into narrowed limits (both joints past a limit,
+  pushed back and released) follows MuJoCo's mj_step with its default solref / solimp to round-off, with
+  either integrator; the constraint's inverse weights are MuJoCo's dof_invweight0.
+- Every path that computes a step gives the same numbers: the fused step, the gradient path's op-by-op
+  launches, a scene with a plane the arm never reaches (the contact solve's own release rounds, and the
+  gradient path's lazy contact check), a specialised core (the unrolled factorisation).
+- The springs stay available (RigidOptions(joint_limit_stiffness=...)), and without limits nothing is
+  computed for them.
+Gradients through active and released limits, and through the inverse weights' dependence on the armature,
+are in the gradient matrix (tests/gradient_cases.py, the arm_limit cases).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import genesis_lite as gs
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import scenes as S  # noqa: E402
+
+DT = 0.01
+LIMITS = ((-0.5, 0.5), (-0.7, 0.4))  # rad: the pendulum's two joints
+Q0, V0 = np.array([0.3, -0.2]), np.array([4.0, -3.0])  # thrown into both upper limits, then the lower of joint 1
+
+
+@pytest.fixture(scope="module")
+def pendulum_urdf(tmp_path_factory):
+    """assets/urdf/double_pendulum.urdf with its wide limits narrowed to LIMITS."""
+    text = S.PENDULUM_URDF.read_text()
+    for lo, hi in LIMITS:
+        text = text.replace('lower="-12.566" upper="12.566"', f'lower="{lo}" upper="{hi}"', 1)
+    path = tmp_path_factory.mktemp("limits") / "double_pendulum_limited.urdf"
+    path.write_text(text)
+    return path
+
+
+def _pendulum(urdf, n_steps, integrator="approximate_implicitfast", requires_grad=False, plane=False, **rigid):
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=DT, gravity=(0.0, 0.0, -S.G), requires_grad=requires_grad),
+                     rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator), **rigid))
+    if plane:  # 2 m below the pivot: the pendulum (0.9 m long) never reaches it
+        scene.add_entity(gs.morphs.Plane(pos=(0.0, 0.0, -2.0)))
+    p = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True))
+    scene.build()
+    p.set_dofs_armature(np.zeros(2))
+    p.set_dofs_damping(np.zeros(2))
+    p.set_dofs_position(torch.tensor(Q0))
+    p.set_dofs_velocity(torch.tensor(V0))
+    out = []
+    for _ in range(n_steps):
+        scene.step()
+        out.append(np.concatenate([p.get_dofs_position().detach().numpy(), p.get_dofs_velocity().detach().numpy()]))
+    return np.array(out), scene
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast"])
+def test_limits_follow_mujoco(pendulum_urdf, integrator):
+    """150 steps of 10 ms: ours against MuJoCo's mj_step on the same URDF (default solref (0.02, 1) and solimp
+    (0.9, 0.95, 0.001, 0.5, 2), the model's dof_invweight0). Measured 2026-11-29: 9e-15 rad apart over the
+    whole run. With the penalty springs the default was before (1e4 N m/rad, 1e2 N m s/rad) the run ends up to
+    0.33 rad away from MuJoCo's (Euler)."""
+    import mujoco
+
+    ours, scene = _pendulum(pendulum_urdf, 150, integrator)
+    m = S.mujoco_from_urdf(pendulum_urdf, limits=True, contacts=False)
+    S.set_mujoco_integrator(m, integrator, DT)
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = Q0, V0
+    theirs = []
+    for _ in range(150):
+        mujoco.mj_step(m, d)
+        theirs.append(np.concatenate([d.qpos, d.qvel]))
+    theirs = np.array(theirs)
+    q = ours[:, :2]
+    # the run does what it is for: joint 1 past both of its limits, joint 2 past its upper one
+    assert q[:, 0].max() > LIMITS[0][1] + 0.01 and q[:, 0].min() < LIMITS[0][0] - 0.005
+    assert q[:, 1].max() > LIMITS[1][1] + 0.01
+    np.testing.assert_allclose(scene._rigid.params["invweight"][0].numpy(), m.dof_invweight0, rtol=1e-9)
+    np.testing.assert_allclose(ours[:, :2], theirs[:, :2], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(ours[:, 2:], theirs[:, 2:], rtol=0, atol=1e-8)
+
+
+def test_every_step_path_gives_the_same_limits(pendulum_urdf):
+    """The fused step (no gradients), the gradient path's op-by-op launches, a plane in the scene (the contact
+    solve and its release rounds; on the gradient path the lazy check runs the core's kernels), and a
+    specialised core (its factorisation unrolled): the same trajectory to round-off."""
+    ref, _ = _pendulum(pendulum_urdf, 60)
+    for kw in (dict(requires_grad=True), dict(plane=True), dict(plane=True, requires_grad=True),
+               dict(specialize_kernels=True), dict(plane=True, specialize_kernels=True)):
+        got, _ = _pendulum(pendulum_urdf, 60, **kw)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12, err_msg=str(kw))
+
+
+def test_springs_on_request_and_nothing_without_limits(pendulum_urdf):
+    """RigidOptions(joint_limit_stiffness=...) keeps the penalty springs (another trajectory, still held near
+    the limits); enable_joint_limit=False lets the joints through."""
+    con, _ = _pendulum(pendulum_urdf, 60)
+    spr, scene = _pendulum(pendulum_urdf, 60, joint_limit_stiffness=1e4, joint_limit_damping=1e2)
+    free, _ = _pendulum(pendulum_urdf, 60, enable_joint_limit=False)
+    assert np.abs(spr[:, :2] - con[:, :2]).max() > 1e-3
+    assert spr[:, 0].max() < LIMITS[0][1] + 0.15
+    assert free[:, 0].max() > LIMITS[0][1] + 0.3
+    assert scene._rigid.solver.limit_model == 1  # the springs
+    with pytest.raises(ValueError, match="joint_limit_stiffness"):
+        gs.options.RigidOptions(joint_limit_stiffness=-1.0)
+    with pytest.raises(ValueError, match="constraint_timeconst"):
+        gs.options.RigidOptions(constraint_timeconst=0.0)
