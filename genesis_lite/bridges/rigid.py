@@ -52,6 +52,9 @@ DEFAULT_KP, DEFAULT_KV = 100.0, 10.0  # Genesis's gains of a joint whose file se
 CTRL = ("force", "pos", "vel")  # rows of the packed control tensor (B, 3, n_dofs)
 
 
+SPRING_DEFAULTS = (1e4, 1e2)  # N m/rad (N/m), N m s/rad (N s/m): the limit springs' gains when one is given
+
+
 def _limit_springs(rigid_options):
     """(stiffness, damping) of the joint-limit springs when either option is given (the other at
     SPRING_DEFAULTS), else (None, None): Genesis's limit constraint."""
@@ -59,9 +62,6 @@ def _limit_springs(rigid_options):
     if k is None and d is None:
         return None, None
     return (SPRING_DEFAULTS[0] if k is None else k), (SPRING_DEFAULTS[1] if d is None else d)
-
-
-SPRING_DEFAULTS = (1e4, 1e2)  # N m/rad (N/m), N m s/rad (N s/m): the limit springs' gains when one is given
 
 
 class RigidSim:
@@ -159,18 +159,26 @@ class RigidSim:
                 I_w = R @ inertia[:, i] @ R.transpose(-1, -2)
                 M = M + mass[:, i, None, None] * J[:, :3].transpose(-1, -2) @ J[:, :3]
                 M = M + J[:, 3:].transpose(-1, -2) @ I_w @ J[:, 3:]
-            blocks.append((slice(d0, d0 + n), M))
+            blocks.append((slice(d0, d0 + n), M, ent.name))
         return blocks
 
     def _invweight(self, armature):
         """(B, n_dofs) the limit constraint's inverse weights: diag((M0 + diag(armature))^-1) per entity with
         limits (1 elsewhere: unused), differentiable in the armature."""
         out = torch.ones_like(armature)
-        for d, M0 in self._limit_mass:
+        for d, M0, name in self._limit_mass:
             M = M0.to(armature.dtype) + torch.diag_embed(armature[:, d])
+            inv, info = torch.linalg.inv_ex(M)
+            w = torch.diagonal(inv, dim1=-2, dim2=-1)
+            if bool((info != 0).any()) or not bool(torch.isfinite(w).all() and (w > 0).all()):
+                raise GenesisException(
+                    f"entity '{name}': its joint-space mass matrix at the initial configuration, armature included, "
+                    "is singular (a joint moves no mass and has no armature), and the joint-limit constraint needs "
+                    "its inverse (Genesis's dofs_invweight). Give the links a mass and inertia or the joints an "
+                    "armature (gs.morphs.URDF / MJCF(default_armature=0.1), set_dofs_armature), or use penalty "
+                    "springs for the limits (gs.options.RigidOptions(joint_limit_stiffness=1e4)).")
             out = index_put(out, torch.arange(self.B, device=self.device),
-                            torch.arange(d.start, d.stop, device=self.device),
-                            torch.diagonal(torch.linalg.inv(M), dim1=-2, dim2=-1))
+                            torch.arange(d.start, d.stop, device=self.device), w)
         return out
 
     def _default_gains(self, entities):

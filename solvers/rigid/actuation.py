@@ -80,7 +80,10 @@ def func_limit_release(s: ti.template(), i_b, e):
     final solve) while one is. A released limit stays out for the evaluation (releases only: the rounds end).
     Differentiable as the system it leaves (func_limit_release_grad)."""
     n = 0
-    for i_d in range(s.n_dofs):
+    # with gradients every dof (the active ones have D > 0), without the list of the active ones (the same
+    # dofs in the same order)
+    for k in range(s.n_dofs if ti.static(s.requires_grad) else s.dof_lim_n[i_b]):
+        i_d = k if ti.static(s.requires_grad) else s.dof_lim_list[i_b, k]
         D = s.dof_lim_D[i_b, i_d]
         if D > 0.0 and s.dof_lim_off[i_b, i_d] == 0:
             if s.dof_lim_j[i_b, i_d] * (s.dof_lim_f[i_b, i_d] - D * s.qacc[e, i_b, i_d]) < 0.0:
@@ -164,6 +167,8 @@ def func_pd_error(s: ti.template(), i_b, src, i_l, j, free_rot, pos_on, lin_err)
 def func_generalized_force(s: ti.template(), i_b, e, src, h):
     """force = actuation + passive + joint limits - bias; adds the implicit terms to M's diagonal.
     h is the (sub)step length. Single-assignment form (see kinematics.py)."""
+    if ti.static(not s.requires_grad):
+        s.dof_lim_n[i_b] = 0
     for i_d in range(s.n_dofs):
         v = s.qvel[src, i_b, i_d]
         i_q = s.dof_q[i_d]
@@ -207,12 +212,26 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
                           ti.select(above, s.limit_k * (lim_hi - q) - s.limit_d * ti.max(v, 0.0), 0.0))
         lim_K = ti.select(below or above, s.limit_k, 0.0)
         lim_D = ti.select((below and v < 0) or (above and v > 0), s.limit_d, 0.0)
-        con_f, con_D, con_j = func_limit_constraint(s, i_b, i_d, s.limits_on == LIMITS_CONSTRAINT and i_q >= 0, q,
-                                                    v, lim_lo, lim_hi)
-        s.dof_lim_D[i_b, i_d] = con_D
-        s.dof_lim_f[i_b, i_d] = con_f
-        s.dof_lim_j[i_b, i_d] = con_j
-        s.dof_lim_off[i_b, i_d] = 0
+        con_on = s.limits_on == LIMITS_CONSTRAINT and i_q >= 0
+        con_f = 0.0
+        con_D = 0.0
+        if ti.static(s.requires_grad):
+            con_f, con_D, con_j = func_limit_constraint(s, i_b, i_d, con_on, q, v, lim_lo, lim_hi)
+            s.dof_lim_D[i_b, i_d] = con_D
+            s.dof_lim_f[i_b, i_d] = con_f
+            s.dof_lim_j[i_b, i_d] = con_j
+            s.dof_lim_off[i_b, i_d] = 0
+        elif con_on and (q < lim_lo or q > lim_hi):
+            # without gradients only a joint past a limit computes its constraint, and is listed for the
+            # release (func_limit_release); nothing is stored for the others
+            con_f, con_D, con_j = func_limit_constraint(s, i_b, i_d, con_on, q, v, lim_lo, lim_hi)
+            k = s.dof_lim_n[i_b]
+            s.dof_lim_list[i_b, k] = i_d
+            s.dof_lim_n[i_b] = k + 1
+            s.dof_lim_D[i_b, i_d] = con_D
+            s.dof_lim_f[i_b, i_d] = con_f
+            s.dof_lim_j[i_b, i_d] = con_j
+            s.dof_lim_off[i_b, i_d] = 0
         # stiffness/damping treated implicitly: PD and passive terms with the implicit integrators only,
         # joint-limit springs always (they are constraints, stiff by design). approximate_implicitfast
         # (Genesis's): kv whether or not the actuator is saturated, kp never

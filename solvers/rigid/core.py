@@ -161,6 +161,8 @@ class RigidCore:
         self.dof_lim_D, self.dof_lim_f = s3(), s3()
         self.dof_lim_j = s3(False)
         self.dof_lim_off = ti.field(ti.i32)
+        # without gradients: the dofs whose limit is active, and how many (the release visits those only)
+        self.dof_lim_list, self.dof_lim_n = ti.field(ti.i32), ti.field(ti.i32)
         self.dof_force_lo, self.dof_force_hi = s3(False), s3(False)
         self.gravity = v3()
         # controls
@@ -185,12 +187,12 @@ class RigidCore:
         elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
                 self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.dof_force_lo,
                 self.dof_force_hi, self.dof_invweight, self.dof_lim_D, self.dof_lim_f, self.dof_lim_j,
-                self.dof_lim_off, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos,
+                self.dof_lim_off, self.dof_lim_list, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos,
                 self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
                 self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m,
                 self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force,
                 self.dof_tau, self.dof_qf]
-        mats, ones = [self.mass_mat, self.mass_fac], [self.gravity]
+        mats, ones = [self.mass_mat, self.mass_fac], [self.gravity, self.dof_lim_n]
         slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.qvel_move]), (1, [self.solve_tmp])]
         _place_env_major(B, N, elem, mats, ones, slots)
         if g:
