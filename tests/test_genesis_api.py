@@ -260,8 +260,17 @@ def test_aabb_slices_masks_and_small_names(arm_path):
     with pytest.raises(gs.GenesisException, match="boolean envs_idx"):
         arm.set_dofs_position(torch.tensor([0.1, 0.1]), envs_idx=torch.tensor([True, False]))
     assert arm.base_joint is arm.joints[0] and box.base_joint.type == "free"
+    # get_dofs_invweight is Genesis's: diag(M^-1) at the initial configuration (joint angles 0 here), whatever
+    # the state, and again after set_dofs_armature
+    w = arm.get_dofs_invweight()
+    arm.set_dofs_position(torch.zeros(4, 2))
+    M = arm.get_mass_mat()[0].numpy()
+    np.testing.assert_allclose(w[0].numpy(), np.diag(np.linalg.inv(M)), rtol=1e-12)
+    arm.set_dofs_armature(torch.tensor([0.5, 0.25]))
     M = arm.get_mass_mat()[0].numpy()
     np.testing.assert_allclose(arm.get_dofs_invweight()[0].numpy(), np.diag(np.linalg.inv(M)), rtol=1e-12)
+    assert not np.allclose(w[0].numpy(), arm.get_dofs_invweight()[0].numpy())
+    np.testing.assert_allclose(box.get_dofs_invweight()[0, :3].numpy(), 1.0 / box.get_mass()[0].item(), rtol=1e-12)
     assert scene.sim.rigid_solver is scene.rigid_solver and scene.sim.solvers == [scene.rigid_solver]
     assert scene.sim.mpm_solver is None and scene.sim.dt == scene.dt
     mask = scene.rigid_solver.get_error_envs_mask()  # Genesis's spelling of it

@@ -140,12 +140,21 @@ class RigidSim:
         if not (rigid_options.enable_joint_limit and self.solver.limit_model == LIMITS_CONSTRAINT):
             return []
         lim = self.solver.flat.np_dof_limit
-        q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
         blocks = []
         for ent in entities:
             d0, n = ent._dof_start, ent.n_dofs
             if n == 0 or not np.isfinite(lim[d0:d0 + n]).any():
                 continue
+            blocks.append((slice(d0, d0 + n), self.mass_at_qpos0(ent), ent.name))
+        return blocks
+
+    def mass_at_qpos0(self, ent):
+        """(1, n, n) float64: `ent`'s joint-space mass matrix without armature at its initial configuration,
+        from the model's masses and inertias (what Genesis computes its dofs_invweight from), kept."""
+        cache = self.__dict__.setdefault("_mass0", {})
+        if ent.name not in cache:
+            n = ent.n_dofs
+            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
             q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
             ls = slice(ent._link_start, ent._link_start + ent.n_links)
             mass = self.param_base["mass"][:1, ls].double()
@@ -159,8 +168,8 @@ class RigidSim:
                 I_w = R @ inertia[:, i] @ R.transpose(-1, -2)
                 M = M + mass[:, i, None, None] * J[:, :3].transpose(-1, -2) @ J[:, :3]
                 M = M + J[:, 3:].transpose(-1, -2) @ I_w @ J[:, 3:]
-            blocks.append((slice(d0, d0 + n), M, ent.name))
-        return blocks
+            cache[ent.name] = M
+        return cache[ent.name]
 
     def _invweight(self, armature):
         """(B, n_dofs) the limit constraint's inverse weights: diag((M0 + diag(armature))^-1) per entity with

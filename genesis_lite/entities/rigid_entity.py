@@ -949,11 +949,21 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
                            envs_idx)
 
     def get_dofs_invweight(self, dofs_idx_local=None, envs_idx=None):
-        """Diagonal of the inverse joint-space mass matrix at the current state (1/kg, 1/(kg m^2)): Genesis's
-        dofs_invweight, which it computes once at the initial configuration; no gradient."""
-        M = self.get_mass_mat(envs_idx)
-        d = self._dofs(dofs_idx_local) - self._dof_start
-        return wrap(torch.diagonal(torch.linalg.inv(M), dim1=-2, dim2=-1)[..., d])
+        """Genesis's dofs_invweight (1/kg, 1/(kg m^2)): the diagonal of the inverse joint-space mass matrix at
+        the entity's initial configuration with the model's masses and the current armature (Genesis computes
+        it at build and again when set_dofs_armature changes the armature; masses set later leave it as it
+        is), a free joint's three translational and three rotational entries each their mean, as Genesis's.
+        The joint-limit constraint's impedance uses the same numbers. No gradient."""
+        envs, d = self._envs(envs_idx), self._dofs(None)
+        arm = self._sim.params["armature"].detach()[envs][:, d].double()
+        M = self._sim.mass_at_qpos0(self) + torch.diag_embed(arm)
+        w = torch.diagonal(torch.linalg.inv(M), dim1=-2, dim2=-1).clone()
+        for j in self.joints:
+            if j.type == "free":
+                k = j.dof_start_local
+                w[:, k:k + 3] = w[:, k:k + 3].mean(-1, keepdim=True)
+                w[:, k + 3:k + 6] = w[:, k + 3:k + 6].mean(-1, keepdim=True)
+        return self._out(w[:, self._dofs(dofs_idx_local) - self._dof_start].to(self._sim.dtype))
 
     def get_links_inertia(self, links_idx_local=None, envs_idx=None):
         return self._get_param("inertia", self._links(links_idx_local), envs_idx)
