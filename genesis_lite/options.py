@@ -106,10 +106,10 @@ class RigidOptions(_Options):
     the penalty model (the stiffness scaled up for pairs heavier than 100 kg). Joint limits are Genesis's (and
     MuJoCo's) soft constraint by default: past a limit by d, the constraint asks for the reference acceleration
     -b v - k imp d (b = 2 / (0.95 tc), k = 1 / (0.95 tc)^2, tc = max(constraint_timeconst, 2 substep dt), imp
-    0.9 -> 0.95 over the first mm or mrad) with an impedance that scales with the joint's inverse weight
-    (M^-1)_jj at the initial configuration (recomputed when set_dofs_armature changes the armature), and
-    lets go while the joint leaves the limit faster than that (tests/test_joint_limits.py: MuJoCo's
-    trajectories to 1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default)
+    0.9 -> 0.95 over the first mm or mrad; an MJCF joint's solreflimit / solimplimit where it has them) with
+    an impedance that scales with the joint's inverse weight (M^-1)_jj at the initial configuration
+    (recomputed when set_dofs_armature changes the armature), and lets go while the joint leaves the limit
+    faster than that (tests/test_joint_limits.py: MuJoCo's trajectories to 1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default)
     select penalty springs instead (either one given; the other then 1e4 / 1e2), genesis_lite's limits
     before 2026-11-29. contact_damping_ratio (None by default) makes the damper
     mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the

@@ -193,6 +193,7 @@ def load_mjcf(morph, material, name) -> EntityModel:
                     armature=float(m.dof_armature[d] if keeps_armature is None or keeps_armature[j]
                                    else default_armature),
                     stiffness=float(m.jnt_stiffness[j]), springref=float(m.qpos_spring[qa]) * lin,
+                    limit_solref=_limit_solref(m, j), limit_solimp=tuple(float(x) for x in m.jnt_solimp[j]),
                     kp=kp[j], kv=kv[j]))
                 joint_desc[j] = descs[-1]
                 T_prev = _trans(-anchor)
@@ -253,6 +254,15 @@ def _armature_given(path, m, joint_name) -> List[bool]:
         return ["armature" in e.attrib for e in elems]
     by_name = {e.get("name"): e for e in elems if e.get("name")}
     return ["armature" in by_name[n].attrib if n in by_name else True for n in joint_name]
+
+
+def _limit_solref(m, j):
+    """A joint's solreflimit (time constant s, damping ratio), or None where it is MuJoCo's default (0.02, 1):
+    Genesis reads an MJCF joint without one as having none (its time constant then the scene's,
+    RigidOptions.constraint_timeconst, at least twice the substep; one given explicitly as (0.02, 1) reads the
+    same here, which differs only at substeps below 10 ms)."""
+    ref = tuple(float(x) for x in m.jnt_solref[j])
+    return None if ref == (0.02, 1.0) else ref
 
 
 def _joint_efforts(m) -> np.ndarray:

@@ -34,16 +34,13 @@ FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh frict
 # joint-limit models (RigidCore.limits_on): none, the penalty springs (RigidOptions.joint_limit_stiffness /
 # joint_limit_damping), Genesis's soft constraint (the default)
 LIMITS_OFF, LIMITS_SPRING, LIMITS_CONSTRAINT = 0, 1, 2
-# the constraint's impedance (MuJoCo's solimp, Genesis's default joint sol_params): dmin, dmax, width (rad or
-# m), mid; power 2, which the interpolation below writes out
-IMP_DMIN, IMP_DMAX, IMP_WIDTH, IMP_MID = 0.9, 0.95, 1e-3, 0.5
 LIMIT_MIN_DIAG = 1e-15  # Genesis's floor of the constraint's regulariser invweight (1 - imp) / imp
 
 
-def limit_gains(timeconst: float, dampratio: float = 1.0):
+def limit_gains(timeconst, dampratio, dmax):
     """(k, b) of the limit constraint's reference acceleration aref = -b v - k imp d (MuJoCo's solref as
-    Genesis reads it: b = 2 / (dmax timeconst), k = 1 / (dmax^2 timeconst^2 dampratio^2))."""
-    return 1.0 / (IMP_DMAX * IMP_DMAX * timeconst * timeconst * dampratio * dampratio), 2.0 / (IMP_DMAX * timeconst)
+    Genesis reads it: b = 2 / (dmax timeconst), k = 1 / (dmax^2 timeconst^2 dampratio^2)); numpy arrays."""
+    return 1.0 / (dmax * dmax * timeconst * timeconst * dampratio * dampratio), 2.0 / (dmax * timeconst)
 
 
 @ti.func
@@ -52,7 +49,8 @@ def func_limit_constraint(s: ti.template(), i_b, i_d, on, q, v, lo, hi):
     on the acceleration while the joint is past a limit by d = min(q - lo, hi - q) < 0: with j = +1 at the
     lower limit and -1 at the upper, the constraint force j f with f = D (aref - j qacc), D = imp / ((1 -
     imp) invweight), aref = -b j v - k imp d, imp rising from dmin to dmax over the first `width` of
-    penetration. Linear in qacc, it joins the solve as D on M's diagonal and j D aref in the force (the
+    penetration (MuJoCo's impedance curve: two power-law pieces meeting at `mid`; the joint's solimp and, from
+    its solref, k and b: RigidSolver.limit_constraint_params). Linear in qacc, it joins the solve as D on M's diagonal and j D aref in the force (the
     minimiser of Genesis's constraint cost while the constraint pushes; func_limit_release lets go of one
     that pulls at the solution). Returns (force, diagonal term, j), zero where `on` is false."""
     d_lo = q - lo
@@ -60,15 +58,18 @@ def func_limit_constraint(s: ti.template(), i_b, i_d, on, q, v, lo, hi):
     d = ti.min(d_lo, d_hi)
     active = on and d < 0.0
     j = ti.select(d_lo < d_hi, 1.0, -1.0)
-    x = ti.min(ti.max(-d, 0.0) / IMP_WIDTH, 1.0)
-    y = ti.select(x < IMP_MID, 2.0 * x * x, 1.0 - 2.0 * (1.0 - x) * (1.0 - x))
-    imp = IMP_DMIN + y * (IMP_DMAX - IMP_DMIN)
-    aref = -s.limit_d * j * v - s.limit_k * imp * d
+    dmin, dmax, width, mid, power = (s.dof_imp[i_d][0], s.dof_imp[i_d][1], s.dof_imp[i_d][2], s.dof_imp[i_d][3],
+                                     s.dof_imp[i_d][4])
+    x = ti.min(ti.max(-d, 0.0) / width, 1.0)
+    y = ti.select(x < mid, ti.pow(x, power) / ti.pow(mid, power - 1.0),
+                  1.0 - ti.pow(1.0 - x, power) / ti.pow(1.0 - mid, power - 1.0))
+    imp = dmin + y * (dmax - dmin)
+    aref = -s.dof_lim_b[i_d] * j * v - s.dof_lim_k[i_d] * imp * d
     D = 1.0 / ti.max(s.dof_invweight[i_b, i_d] * (1.0 - imp) / imp, LIMIT_MIN_DIAG)
     return ti.select(active, j * D * aref, 0.0), ti.select(active, D, 0.0), ti.select(active, j, 0.0)
 
 
-LIMIT_ROUNDS = 4  # solves again after releasing pulling limit constraints, at most (each round releases >= 1)
+LIMIT_ROUNDS = 8  # solves again after changing the set of limit constraints, at most
 
 
 @ti.func
@@ -76,20 +77,24 @@ def func_limit_release(s: ti.template(), i_b, e):
     """Genesis's limit constraint is one-sided: at the solution qacc[e] of the system with every active limit,
     one whose force j (lim_f - lim_D qacc) pulls (the joint would leave the limit faster than its reference
     acceleration asks) is released: its terms leave M's diagonal and the force (dof_lim_off), as the active
-    set of Genesis's Newton solve drops it. Returns how many it released; the caller solves again (the same
-    final solve) while one is. A released limit stays out for the evaluation (releases only: the rounds end).
-    Differentiable as the system it leaves (func_limit_release_grad)."""
+    set of Genesis's (MuJoCo's) Newton solve drops it; and a released one that would push at the solution comes
+    back (releasing one limit can drive a coupled joint back into its own). Returns how many it changed; the
+    caller solves again (the same final solve) while one is, at most LIMIT_ROUNDS times. Differentiable as the
+    system it ends with (func_limit_release_grad)."""
     n = 0
     # with gradients every dof (the active ones have D > 0), without the list of the active ones (the same
     # dofs in the same order)
     for k in range(s.n_dofs if ti.static(s.requires_grad) else s.dof_lim_n[i_b]):
         i_d = k if ti.static(s.requires_grad) else s.dof_lim_list[i_b, k]
         D = s.dof_lim_D[i_b, i_d]
-        if D > 0.0 and s.dof_lim_off[i_b, i_d] == 0:
-            if s.dof_lim_j[i_b, i_d] * (s.dof_lim_f[i_b, i_d] - D * s.qacc[e, i_b, i_d]) < 0.0:
-                s.dof_lim_off[i_b, i_d] = 1
-                s.mass_mat[i_b, i_d, i_d] = s.mass_mat[i_b, i_d, i_d] - D
-                s.force[i_b, i_d] = s.force[i_b, i_d] - s.dof_lim_f[i_b, i_d]
+        if D > 0.0:
+            off = s.dof_lim_off[i_b, i_d]
+            push = s.dof_lim_j[i_b, i_d] * (s.dof_lim_f[i_b, i_d] - D * s.qacc[e, i_b, i_d]) > 0.0
+            if (off == 0 and not push) or (off == 1 and push):
+                sign = 1.0 - 2.0 * (1 - off)  # -1: released, +1: back
+                s.dof_lim_off[i_b, i_d] = 1 - off
+                s.mass_mat[i_b, i_d, i_d] = s.mass_mat[i_b, i_d, i_d] + sign * D
+                s.force[i_b, i_d] = s.force[i_b, i_d] + sign * s.dof_lim_f[i_b, i_d]
                 n += 1
     return n
 

@@ -146,6 +146,9 @@ class RigidCore:
         self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
         self.dof_fold_leader = I(N)  # a folded mimic follower's leader, else -1 (flatten.np_fold_leader)
         self.dof_springref = F(N, False)  # rest position of the joint spring (MJCF springref; else 0)
+        # the limit constraint's k and b (actuation.limit_gains) and solimp (dmin, dmax, width, mid, power)
+        self.dof_lim_k, self.dof_lim_b = F(N, False), F(N, False)
+        self.dof_imp = ti.Vector.field(5, f, shape=N)
         # per-env fields: declared without a shape and placed env-major (_place_env_major)
         s3 = lambda grad=g: ti.field(f, needs_grad=grad)  # noqa: E731
         v3 = lambda: ti.Vector.field(3, f, needs_grad=g)  # noqa: E731
@@ -260,6 +263,10 @@ class RigidCore:
             self.dof_mimic_mult[i] = dof_f[i, 2]
             self.dof_mimic_off[i] = dof_f[i, 3]
             self.dof_springref[i] = dof_f[i, 4]
+            self.dof_lim_k[i] = dof_f[i, 5]
+            self.dof_lim_b[i] = dof_f[i, 6]
+            for k in ti.static(range(5)):
+                self.dof_imp[i][k] = dof_f[i, 7 + k]
         for i, j in ti.ndrange(anc.shape[0], anc.shape[1]):
             self.dof_anc[i, j] = anc[i, j]
         for t in range(anc_pairs.shape[0]):

@@ -15,6 +15,8 @@ import numpy as np
 from .kinematics import JOINT_FIXED, JOINT_FREE, JOINT_PRISMATIC, JOINT_REVOLUTE
 from .model import JOINT_NQ, JOINT_NV, EntityModel
 
+# a joint's limit constraint without parameters of its own: (timeconst: the scene's, dampratio, MuJoCo's solimp)
+DEFAULT_LIMIT_SOL = (np.nan, 1.0, 0.9, 0.95, 1e-3, 0.5, 2.0)
 JTYPE = {"fixed": JOINT_FIXED, "free": JOINT_FREE, "revolute": JOINT_REVOLUTE, "prismatic": JOINT_PRISMATIC}
 
 
@@ -25,7 +27,7 @@ class FlatModel:
     def __init__(self, models: List[EntityModel], use_mimic: bool):
         parent, jtype, qstart, dstart, ndof, jpos, jquat, jaxis, ent = [], [], [], [], [], [], [], [], []
         self.entity_link_start, self.entity_q_start, self.entity_dof_start = [], [], []
-        q0, lo, hi, eff, damp, fl, arm, stiff, sref = [], [], [], [], [], [], [], [], []
+        q0, lo, hi, eff, damp, fl, arm, stiff, sref, limsol = [], [], [], [], [], [], [], [], [], []
         mass, com, inertia = [], [], []
         dof_link, dof_q = [], []
         nl = nq = nd = 0
@@ -53,6 +55,7 @@ class FlatModel:
                         dof_q.append(-1)
                         lo.append(-np.inf); hi.append(np.inf); eff.append(np.inf)
                         damp.append(0.0); fl.append(0.0); arm.append(0.0); stiff.append(0.0); sref.append(0.0)
+                        limsol.append(DEFAULT_LIMIT_SOL)
                 elif l.joint_type in ("revolute", "prismatic"):
                     q0.append(0.0)
                     dof_link.append(len(parent) - 1)
@@ -62,6 +65,10 @@ class FlatModel:
                     eff.append(l.effort if l.effort > 0 else np.inf)
                     damp.append(l.damping); fl.append(l.frictionloss); arm.append(l.armature)
                     stiff.append(l.stiffness); sref.append(l.springref)
+                    limsol.append((np.nan, 1.0) + DEFAULT_LIMIT_SOL[2:] if l.limit_solref is None else
+                                  tuple(l.limit_solref) + DEFAULT_LIMIT_SOL[2:])
+                    if l.limit_solimp is not None:
+                        limsol[-1] = limsol[-1][:2] + tuple(float(x) for x in l.limit_solimp)
                 nq += JOINT_NQ[l.joint_type]
                 nd += JOINT_NV[l.joint_type]
             nl += m.n_links
@@ -83,6 +90,9 @@ class FlatModel:
         self.np_dof_link = np.array(dof_link, dtype=np.int32)
         self.np_dof_q = np.array(dof_q, dtype=np.int32)
         self.np_dof_limit = np.stack([np.array(lo, float), np.array(hi, float)], -1).reshape(nd, 2)
+        # the limit constraint's (timeconst, dampratio, dmin, dmax, width, mid, power) per dof; timeconst nan: the
+        # scene's (RigidSolver)
+        self.np_dof_limit_sol = np.array(limsol, dtype=float).reshape(nd, 7)
         self.np_dof_effort = np.array(eff, dtype=float).reshape(nd)
         self.np_dof_damping = np.array(damp, dtype=float).reshape(nd)
         self.np_dof_frictionloss = np.array(fl, dtype=float).reshape(nd)

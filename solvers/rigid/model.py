@@ -106,6 +106,11 @@ class LinkDesc:
     stiffness: float = 0.0
     springref: float = 0.0
     mimic: Optional[MimicDesc] = None
+    # the limit constraint's MuJoCo solref (time constant s, damping ratio) and solimp (dmin, dmax, width, mid,
+    # power) of a 1-dof joint, as an MJCF file gives them (solreflimit / solimplimit); None: Genesis's defaults
+    # (time constant RigidOptions.constraint_timeconst, solimp (0.9, 0.95, 0.001, 0.5, 2))
+    limit_solref: Optional[Tuple[float, float]] = None
+    limit_solimp: Optional[Tuple[float, float, float, float, float]] = None
     kp: Optional[float] = None  # PD gains of a 1-dof joint as the file gives them; None: the scene's default
     kv: Optional[float] = None
     mass: float = 0.0

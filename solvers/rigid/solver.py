@@ -86,17 +86,14 @@ class RigidSolver:
         self.implicit_kv_only = 1.0 if integrator == Integrator.approximate_implicitfast else 0.0
         self.requires_grad = requires_grad
         self.enable_joint_limit = enable_joint_limit
-        # joint limits: penalty springs when limit_k / limit_d are numbers, else Genesis's constraint with the
-        # time constant limit_timeconst (actuation.func_limit_constraint; its gains ride in the same cfg slots)
+        # joint limits: penalty springs when limit_k / limit_d are numbers (their gains in the cfg), else Genesis's
+        # constraint (actuation.func_limit_constraint; its parameters per dof, limit_constraint_params)
         self.limit_model = (LIMITS_OFF if not enable_joint_limit else
                             LIMITS_SPRING if limit_k is not None else LIMITS_CONSTRAINT)
         self.limits_on = self.limit_model != LIMITS_OFF
-        if self.limit_model == LIMITS_CONSTRAINT:
-            # Genesis: the time constant at least twice the substep (rigid_solver.py _sanitize_sol_params)
-            self.limit_timeconst = max(float(limit_timeconst), 2.0 * dt / substeps)
-            self.limit_k, self.limit_d = limit_gains(self.limit_timeconst)
-        else:
-            self.limit_k, self.limit_d = limit_k, limit_d
+        # the constraint's default time constant (a joint without its own: limit_constraint_params)
+        self.limit_timeconst = float(limit_timeconst)
+        self.limit_k, self.limit_d = (limit_k, limit_d) if self.limit_model == LIMITS_SPRING else (0.0, 0.0)
         self.flat = FlatModel(models, bool(mimic))
         self.n_links, self.n_qs, self.n_dofs = self.flat.n_links, self.flat.n_qs, self.flat.n_dofs
         self._schedule()
@@ -210,6 +207,24 @@ class RigidSolver:
         cfg[N_CFG_I + F_IMPLICIT_KV_ONLY] = float(self.implicit_kv_only)
         return cfg
 
+    def limit_constraint_params(self):
+        """(n_dofs, 7): each dof's limit constraint (k, b, dmin, dmax, width, mid, power), Genesis's reading of the
+        joint's solref / solimp (rigid_solver.py _sanitize_sol_params): the time constant the joint's own or, where
+        it has none (or a MuJoCo direct one, solref < 0), the scene's (limit_timeconst), at least twice the
+        substep; dmin, dmax, mid clipped to [1e-4, 0.9999], width >= 0 (a small floor here: it divides), power >= 1."""
+        sol = self.flat.np_dof_limit_sol.copy()
+        tc = sol[:, 0]
+        tc = np.where(np.isfinite(tc) & (tc > 0), tc, self.limit_timeconst if self.limit_model == LIMITS_CONSTRAINT
+                      else 0.01)
+        tc = np.maximum(tc, 2.0 * self.dt / self.substeps)
+        dr = np.where(sol[:, 1] > 0, sol[:, 1], 1.0)
+        imp = sol[:, 2:].copy()
+        imp[:, [0, 1, 3]] = np.clip(imp[:, [0, 1, 3]], 1e-4, 0.9999)
+        imp[:, 2] = np.maximum(imp[:, 2], 1e-9)
+        imp[:, 4] = np.maximum(imp[:, 4], 1.0)
+        k, b = limit_gains(tc, dr, imp[:, 1])
+        return np.concatenate([k[:, None], b[:, None], imp], -1)
+
     def param_layout(self):
         """[(name, width per env)] of the packed parameter tensor of kernel_set_params, in order."""
         L, D = self.n_links, self.n_dofs
@@ -247,7 +262,8 @@ class RigidSolver:
         lim = np.clip(pad(m.np_dof_limit, D), -1e30, 1e30)
         dof_i = np.stack([pad(m.np_dof_link, D), pad(m.np_dof_q, D), pad(m.np_dof_parent, D),
                           m.np_mimic[:, 0].astype(np.int32), m.np_fold_leader], -1).astype(np.int32)
-        dof_f = np.concatenate([lim, m.np_mimic[:, 1:], pad(m.np_dof_springref, D)[:, None]], -1).astype(self.np_dtype)
+        dof_f = np.concatenate([lim, m.np_mimic[:, 1:], pad(m.np_dof_springref, D)[:, None],
+                                pad(self.limit_constraint_params(), D)], -1).astype(self.np_dtype)
         sched = np.ascontiguousarray(np.array([op[:6] for op in self.ops], dtype=np.int32))
         sched_h = np.array([op[6] for op in self.ops], dtype=self.np_dtype)
         self.core.kernel_load(cfg_i, cfg_f, np.ascontiguousarray(link_i), np.ascontiguousarray(link_f),
