@@ -50,9 +50,10 @@ def func_limit_constraint(s: ti.template(), i_b, i_d, on, q, v, lo, hi):
     lower limit and -1 at the upper, the constraint force j f with f = D (aref - j qacc), D = imp / ((1 -
     imp) invweight), aref = -b j v - k imp d, imp rising from dmin to dmax over the first `width` of
     penetration (MuJoCo's impedance curve: two power-law pieces meeting at `mid`; the joint's solimp and, from
-    its solref, k and b: RigidSolver.limit_constraint_params). Linear in qacc, it joins the solve as D on M's diagonal and j D aref in the force (the
-    minimiser of Genesis's constraint cost while the constraint pushes; func_limit_release lets go of one
-    that pulls at the solution). Returns (force, diagonal term, j), zero where `on` is false."""
+    its solref, k and b: RigidSolver.limit_constraint_params). Linear in qacc, it joins the solve as D on M's
+    diagonal and j D aref in the force (the minimiser of Genesis's constraint cost while the constraint pushes;
+    func_limit_release lets go of one that pulls at the solution). Returns (force, diagonal term, j), zero where
+    `on` is false."""
     d_lo = q - lo
     d_hi = hi - q
     d = ti.min(d_lo, d_hi)
@@ -101,8 +102,8 @@ def func_limit_release(s: ti.template(), i_b, e):
 
 @ti.func
 def func_limit_rounds_next(s: ti.template(), i_b, e, r):
-    """After a final solve in the fused step: r + 1 when round r released a limit constraint (solve again),
-    else -1 (done; also past LIMIT_ROUNDS, or without limit constraints)."""
+    """After a final solve in the fused step: r + 1 when round r changed the set of limit constraints (solve
+    again), else -1 (done; also past LIMIT_ROUNDS, or without limit constraints)."""
     nxt = -1
     if s.limits_on == LIMITS_CONSTRAINT and r < LIMIT_ROUNDS:
         if func_limit_release(s, i_b, e) > 0:

@@ -190,8 +190,8 @@ class RigidCore:
         elem = [self.link_mass, self.link_com, self.link_inertia, self.dof_damping, self.dof_armature,
                 self.dof_frictionloss, self.dof_kp, self.dof_kv, self.dof_stiffness, self.dof_force_lo,
                 self.dof_force_hi, self.dof_invweight, self.dof_lim_D, self.dof_lim_f, self.dof_lim_j,
-                self.dof_lim_off, self.dof_lim_list, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode, self.link_pos,
-                self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
+                self.dof_lim_off, self.dof_lim_list, self.ctrl_force, self.ctrl_pos, self.ctrl_vel, self.ctrl_mode,
+                self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
                 self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m,
                 self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force,
                 self.dof_tau, self.dof_qf]
