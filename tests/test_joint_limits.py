@@ -115,6 +115,41 @@ def test_springs_on_request_and_nothing_without_limits(pendulum_urdf):
         gs.options.RigidOptions(constraint_timeconst=0.0)
 
 
+MASSLESS_ARM = """<robot name="massless_arm">
+  <link name="base"/>
+  <link name="tip">
+    <inertial><origin xyz="0 0 0.2"/><mass value="1.0"/><inertia ixx="0" iyy="0" izz="0" ixy="0" ixz="0" iyz="0"/></inertial>
+  </link>
+  <joint name="hinge" type="revolute">
+    <parent link="base"/><child link="tip"/><axis xyz="0 0 1"/>
+    <limit lower="-0.5" upper="0.5" effort="10" velocity="5"/>
+  </joint>
+</robot>
+"""
+
+
+def test_a_joint_that_moves_no_mass_needs_an_armature(tmp_path):
+    """The limit constraint's impedance divides by the dof's inverse weight (M0 + armature)^-1: a limited hinge
+    turning a point mass on its own axis moves no mass (M0 = 0) and has one only through its armature.
+    With the default armature (0.1 kg m^2) the inverse weight is 1 / 0.1; without one, the build, and an
+    armature set to 0 later, raise GenesisException naming the entity and the remedies."""
+    urdf = tmp_path / "massless_arm.urdf"
+    urdf.write_text(MASSLESS_ARM)
+
+    def build(**morph):
+        scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_collision=False))
+        arm = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True, **morph))
+        scene.build()
+        return arm
+
+    arm = build()
+    np.testing.assert_allclose(arm.get_dofs_invweight()[0].numpy(), [10.0], rtol=1e-12)
+    with pytest.raises(gs.GenesisException, match="massless_arm.*singular.*armature"):
+        arm.set_dofs_armature(np.zeros(1))
+    with pytest.raises(gs.GenesisException, match="massless_arm.*singular.*joint_limit_stiffness"):
+        build(default_armature=None)
+
+
 MJCF_CHAIN = """<mujoco model="limited_chain">
   <compiler angle="radian"/>
   <option timestep="0.01" gravity="0 0 -9.81"/>

@@ -8,7 +8,7 @@ genesis_lite must give, at random seeded configurations in float64:
   frame sits at the joint anchor (jnt_pos) with the body's axes, so a link is compared at
   xpos + xmat @ jnt_pos;
 - MuJoCo's gravity-only joint accelerations (data.qacc, zero velocity, damping and friction loss zeroed
-  on both sides, MuJoCo's contacts off: ours has none by default, self-collision being off).
+  on both sides, contacts off on both).
 
 Convention bridged for the free joint: MuJoCo's qpos is ours ([x, y, z, qw, qx, qy, qz, joints]), its
 linear dofs are ours (world velocity of the body origin) but its angular dofs are in the body frame where
@@ -84,7 +84,9 @@ class Pair:
                 assert j >= 0, f"{file}: name every joint"
                 self.m.dof_armature[self.m.jnt_dofadr[j]] = 0.1
         self.d = mujoco.MjData(self.m)
-        self.scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, gravity=GRAVITY))
+        # contacts off on both sides (the quadruped's feet meet its file's floor at random configurations)
+        self.scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, gravity=GRAVITY),
+                              rigid_options=gs.options.RigidOptions(enable_collision=False))
         self.robot = self.scene.add_entity(gs.morphs.MJCF(file=str(self.path)))
         self.scene.build()
         zeros = _t(np.zeros(self.robot.n_dofs))
@@ -264,6 +266,46 @@ def test_joint_parameters_from_compiled_model():
     assert quad.links[3].name == "fl_shin" and quad.links[3].limit == pytest.approx((np.radians(-140), np.radians(-20)))
     welded = load_mjcf(morphs.MJCF(file=str(ASSETS / "quadruped.xml"), fixed=True), gs.materials.Rigid(), "q")
     assert welded.links[0].joint_type == "fixed" and welded.n_dofs == 9
+
+
+FLOOR_AND_BOXES = """<mujoco model="floor_and_boxes">
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body name="low" pos="0 0 0.3"><freejoint/><geom type="box" size="0.1 0.1 0.1" mass="1"/></body>
+    <body name="high" pos="0.03 0 0.7"><freejoint/><geom type="box" size="0.08 0.08 0.08" mass="0.5"/></body>
+    <body name="arm" pos="1 0 0.5">
+      <joint name="hinge" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" mass="0.3"/>
+      <body name="tip" pos="0.3 0 0"><joint type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" mass="0.2"/></body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_bodies_of_one_file_collide_with_each_other_and_its_floor(tmp_path):
+    """An MJCF's bodies that are not one kinematic tree collide, as in MuJoCo and in Genesis (whose "self"
+    collision is between links of one root): two free boxes dropped on the file's own floor come to rest
+    stacked (z = 0.1 and 0.28 m, the half heights, within the contacts' millimetre), and a pinned two-link
+    arm of the same file swings down through the floor's level (it is welded to the world above it) without
+    the file's floor or its own links stopping it (its links are one tree: self-collision stays off by
+    default). Before 2026-11-29 every pair of one entity was skipped: the boxes fell through the floor."""
+    gs = _gs()
+    path = tmp_path / "floor_and_boxes.xml"
+    path.write_text(FLOOR_AND_BOXES)
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.005))
+    ent = scene.add_entity(gs.morphs.MJCF(file=str(path)))
+    scene.build()
+    names = [link.name for link in ent.links]
+    low, high, tip = names.index("low"), names.index("high"), names.index("tip")
+    for _ in range(300):
+        scene.step()
+    pos = ent.get_links_pos().detach().numpy()
+    np.testing.assert_allclose(pos[low, 2], 0.1, atol=1e-3)
+    np.testing.assert_allclose(pos[high, 2], 0.28, atol=1e-3)
+    assert abs(pos[high, 0] - 0.03) < 0.01 and abs(pos[low, 0]) < 0.01
+    assert pos[tip, 2] < 0.3  # hanging down from the pivot at 0.5 m: 0.5 - 0.3 at full length
 
 
 def test_mesh_geom_lands_where_mujoco_puts_it():

@@ -103,7 +103,7 @@ class RigidSim:
         self.param_base = {k: torch.as_tensor(v, device=self.device).to(self.dtype) for k, v in base.items()
                            if k in self.core_params}
         self._default_gains(scene.rigid_entities)
-        self._limit_mass = self._limited_mass_blocks(scene.rigid_entities, rigid_options)
+        self._limit_entities = self._limited_entities(scene.rigid_entities, rigid_options)
         self.param_base["invweight"] = self._invweight(self.param_base["armature"])
         if s.contact is not None:
             self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
@@ -131,22 +131,14 @@ class RigidSim:
         if s.applied is not None:
             self._applied_on()
 
-    def _limited_mass_blocks(self, entities, rigid_options):
-        """[(dof slice, M0)]: for each entity with a finite joint limit under the limit constraint (the
-        default), its joint-space mass matrix without armature at its initial configuration (1, n, n),
-        from the model's inertias: Genesis's dofs_invweight is computed there, once at build and again
-        when set_dofs_armature changes the armature (v0.4.5 rigid_solver.py _init_invweight_and_meaninertia;
-        masses set later leave it as it is), and so is ours (_invweight)."""
+    def _limited_entities(self, entities, rigid_options):
+        """The entities with a finite joint limit under the limit constraint (the default): their limits'
+        impedance needs the dofs' inverse weights (_invweight)."""
         if not (rigid_options.enable_joint_limit and self.solver.limit_model == LIMITS_CONSTRAINT):
             return []
         lim = self.solver.flat.np_dof_limit
-        blocks = []
-        for ent in entities:
-            d0, n = ent._dof_start, ent.n_dofs
-            if n == 0 or not np.isfinite(lim[d0:d0 + n]).any():
-                continue
-            blocks.append((slice(d0, d0 + n), self.mass_at_qpos0(ent), ent.name))
-        return blocks
+        return [ent for ent in entities
+                if ent.n_dofs and np.isfinite(lim[ent._dof_start:ent._dof_start + ent.n_dofs]).any()]
 
     def mass_at_qpos0(self, ent):
         """(1, n, n) float64: `ent`'s joint-space mass matrix without armature at its initial configuration,
@@ -171,23 +163,38 @@ class RigidSim:
             cache[ent.name] = M
         return cache[ent.name]
 
+    def entity_invweight(self, ent, armature):
+        """(B, ent.n_dofs) Genesis's dofs_invweight: diag((M0 + diag(armature))^-1), M0 `ent`'s joint-space
+        mass matrix at its initial configuration with the model's masses (mass_at_qpos0) and `armature` its
+        dofs' (B, ent.n_dofs), a free joint's three translational and three rotational entries each their
+        mean as Genesis's. Genesis computes it at build and again when set_dofs_armature changes the armature
+        (v0.4.5 rigid_solver.py _init_invweight_and_meaninertia; masses set later leave it as it is), and so
+        do we; differentiable in the armature. Raises when the matrix is singular."""
+        M = self.mass_at_qpos0(ent).to(armature.dtype) + torch.diag_embed(armature)
+        inv, info = torch.linalg.inv_ex(M)
+        w = torch.diagonal(inv, dim1=-2, dim2=-1)
+        if bool((info != 0).any()) or not bool(torch.isfinite(w).all() and (w > 0).all()):
+            raise GenesisException(
+                f"entity '{ent.name}': its joint-space mass matrix at the initial configuration, armature included, "
+                "is singular (a joint moves no mass and has no armature), and the joint-limit constraint needs "
+                "its inverse (Genesis's dofs_invweight). Give the links a mass and inertia or the joints an "
+                "armature (gs.morphs.URDF / MJCF(default_armature=0.1), set_dofs_armature), or use penalty "
+                "springs for the limits (gs.options.RigidOptions(joint_limit_stiffness=1e4)).")
+        avg = torch.eye(ent.n_dofs, dtype=w.dtype, device=w.device)  # a free joint's blocks averaged
+        for j in ent.joints:
+            if j.type == "free":
+                for k in (j.dof_start_local, j.dof_start_local + 3):
+                    avg[k:k + 3, k:k + 3] = 1.0 / 3.0
+        return w @ avg
+
     def _invweight(self, armature):
-        """(B, n_dofs) the limit constraint's inverse weights: diag((M0 + diag(armature))^-1) per entity with
-        limits (1 elsewhere: unused), differentiable in the armature."""
+        """(B, n_dofs) the limit constraint's inverse weights: entity_invweight for each entity with limits (1
+        elsewhere: unused), differentiable in the armature."""
         out = torch.ones_like(armature)
-        for d, M0, name in self._limit_mass:
-            M = M0.to(armature.dtype) + torch.diag_embed(armature[:, d])
-            inv, info = torch.linalg.inv_ex(M)
-            w = torch.diagonal(inv, dim1=-2, dim2=-1)
-            if bool((info != 0).any()) or not bool(torch.isfinite(w).all() and (w > 0).all()):
-                raise GenesisException(
-                    f"entity '{name}': its joint-space mass matrix at the initial configuration, armature included, "
-                    "is singular (a joint moves no mass and has no armature), and the joint-limit constraint needs "
-                    "its inverse (Genesis's dofs_invweight). Give the links a mass and inertia or the joints an "
-                    "armature (gs.morphs.URDF / MJCF(default_armature=0.1), set_dofs_armature), or use penalty "
-                    "springs for the limits (gs.options.RigidOptions(joint_limit_stiffness=1e4)).")
-            out = index_put(out, torch.arange(self.B, device=self.device),
-                            torch.arange(d.start, d.stop, device=self.device), w)
+        for ent in self._limit_entities:
+            d = torch.arange(ent._dof_start, ent._dof_start + ent.n_dofs, device=self.device)
+            out = index_put(out, torch.arange(self.B, device=self.device), d,
+                            self.entity_invweight(ent, armature[:, d]))
         return out
 
     def _default_gains(self, entities):
@@ -451,7 +458,7 @@ class RigidSim:
         self.param_ops[name].append((values, envs, idx))
         self.params[name] = index_put(self.params[name], envs, idx, values)
         self._params_dirty.add(name)
-        if name == "armature" and self._limit_mass:
+        if name == "armature" and self._limit_entities:
             self.params["invweight"] = self._invweight(self.params["armature"])
             self._params_dirty.add("invweight")
 
@@ -470,7 +477,7 @@ class RigidSim:
                 p = index_put(p, envs, idx, remake() if remake is not None else values.detach())
             self.params[name] = p
             self._params_dirty.add(name)
-        if self.param_ops["armature"] and self._limit_mass:
+        if self.param_ops["armature"] and self._limit_entities:
             self.params["invweight"] = self._invweight(self.params["armature"])
             self._params_dirty.add("invweight")
 

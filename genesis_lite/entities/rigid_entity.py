@@ -955,14 +955,7 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         is), a free joint's three translational and three rotational entries each their mean, as Genesis's.
         The joint-limit constraint's impedance uses the same numbers. No gradient."""
         envs, d = self._envs(envs_idx), self._dofs(None)
-        arm = self._sim.params["armature"].detach()[envs][:, d].double()
-        M = self._sim.mass_at_qpos0(self) + torch.diag_embed(arm)
-        w = torch.diagonal(torch.linalg.inv(M), dim1=-2, dim2=-1).clone()
-        for j in self.joints:
-            if j.type == "free":
-                k = j.dof_start_local
-                w[:, k:k + 3] = w[:, k:k + 3].mean(-1, keepdim=True)
-                w[:, k + 3:k + 6] = w[:, k + 3:k + 6].mean(-1, keepdim=True)
+        w = self._sim.entity_invweight(self, self._sim.params["armature"].detach()[envs][:, d].double())
         return self._out(w[:, self._dofs(dofs_idx_local) - self._dof_start].to(self._sim.dtype))
 
     def get_links_inertia(self, links_idx_local=None, envs_idx=None):

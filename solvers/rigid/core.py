@@ -355,6 +355,9 @@ class RigidCore:
 
     @ti.kernel
     def kernel_limit_release(self, e: ti.i32) -> ti.i32:
+        """One change of the limit constraint's active set in every env, at the gradient path's solution of
+        stage e (func_limit_release: pulling limits released, pushing ones brought back); returns the number
+        of limits changed (RigidCore.release_limits solves again while it is not 0)."""
         n = 0
         if ti.static(self.serial):
             ti.loop_config(serialize=True)

@@ -214,8 +214,7 @@ class RigidSolver:
         substep; dmin, dmax, mid clipped to [1e-4, 0.9999], width >= 0 (a small floor here: it divides), power >= 1."""
         sol = self.flat.np_dof_limit_sol.copy()
         tc = sol[:, 0]
-        tc = np.where(np.isfinite(tc) & (tc > 0), tc, self.limit_timeconst if self.limit_model == LIMITS_CONSTRAINT
-                      else 0.01)
+        tc = np.where(np.isfinite(tc) & (tc > 0), tc, self.limit_timeconst)
         tc = np.maximum(tc, 2.0 * self.dt / self.substeps)
         dr = np.where(sol[:, 1] > 0, sol[:, 1], 1.0)
         imp = sol[:, 2:].copy()

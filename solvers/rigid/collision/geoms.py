@@ -8,6 +8,7 @@ from typing import List
 
 import numpy as np
 
+from ..kinematics import JOINT_FIXED
 
 GEOM_PLANE, GEOM_SPHERE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH = 0, 1, 2, 3, 4, 5
 GEOM_CODE = {"plane": GEOM_PLANE, "sphere": GEOM_SPHERE, "box": GEOM_BOX, "capsule": GEOM_CAPSULE,
@@ -226,20 +227,45 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                      counts)
 
 
+def link_roots(flat) -> np.ndarray:
+    """(L,) each link's root: the first link of its kinematic tree, the one its chain of parents ends at
+    (attached to the world by a free or a fixed joint). Links of one root are one body's parts (Genesis's
+    self-collision); an entity can hold several trees (an MJCF's free bodies, its worldbody's floor)."""
+    parent = flat.np_link_parent
+    root = np.arange(flat.n_links)
+    for i in range(flat.n_links):  # parents come before their children
+        if parent[i] >= 0:
+            root[i] = root[parent[i]]
+    return root
+
+
+def links_adjacent(flat, la: int, lb: int) -> bool:
+    """Genesis's adjacency (collider.py, v0.4.5): one link is the other's parent, directly or through links
+    attached by fixed joints (a kept link such as a Panda's hand counts as part of its parent here)."""
+    parent, jtype = flat.np_link_parent, flat.np_link_jtype
+    a, b = min(la, lb), max(la, lb)
+    while parent[b] >= 0:
+        if parent[b] == a:
+            return True
+        if jtype[b] != JOINT_FIXED:
+            return False
+        b = parent[b]
+    return False
+
+
 def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool, no_contact=()):
     """[(ga, gb)] of geoms that may touch (see the module docstring for the rules); none of the entities
     whose indices are in `no_contact` (gs.materials.Tool's: they act on MPM material only)."""
     dyn = link_is_dynamic(flat)
-    parent = flat.np_link_parent
+    root = link_roots(flat)
     pairs, bad = [], []
     for a in range(geoms.n):
         for b in range(a + 1, geoms.n):
             la, lb = geoms.link[a], geoms.link[b]
             if la == lb or not (dyn[la] or dyn[lb]) or geoms.entity[a] in no_contact or geoms.entity[b] in no_contact:
                 continue
-            if geoms.entity[a] == geoms.entity[b]:
-                if not self_collision or parent[la] == lb or parent[lb] == la:
-                    continue
+            if root[la] == root[lb] and (not self_collision or links_adjacent(flat, la, lb)):
+                continue
             ta, tb = geoms.type[a], geoms.type[b]
             if ta == GEOM_PLANE and tb == GEOM_PLANE:
                 continue
