@@ -308,6 +308,56 @@ def test_bodies_of_one_file_collide_with_each_other_and_its_floor(tmp_path):
     assert pos[tip, 2] < 0.3  # hanging down from the pivot at 0.5 m: 0.5 - 0.3 at full length
 
 
+GANTRY = """<mujoco model="gantry">
+  <worldbody>
+    <body name="table">
+      <geom type="box" size="0.5 0.5 0.05"/>
+      <body name="carriage" pos="0 0 0.6">
+        <joint name="x" type="slide" axis="1 0 0"/>
+        <geom type="sphere" size="0.03" mass="0.5"/>
+        <body name="drop" pos="0 0 -0.3">
+          <joint name="z" type="slide" axis="0 0 1"/>
+          <geom type="box" size="0.05 0.05 0.05" pos="0 0 {box_z}" mass="0.2"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("box_z", [0.0, -0.21])
+def test_self_collision_follows_genesis_s_rules(tmp_path, box_z):
+    """A box on a vertical slide hangs from a carriage on a horizontal slide over a table, all one tree:
+    the box and the table are not adjacent (the carriage's joint is between them), the carriage and the
+    table are. Off by default, the box falls through the table; with enable_self_collision it lands on the
+    table top (z = 0.05 + 0.05 m within the contacts' millimetre). Started 1 cm into the table (box_z = -0.21: its
+    centre at 0.09 m), the pair overlaps with every joint at zero and Genesis's filter leaves it
+    out (the box falls through), unless enable_neutral_collision keeps it (the table pushes the box up out of
+    it to rest on the top)."""
+    gs = _gs()
+    path = tmp_path / "gantry.xml"
+    path.write_text(GANTRY.format(box_z=box_z))
+
+    def final_box_z(**rigid):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.005), rigid_options=gs.options.RigidOptions(**rigid))
+        ent = scene.add_entity(gs.morphs.MJCF(file=str(path), default_armature=None))
+        scene.build()
+        ent.set_dofs_damping(np.zeros(2))
+        for _ in range(200):
+            scene.step()
+        drop = [link.name for link in ent.links].index("drop")
+        return float(ent.get_links_pos()[drop, 2]) + box_z  # the box's centre (the geom sits at box_z)
+
+    assert final_box_z() < -1.0
+    if box_z == 0.0:
+        np.testing.assert_allclose(final_box_z(enable_self_collision=True), 0.1, atol=1e-3)
+    else:
+        assert final_box_z(enable_self_collision=True) < -1.0
+        np.testing.assert_allclose(final_box_z(enable_self_collision=True, enable_neutral_collision=True), 0.1,
+                                   atol=1e-3)
+
+
 def test_mesh_geom_lands_where_mujoco_puts_it():
     """The collision mesh is MuJoCo's compiled (recentred, rotated, scaled) vertex set; the visual keeps
     the OBJ file and a pose that puts the file's vertices (times the mesh scale) at the same place."""

@@ -35,9 +35,11 @@ other's planes: a vertex-free contact (two hulls crossed edge on edge, with no v
 the other) is missed, as it was for crossed box planks before their face slots, and a rounded hull
 rests on the other's planes, up to their gap to its hull.
 
-Which pairs are candidates: geoms of different entities; geoms of one entity only with
-`enable_self_collision`, and never on the same or adjacent (parent/child) links; never two geoms that
-cannot move. A cheap test per pair (the broad phase: the geom's support function against a plane,
+Which pairs are candidates: geoms of different kinematic trees (other entities, and an entity's other
+trees: an MJCF's free bodies, its worldbody's floor); geoms of one tree only with `enable_self_collision`,
+never on the same link, nor (Genesis's rules, geoms.candidate_pairs) on adjacent links (one the other's
+parent, directly or through fixed-joint links) unless `enable_adjacent_collision`, nor pairs that overlap
+with every joint at zero unless `enable_neutral_collision`; never two geoms that cannot move. A cheap test per pair (the broad phase: the geom's support function against a plane,
 bounding spheres otherwise) skips the slots of pairs that are not within the contact margin, so a
 robot standing on the ground computes only its feet's slots. A mesh is contacted through at most
 RigidOptions.max_mesh_contact_points of its hull vertices (farthest-point sampled, extremes kept).

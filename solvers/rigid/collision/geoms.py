@@ -253,18 +253,106 @@ def links_adjacent(flat, la: int, lb: int) -> bool:
     return False
 
 
-def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool, no_contact=()):
+NEUTRAL_CELLS = 24  # grid cells along a geom's longest side in the zero-configuration overlap test
+
+
+def neutral_link_poses(flat):
+    """(R (L, 3, 3), p (L, 3)): every link's pose with all joints at zero (a free joint at the model's pose),
+    each tree in the frame of its root: what the zero-configuration overlap test compares."""
+    L = flat.n_links
+    Rj = geom_rotations(flat.np_link_jquat.reshape(L, 4))
+    R, p = np.zeros((L, 3, 3)), np.zeros((L, 3))
+    for i in range(L):  # parents come before their children
+        q = flat.np_link_parent[i]
+        if q >= 0:
+            R[i], p[i] = R[q] @ Rj[i], p[q] + R[q] @ flat.np_link_jpos[i]
+        else:
+            R[i], p[i] = Rj[i], flat.np_link_jpos[i]
+    return R, p
+
+
+def geom_sdf(geoms: GeomTable, g: int, x: np.ndarray) -> np.ndarray:
+    """(N,) the signed distance of geom g's solid at points x (N, 3) of its own frame (meshes: its hull's
+    planes, as the contacts see it; negative inside). Planes: +inf (they take no part in the overlap test)."""
+    t, sz = geoms.type[g], geoms.size[g]
+    if t == GEOM_SPHERE:
+        return np.linalg.norm(x, axis=1) - sz[0]
+    if t == GEOM_CAPSULE:
+        c = np.zeros_like(x)
+        c[:, 2] = np.clip(x[:, 2], -sz[1], sz[1])
+        return np.linalg.norm(x - c, axis=1) - sz[0]
+    if t == GEOM_BOX or t == GEOM_CYLINDER:
+        d = (np.abs(x) - sz if t == GEOM_BOX else
+             np.stack([np.linalg.norm(x[:, :2], axis=1) - sz[0], np.abs(x[:, 2]) - sz[1]], 1))
+        return np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(1), 0.0)
+    if t == GEOM_MESH:
+        return (x @ geoms.kdop_dirs[g].T - geoms.kdop[g]).max(1)
+    return np.full(len(x), np.inf)
+
+
+def _geom_cells(geoms: GeomTable, g: int):
+    """(centres (N, 3) in the geom frame, cell size): the cells of a grid over geom g's bounding box (about
+    NEUTRAL_CELLS along its longest side) that its solid reaches, as a voxelisation marks them."""
+    t, sz = geoms.type[g], geoms.size[g]
+    if t == GEOM_PLANE:
+        return np.zeros((0, 3)), 0.0
+    if t == GEOM_MESH:
+        lo, hi = geoms.points[g].min(0), geoms.points[g].max(0)
+    else:
+        half = {GEOM_SPHERE: [sz[0]] * 3, GEOM_BOX: sz, GEOM_CAPSULE: [sz[0], sz[0], sz[0] + sz[1]],
+                GEOM_CYLINDER: [sz[0], sz[0], sz[1]]}[t]
+        lo, hi = -np.asarray(half, dtype=float), np.asarray(half, dtype=float)
+    h = float((hi - lo).max()) / NEUTRAL_CELLS
+    axes = [np.arange(a + 0.5 * h, b, h) if b - a > h else np.array([0.5 * (a + b)]) for a, b in zip(lo, hi)]
+    x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return x[geom_sdf(geoms, g, x) <= 0.5 * np.sqrt(3.0) * h], h
+
+
+def neutral_overlaps(geoms: GeomTable, flat, pairs):
+    """The pairs among `pairs` (geoms of one tree) whose solids overlap or touch with every joint at zero:
+    Genesis leaves such pairs out of self-collision (collider.py, v0.4.5: its geoms voxelised at qpos0), since
+    a robot's collision shapes often interpenetrate where its parts meet. Two geoms overlap here when a cell
+    that one's solid reaches lies within half a cell's diagonal of the other's (the voxels of both meet)."""
+    if not pairs:
+        return set()
+    R, p = neutral_link_poses(flat)
+    Rg = geom_rotations(geoms.quat)
+    # each geom's pose in its tree's zero configuration
+    gR = np.einsum("gij,gjk->gik", R[geoms.link], Rg)
+    gp = p[geoms.link] + np.einsum("gij,gj->gi", R[geoms.link], geoms.pos)
+    cells = {}
+    out = set()
+    for a, b in pairs:
+        for u, v in ((a, b), (b, a)):
+            if u not in cells:
+                cells[u] = _geom_cells(geoms, u)
+            x, h = cells[u]
+            if len(x) == 0:
+                continue
+            # u's cells in v's frame
+            xv = ((x @ gR[u].T + gp[u]) - gp[v]) @ gR[v]
+            if (geom_sdf(geoms, v, xv) <= 0.5 * np.sqrt(3.0) * h).any():
+                out.add((a, b))
+                break
+    return out
+
+
+def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsupported: bool, no_contact=(),
+                    adjacent_collision: bool = False, neutral_collision: bool = False):
     """[(ga, gb)] of geoms that may touch (see the module docstring for the rules); none of the entities
-    whose indices are in `no_contact` (gs.materials.Tool's: they act on MPM material only)."""
+    whose indices are in `no_contact` (gs.materials.Tool's: they act on MPM material only). Geoms of one tree
+    (self-collision) only with `self_collision`, and then not on adjacent links unless `adjacent_collision`,
+    nor those that overlap with every joint at zero unless `neutral_collision` (Genesis's three options)."""
     dyn = link_is_dynamic(flat)
     root = link_roots(flat)
-    pairs, bad = [], []
+    pairs, bad, own = [], [], []
     for a in range(geoms.n):
         for b in range(a + 1, geoms.n):
             la, lb = geoms.link[a], geoms.link[b]
             if la == lb or not (dyn[la] or dyn[lb]) or geoms.entity[a] in no_contact or geoms.entity[b] in no_contact:
                 continue
-            if root[la] == root[lb] and (not self_collision or links_adjacent(flat, la, lb)):
+            if root[la] == root[lb] and (not self_collision or (not adjacent_collision
+                                                                and links_adjacent(flat, la, lb))):
                 continue
             ta, tb = geoms.type[a], geoms.type[b]
             if ta == GEOM_PLANE and tb == GEOM_PLANE:
@@ -275,6 +363,11 @@ def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsuppo
                 continue
             # a plane is always the second geom of its pair (the broad phase tests the first against it)
             pairs.append((b, a) if ta == GEOM_PLANE else (a, b))
+            if root[la] == root[lb]:
+                own.append(pairs[-1])
+    if own and not neutral_collision:
+        drop = neutral_overlaps(geoms, flat, own)
+        pairs = [x for x in pairs if x not in drop]
     if bad and not ignore_unsupported:
         a, b, why = bad[0]
         more = f" (and {len(bad) - 1} more such pairs)" if len(bad) > 1 else ""

@@ -31,7 +31,9 @@ class ContactPlan:
             return None
         pairs = candidate_pairs(geoms, flat, bool(options.enable_self_collision),
                                 bool(getattr(options, "ignore_unsupported_pairs", False)),
-                                {i for i, m in enumerate(models) if not m.rigid_contact})
+                                {i for i, m in enumerate(models) if not m.rigid_contact},
+                                bool(getattr(options, "enable_adjacent_collision", False)),
+                                bool(getattr(options, "enable_neutral_collision", False)))
         if not pairs:
             return None
         return ContactPlan(flat, geoms, pairs, options, specialized)
