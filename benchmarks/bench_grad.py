@@ -15,7 +15,10 @@ integrator (implicitfast), SimOptions(requires_grad=True). The rollout timed eve
 
 forward = reset .. loss, backward = loss.backward(). Controls are fixed small random torques (N m).
 1. backward / forward time, 1 env and 1024 envs, without and with checkpointing (checkpoint_every=10),
-   medians after a warm-up rollout, and the forward time per step against the plain requires_grad=False
+   medians after a warm-up rollout; without checkpoints also with the controls fed as the rows of
+   controls.unbind(0) instead of controls[t] (torch's backward of controls[t] materialises a zero tensor of
+   the whole (T, envs, dofs) control sequence per step, which at 1024 envs is a share of the backward that
+   is torch's, not the simulator's), and the forward time per step against the plain requires_grad=False
    rollout (same calls) so the cost of recording is visible.
 2. the first backward of a fresh process (compile included) with an empty Taichi kernel cache, then the
    second and third process on the same cache directory.
@@ -164,8 +167,9 @@ def _gl_rollout(scene, robot, controls_np, q0_np, grad: bool, probe=None, feed="
     return out
 
 
-def worker_ratio(urdf, n_envs, steps, repeats, ckpts) -> dict:
-    """Backward/forward medians for each checkpoint setting, and the no-grad rollout, in one process."""
+def worker_ratio(urdf, n_envs, steps, repeats, ckpts, feeds=("index",)) -> dict:
+    """Backward/forward medians for each checkpoint setting and control feed (the feed only without
+    checkpoints), and the no-grad rollout, in one process."""
     import genesis_lite as gs
 
     gs.init(backend=gs.cpu, precision="64")
@@ -175,12 +179,13 @@ def worker_ratio(urdf, n_envs, steps, repeats, ckpts) -> dict:
         ctrl, q0 = _controls(steps, n_envs, robot.n_dofs), _q0(n_envs, robot.n_dofs)
         with Timer() as tw:
             _gl_rollout(scene, robot, ctrl, q0, True)  # compiles (or loads) the kernels
-        runs = [_gl_rollout(scene, robot, ctrl, q0, True) for _ in range(repeats)]
-        fwd = statistics.median(r["fwd"] for r in runs)
-        bwd = statistics.median(r["bwd"] for r in runs)
-        ratio = statistics.median(r["bwd"] / r["fwd"] for r in runs)
-        res["rows"].append({"ckpt": ck, "fwd": fwd, "bwd": bwd, "ratio": ratio, "warmup_s": tw.seconds,
-                            "loss": runs[-1]["loss"], "repeats": repeats})
+        for feed in feeds if ck is None else feeds[:1]:
+            runs = [_gl_rollout(scene, robot, ctrl, q0, True, feed=feed) for _ in range(repeats)]
+            fwd = statistics.median(r["fwd"] for r in runs)
+            bwd = statistics.median(r["bwd"] for r in runs)
+            ratio = statistics.median(r["bwd"] / r["fwd"] for r in runs)
+            res["rows"].append({"ckpt": ck, "feed": feed, "fwd": fwd, "bwd": bwd, "ratio": ratio,
+                                "warmup_s": tw.seconds, "loss": runs[-1]["loss"], "repeats": repeats})
         del scene, robot
     scene, robot = _gl_build(gs, urdf, n_envs, False, None)
     ctrl, q0 = _controls(steps, n_envs, robot.n_dofs), _q0(n_envs, robot.n_dofs)
@@ -337,7 +342,7 @@ def part_ratio(urdf, quick, tables, data):
     for n_envs, repeats in configs:
         print(f"[1] backward/forward, {max(n_envs, 1)} env(s), {repeats} repeats ...", flush=True)
         res, err, wall = _child("ratio", urdf=str(urdf), n_envs=n_envs, steps=steps, repeats=repeats,
-                                ckpts=[None, 10])
+                                ckpts=[None, 10], feeds=["index", "unbind"])
         if res is None:
             rows.append({"envs": max(n_envs, 1), "ckpt": "-", "note": err})
             continue
@@ -345,7 +350,8 @@ def part_ratio(urdf, quick, tables, data):
         for r in res["rows"]:
             goal = GOAL_RATIO if r["ckpt"] is None else GOAL_RATIO_CKPT
             rows.append({
-                "envs": max(n_envs, 1), "ckpt": _ckpt_name(r["ckpt"]), "fwd_ms": 1e3 * r["fwd"],
+                "envs": max(n_envs, 1), "ckpt": _ckpt_name(r["ckpt"]), "feed": r["feed"],
+                "fwd_ms": 1e3 * r["fwd"],
                 "bwd_ms": 1e3 * r["bwd"], "ratio": r["ratio"], "goal": f"<= {goal}",
                 "met": "yes" if r["ratio"] <= goal else "NO",
                 "step_grad_us": 1e6 * r["fwd"] / steps, "step_nograd_us": 1e6 * ng / steps,
@@ -355,7 +361,8 @@ def part_ratio(urdf, quick, tables, data):
         print(f"    ({wall:.0f} s)", flush=True)
     data["ratio"] = rows
     tables.append(print_table(rows, [
-        ("envs", "envs", "d"), ("ckpt", "checkpoint_every", ""), ("fwd_ms", "forward ms", ".1f"),
+        ("envs", "envs", "d"), ("ckpt", "checkpoint_every", ""), ("feed", "controls fed as", ""),
+        ("fwd_ms", "forward ms", ".1f"),
         ("bwd_ms", "backward ms", ".1f"), ("ratio", "backward/forward", ".2f"), ("goal", "goal", ""),
         ("met", "met", ""), ("step_grad_us", "fwd us/step, grad", ",.0f"),
         ("step_nograd_us", "us/step, no grad", ",.0f"), ("overhead", "grad fwd / no-grad fwd", ".2f"),

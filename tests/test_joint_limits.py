@@ -118,7 +118,8 @@ def test_springs_on_request_and_nothing_without_limits(pendulum_urdf):
 MASSLESS_ARM = """<robot name="massless_arm">
   <link name="base"/>
   <link name="tip">
-    <inertial><origin xyz="0 0 0.2"/><mass value="1.0"/><inertia ixx="0" iyy="0" izz="0" ixy="0" ixz="0" iyz="0"/></inertial>
+    <inertial><origin xyz="0 0 0.2"/><mass value="1.0"/>
+      <inertia ixx="0" iyy="0" izz="0" ixy="0" ixz="0" iyz="0"/></inertial>
   </link>
   <joint name="hinge" type="revolute">
     <parent link="base"/><child link="tip"/><axis xyz="0 0 1"/>

@@ -39,10 +39,11 @@ Which pairs are candidates: geoms of different kinematic trees (other entities, 
 trees: an MJCF's free bodies, its worldbody's floor); geoms of one tree only with `enable_self_collision`,
 never on the same link, nor (Genesis's rules, geoms.candidate_pairs) on adjacent links (one the other's
 parent, directly or through fixed-joint links) unless `enable_adjacent_collision`, nor pairs that overlap
-with every joint at zero unless `enable_neutral_collision`; never two geoms that cannot move. A cheap test per pair (the broad phase: the geom's support function against a plane,
-bounding spheres otherwise) skips the slots of pairs that are not within the contact margin, so a
-robot standing on the ground computes only its feet's slots. A mesh is contacted through at most
-RigidOptions.max_mesh_contact_points of its hull vertices (farthest-point sampled, extremes kept).
+with every joint at zero unless `enable_neutral_collision`; never two geoms that cannot move. A cheap test
+per pair (the broad phase: the geom's support function against a plane, bounding spheres otherwise) skips
+the slots of pairs that are not within the contact margin, so a robot standing on the ground computes only
+its feet's slots. A mesh is contacted through at most RigidOptions.max_mesh_contact_points of its hull
+vertices (farthest-point sampled, extremes kept).
 
 Modules: geoms.py (host side: geoms, candidate pairs, slots), sdf.py (the SDFs), narrow.py (the step's
 stages: geom poses, broad phase, slot geometry).

@@ -1,0 +1,103 @@
+"""Self-collision pairs against Genesis's (issue #25): with RigidOptions(enable_self_collision=True), which of
+a robot's own geom pairs may collide, after Genesis's two filters (adjacent links, walking up through
+fixed-joint links; shapes that overlap or touch with every joint at zero). Genesis's MJCF Panda and its
+Go2 URDF (Genesis's assets: GS_ASSETS_DIR or a Genesis install), ours in this process, Genesis's in the
+python of its own venv (--genesis-python), in a child process. Prints a Markdown table: geom pairs and the
+set of link pairs on each side, and the link pairs only one side has; then what self-collision costs ours:
+the MJCF Panda over a plane, float64, 1 env, PD holding a pose, the median of 5 rounds of 200 steps' mean
+step time, self-collision off and on, in this process (kernels compiled or loaded before the rounds).
+
+    GS_ASSETS_DIR=<genesis>/assets python benchmarks/self_collision_pairs.py --genesis-python <venv>/bin/python
+"""
+import argparse
+import json
+import subprocess
+
+ROBOTS = {"mjcf_panda": ("MJCF", "xml/franka_emika_panda/panda.xml"), "go2": ("URDF", "urdf/go2/urdf/go2.urdf")}
+
+GENESIS_SIDE = r"""
+import json, sys, numpy as np, genesis as gs
+gs.init(backend=gs.cpu, logging_level="error")
+out = {}
+for key, (kind, file) in json.loads(sys.argv[1]).items():
+    scene = gs.Scene(show_viewer=False)
+    scene.add_entity(getattr(gs.morphs, kind)(file=file))
+    scene.build()
+    geoms = scene.sim.rigid_solver.geoms
+    idx = np.argwhere(np.asarray(scene.sim.rigid_solver.collider._collision_pair_idx) >= 0)
+    out[key] = {"n_geom_pairs": int(len(idx)),
+                "link_pairs": sorted({tuple(sorted((geoms[i].link.name, geoms[j].link.name))) for i, j in idx})}
+print(json.dumps(out))
+"""
+
+
+def ours():
+    import genesis_lite as gs
+
+    gs.init(backend=gs.cpu, precision="64", logging_level="error")
+    out = {}
+    for key, (kind, file) in ROBOTS.items():
+        scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_self_collision=True))
+        ent = scene.add_entity(getattr(gs.morphs, kind)(file=file))
+        scene.build()
+        plan = scene._rigid.solver.contact.plan
+        names = [link.name for link in ent.links]
+        link = plan.geoms.link - ent.link_start
+        out[key] = {"n_geom_pairs": len(plan.pairs), "n_slots": plan.n_slots,
+                    "link_pairs": sorted({tuple(sorted((names[link[a]], names[link[b]]))) for a, b in plan.pairs})}
+    return out
+
+
+def step_cost():
+    """{False: us, True: us} a step of the MJCF Panda over a plane (float64, 1 env), without and with
+    self-collision."""
+    import statistics
+    import time
+
+    import genesis_lite as gs
+
+    out = {}
+    for on in (False, True):
+        scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_self_collision=on))
+        scene.add_entity(gs.morphs.Plane())
+        arm = scene.add_entity(gs.morphs.MJCF(file=ROBOTS["mjcf_panda"][1]))
+        scene.build()
+        q = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8, 0.02, 0.02]
+        arm.set_dofs_position(q)
+        arm.control_dofs_position(q)
+        for _ in range(20):
+            scene.step()
+        rounds = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for _ in range(200):
+                scene.step()
+            rounds.append((time.perf_counter() - t0) / 200 * 1e6)
+        out[on] = statistics.median(rounds)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--genesis-python", required=True, help="python of a venv with genesis-world")
+    args = ap.parse_args()
+    mine = ours()
+    cost = step_cost()
+    done = subprocess.run([args.genesis_python, "-c", GENESIS_SIDE, json.dumps(ROBOTS)], capture_output=True,
+                          text=True, timeout=1800)
+    if done.returncode != 0:
+        raise SystemExit(f"Genesis's side failed: {done.stderr.strip().splitlines()[-1]}")
+    theirs = json.loads(done.stdout.strip().splitlines()[-1])
+    print("| robot | geom pairs, ours / Genesis | link pairs, ours / Genesis | only ours | only Genesis's | our slots |")
+    print("|---|---|---|---|---|---|")
+    for key in ROBOTS:
+        a, b = mine[key], theirs[key]
+        sa, sb = {tuple(p) for p in a["link_pairs"]}, {tuple(p) for p in b["link_pairs"]}
+        print(f"| {key} | {a['n_geom_pairs']} / {b['n_geom_pairs']} | {len(sa)} / {len(sb)} | "
+              f"{sorted(sa - sb) or '-'} | {sorted(sb - sa) or '-'} | {a['n_slots']} |")
+    print(f"\nOurs, MJCF Panda over a plane, 1 env, float64: a step {cost[False]:.0f} us without "
+          f"self-collision, {cost[True]:.0f} us with it ({cost[True] / cost[False]:.1f}x).")
+
+
+if __name__ == "__main__":
+    main()
