@@ -7,7 +7,8 @@ checked, and, where genesis_lite has the same notion, act as in Genesis.
   gravity (checked by a free fall against v = g t, exact for the integrator's velocity update); with a
   SimOptions that disagrees, refused.
 - RigidOptions(constraint_solver=, iterations=, tolerance=, max_collision_pairs=, box_box_detection=,
-  batch_dofs_info=, batch_links_info=), gs.constraint_solver, gs.tc_int / tc_bool, gs.init(performance_mode=).
+  batch_dofs_info=, batch_links_info=, enable_adjacent_collision=, enable_neutral_collision=), gs.constraint_solver,
+  gs.tc_int / tc_bool, gs.init(performance_mode=).
 """
 from __future__ import annotations
 
@@ -58,6 +59,10 @@ def test_constraint_solver_options_are_accepted_and_checked():
     with pytest.raises(ValueError, match="max_collision_pairs"):
         gs.options.RigidOptions(max_collision_pairs=0)
     assert gs.tc_int == torch.int32 and gs.tc_bool == torch.bool
+    # Genesis's self-collision switches (their effect: tests/test_mjcf.py::test_self_collision_follows_genesis_s_rules)
+    gs.options.RigidOptions(enable_self_collision=True, enable_adjacent_collision=True, enable_neutral_collision=True)
+    with pytest.raises(ValueError, match="enable_neutral_collision"):
+        gs.options.RigidOptions(enable_neutral_collision="no")
 
 
 def test_performance_mode_is_accepted():

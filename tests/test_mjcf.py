@@ -358,6 +358,45 @@ def test_self_collision_follows_genesis_s_rules(tmp_path, box_z):
                                    atol=1e-3)
 
 
+WELDED_CHAIN = """<mujoco model="welded_chain">
+  <worldbody>
+    <body name="a" pos="0 0 1"><joint name="ja" type="hinge"/><geom type="sphere" size="0.05"/>
+      <body name="b" pos="0.2 0 0"><joint name="jb" type="hinge"/><geom type="sphere" size="0.05"/>
+        <body name="c" pos="0.2 0 0"><geom type="sphere" size="0.05"/>
+          <body name="d" pos="0.2 0 0"><joint name="jd" type="hinge"/><geom type="sphere" size="0.05"/></body>
+        </body>
+      </body>
+    </body>
+    <body name="e" pos="1 0 1"><freejoint/><geom type="sphere" size="0.05"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_adjacency_and_trees_are_genesis_s(tmp_path):
+    """Genesis's adjacency (collider.py, v0.4.5): a link is adjacent to its parent and, through links welded by
+    fixed joints, to their parents; a jointed child of a welded link is not adjacent to the welded link's
+    parent. c is welded to b (a jointless body, kept as a link): (b, c) and (a, c) adjacent, (b, d) not, (c, d)
+    adjacent, (a, b) adjacent. e, a free body of the same file, is a tree of its own."""
+    from genesis_lite import morphs
+    from genesis_lite.loaders import load_mjcf
+    from solvers.rigid.collision.geoms import link_roots, links_adjacent
+    from solvers.rigid.flatten import FlatModel
+
+    gs = _gs()
+    path = tmp_path / "welded_chain.xml"
+    path.write_text(WELDED_CHAIN)
+    model = load_mjcf(morphs.MJCF(file=str(path)), gs.materials.Rigid(), "w")
+    flat = FlatModel([model], use_mimic=True)
+    i = {link.name: k for k, link in enumerate(model.links)}
+    assert model.links[i["c"]].joint_type == "fixed"
+    adjacent = {(x, y): links_adjacent(flat, i[x], i[y]) for x in "abcd" for y in "abcd" if x < y}
+    assert adjacent == {("a", "b"): True, ("a", "c"): True, ("a", "d"): False, ("b", "c"): True,
+                        ("b", "d"): False, ("c", "d"): True}
+    roots = link_roots(flat)
+    assert len({roots[i[x]] for x in "abcd"}) == 1 and roots[i["e"]] != roots[i["a"]]
+
+
 def test_mesh_geom_lands_where_mujoco_puts_it():
     """The collision mesh is MuJoCo's compiled (recentred, rotated, scaled) vertex set; the visual keeps
     the OBJ file and a pose that puts the file's vertices (times the mesh scale) at the same place."""
