@@ -110,16 +110,17 @@ class RigidOptions(_Options):
     voxel-like grid of ~24 cells along each shape, collision.neutral_overlaps). Unlike Genesis, self-collision
     is off by default: a robot's parts that stay near each other pass the broad phase and compute their
     sample-point slots every step (Genesis's MJCF Panda: a step 9x slower at 1 env,
-    benchmarks/self_collision_pairs.py). contact_stiffness (N/m per contact point) and contact_damping (N s/m per contact point) set
-    the penalty model (the stiffness scaled up for pairs heavier than 100 kg). Joint limits are Genesis's (and
-    MuJoCo's) soft constraint by default: past a limit by d, the constraint asks for the reference acceleration
-    -b v - k imp d (b = 2 / (0.95 tc), k = 1 / (0.95 tc)^2, tc = max(constraint_timeconst, 2 substep dt), imp
-    0.9 -> 0.95 over the first mm or mrad; an MJCF joint's solreflimit / solimplimit where it has them) with
-    an impedance that scales with the joint's inverse weight (M^-1)_jj at the initial configuration
-    (recomputed when set_dofs_armature changes the armature), and lets go while the joint leaves the limit
-    faster than that (tests/test_joint_limits.py: MuJoCo's trajectories to 1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default)
-    select penalty springs instead (either one given; the other then 1e4 / 1e2), genesis_lite's limits
-    before 2026-11-29. contact_damping_ratio (None by default) makes the damper
+    benchmarks/self_collision_pairs.py). contact_stiffness (N/m per contact point) and contact_damping (N s/m
+    per contact point) set the penalty model (the stiffness scaled up for pairs heavier than 100 kg). Joint
+    limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit by d, the constraint asks for
+    the reference acceleration -b v - k imp d (b = 2 / (0.95 tc), k = 1 / (0.95 tc)^2, tc =
+    max(constraint_timeconst, 2 substep dt), imp 0.9 -> 0.95 over the first mm or mrad; an MJCF joint's
+    solreflimit / solimplimit where it has them) with an impedance that scales with the joint's inverse weight
+    (M^-1)_jj at the initial configuration (recomputed when set_dofs_armature changes the armature), and lets go
+    while the joint leaves the limit faster than that (tests/test_joint_limits.py: MuJoCo's trajectories to
+    1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default) select penalty
+    springs instead (either one given; the other then 1e4 / 1e2), genesis_lite's limits before 2026-11-29.
+    contact_damping_ratio (None by default) makes the damper
     mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the
     reduced mass of the two links, and at least 4 k h (h the step). A legged landing without rotor inertia
     (default_armature=None) then converges as dt shrinks, which it does not with the fixed damper (a light

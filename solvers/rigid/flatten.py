@@ -65,10 +65,9 @@ class FlatModel:
                     eff.append(l.effort if l.effort > 0 else np.inf)
                     damp.append(l.damping); fl.append(l.frictionloss); arm.append(l.armature)
                     stiff.append(l.stiffness); sref.append(l.springref)
-                    limsol.append((np.nan, 1.0) + DEFAULT_LIMIT_SOL[2:] if l.limit_solref is None else
-                                  tuple(l.limit_solref) + DEFAULT_LIMIT_SOL[2:])
-                    if l.limit_solimp is not None:
-                        limsol[-1] = limsol[-1][:2] + tuple(float(x) for x in l.limit_solimp)
+                    limsol.append((DEFAULT_LIMIT_SOL[:2] if l.limit_solref is None else tuple(l.limit_solref))
+                                  + (DEFAULT_LIMIT_SOL[2:] if l.limit_solimp is None else
+                                     tuple(float(x) for x in l.limit_solimp)))
                 nq += JOINT_NQ[l.joint_type]
                 nd += JOINT_NV[l.joint_type]
             nl += m.n_links

@@ -351,8 +351,8 @@ def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsuppo
             la, lb = geoms.link[a], geoms.link[b]
             if la == lb or not (dyn[la] or dyn[lb]) or geoms.entity[a] in no_contact or geoms.entity[b] in no_contact:
                 continue
-            if root[la] == root[lb] and (not self_collision or (not adjacent_collision
-                                                                and links_adjacent(flat, la, lb))):
+            same_tree = root[la] == root[lb]
+            if same_tree and (not self_collision or (not adjacent_collision and links_adjacent(flat, la, lb))):
                 continue
             ta, tb = geoms.type[a], geoms.type[b]
             if ta == GEOM_PLANE and tb == GEOM_PLANE:
@@ -363,7 +363,7 @@ def candidate_pairs(geoms: GeomTable, flat, self_collision: bool, ignore_unsuppo
                 continue
             # a plane is always the second geom of its pair (the broad phase tests the first against it)
             pairs.append((b, a) if ta == GEOM_PLANE else (a, b))
-            if root[la] == root[lb]:
+            if same_tree:
                 own.append(pairs[-1])
     if own and not neutral_collision:
         drop = neutral_overlaps(geoms, flat, own)
