@@ -369,6 +369,41 @@ def test_a_default_run_writes_the_kernel_cache(tmp_path):
     assert listings[0] == listings[1]
 
 
+def test_objects_made_after_init_are_collected_and_flushed(tmp_path):
+    """gs.init moves the objects alive before it to the collector's permanent generation (gc.freeze, so that
+    later collections and the exit skip the libraries' ~10^6 objects); what a script makes after it is
+    collected as before: a scene dropped in a reference cycle is freed by gc.collect(), and a file object
+    left open in a cycle is flushed and closed when the process exits. With GS_GC_FREEZE=0 nothing is
+    frozen; in either case the run ends with rc 0."""
+    import subprocess
+
+    code = ("import gc, sys, weakref\n"
+            "import genesis_lite as gs\n"
+            "gs.init(backend=gs.cpu, precision='64', logging_level='warning')\n"
+            "frozen = gc.get_freeze_count()\n"
+            "scene = gs.Scene()\n"
+            "scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0, 0, 0.5)))\n"
+            "scene.build()\n"
+            "scene.step()\n"
+            "scene.cycle = scene\n"
+            "alive = weakref.ref(scene)\n"
+            "del scene\n"
+            "gc.collect()\n"
+            "holder = [open(sys.argv[1], 'w')]\n"
+            "holder.append(holder)\n"
+            "holder[0].write('written after gs.init')\n"
+            "print(frozen > 0, alive() is None)\n")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for switch, frozen in (("1", "True"), ("0", "False")):
+        target = tmp_path / f"out{switch}.txt"
+        env = {**os.environ, "GS_GC_FREEZE": switch}
+        out = subprocess.run([sys.executable, "-c", code, str(target)], env=env, capture_output=True, text=True,
+                             timeout=600, cwd=repo)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip().splitlines()[-1] == f"{frozen} True", (switch, out.stdout)
+        assert target.read_text() == "written after gs.init", switch
+
+
 # --------------------------------------------------------------------------------------------
 # Model cache
 # --------------------------------------------------------------------------------------------
