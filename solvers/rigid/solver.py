@@ -31,6 +31,7 @@ from ..taichi_compat.adstack import require as require_ad_stack
 from ..taichi_compat.compile_options import AdjointCompile, ForwardCompile
 from . import state_io
 from .actuation import LIMITS_CONSTRAINT, LIMITS_OFF, LIMITS_SPRING, func_generalized_force, limit_gains
+from .collision import NO_ADJOINT
 from .contact import ContactPlan
 from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
                    I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
@@ -353,7 +354,8 @@ class RigidSolver:
         compiles an adjoint in time superlinear in its size (the Panda's 13 stages: 9 s as separate
         kernels, 24 s as one). The generalised force shares the kernel of the stage before it: its
         adjoint alone left ~1e-250 (not 0) in the gradient of an env outside the loss
-        (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient).
+        (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient). A stage that
+        writes no float (the broad phase: collision.NO_ADJOINT) has an empty adjoint, which is not run.
 
         Contacts only when some pair can touch: in a scene whose contact solver is its only addition to
         the core (no external or applied wrenches) and couples no two moving bodies (not dense), an
@@ -372,7 +374,8 @@ class RigidSolver:
             bounds = [k for k, f in enumerate(stages) if f is not func_generalized_force or k == 0]
             bounds.append(len(stages))
             return [(k0, k1, all(f in PLAIN_ADJOINT for f in stages[k0:k1]))
-                    for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))]
+                    for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))
+                    if not all(f in NO_ADJOINT for f in stages[k0:k1])]
 
         runs = {True: (step_core, parts_of(step_core.dynamics_stages)), False: (core, parts_of(core.dynamics_stages))}
         used = {}  # (e, src, h) -> whether its last forward ran the contact kernels

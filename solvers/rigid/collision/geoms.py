@@ -159,6 +159,62 @@ def hull_planes(H: np.ndarray, k: int = N_KDOP):
     return np.r_[N, np.repeat(N[:1], pad, 0)], np.r_[D, np.repeat(D[:1], pad)]
 
 
+def _polytope_corners(kn: np.ndarray, kd: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """The corners of the intersection of the half-spaces n . x <= d (a mesh's collision volume, hull_planes),
+    around a point inside it."""
+    from scipy.spatial import HalfspaceIntersection
+
+    return HalfspaceIntersection(np.c_[kn, -kd], inner).intersections
+
+
+def geom_boxes(geoms: GeomTable):
+    """(centres (G, 3), axes (G, 3, 3): columns, half sizes (G, 3)) of a box around each geom's collision
+    volume, in the geom frame: the broad phase's oriented-box test (narrow.func_gap_obbs). Exact for boxes;
+    sphere, capsule and cylinder: the box their axes give; a mesh: the box along the principal axes of its
+    hull points (or the geom frame's, whichever is smaller) around the corners of its planes' intersection,
+    which is the volume its SDF gives (it reaches up to millimetres past the hull). Planes: unused (zeros)."""
+    G = geoms.n
+    C, A, Hf = np.zeros((G, 3)), np.tile(np.eye(3), (G, 1, 1)), np.zeros((G, 3))
+    for g in range(G):
+        t, sz = geoms.type[g], geoms.size[g]
+        if t == GEOM_BOX:
+            Hf[g] = sz
+        elif t == GEOM_SPHERE:
+            Hf[g] = sz[0]
+        elif t == GEOM_CAPSULE:
+            Hf[g] = (sz[0], sz[0], sz[1] + sz[0])
+        elif t == GEOM_CYLINDER:
+            Hf[g] = (sz[0], sz[0], sz[1])
+        elif t == GEOM_MESH:
+            try:
+                V = _polytope_corners(geoms.kdop_dirs[g], geoms.kdop[g], geoms.center[g])
+            except Exception:  # qhull: a degenerate intersection; its bounding box planes (the first six) hold it
+                kn, kd = geoms.kdop_dirs[g][:6], geoms.kdop[g][:6]
+                V = np.array([[x, y, z] for x in (-kd[3], kd[0]) for y in (-kd[4], kd[1]) for z in (-kd[5], kd[2])])
+                assert np.allclose(kn, np.r_[np.eye(3), -np.eye(3)])
+            P = geoms.points[g]
+            _, _, Vt = np.linalg.svd(P - P.mean(0), full_matrices=False)
+            best = None
+            for axes in (Vt.T, np.eye(3)):
+                loc = V @ axes
+                lo, hi = loc.min(0), loc.max(0)
+                vol = float(np.prod(hi - lo))
+                if best is None or vol < best[0]:
+                    best = (vol, axes, lo, hi)
+            _, axes, lo, hi = best
+            # a margin of rounding, so that the corners lie inside in any precision
+            pad = 1e-6 * float((hi - lo).max())
+            C[g], A[g], Hf[g] = axes @ ((lo + hi) / 2), axes, (hi - lo) / 2 + pad
+    return C, A, Hf
+
+
+def geom_box_columns(geoms: GeomTable):
+    """geom_boxes as the columns of the contact solver's per-geom table: centres (G, 3), axes (G, 9, row-major),
+    half sizes (G, 3)."""
+    C, A, H = geom_boxes(geoms)
+    return C, A.reshape(len(C), 9), H
+
+
 def link_is_dynamic(flat) -> np.ndarray:  # flat: the scene's flatten.FlatModel
     """(L,) bool: the link moves with some dof (it or an ancestor has a joint with dofs)."""
     L = flat.n_links

@@ -3,7 +3,8 @@ contact slot (its point, normal and depth), in the single-assignment form of the
 """
 import taichi as ti
 
-from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, SLOT_BOXEDGE,
+from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, N_KDOP,
+                    SLOT_BOXEDGE,
                     SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG)
 from ..math3d import func_mm, func_mtv, func_mv
 from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_round, func_segment_closest, func_sgn3
@@ -56,12 +57,13 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
     both are lower bounds of their distance, so a pair either test leaves out has no slot that pushes
     in the step; the boxes keep long thin geoms apart that their spheres do not (the 100-box tower's
     2 m planks: 2,840 of its 5,151 pairs active with the spheres, 202 with the boxes; 58 -> 8 ms a
-    step). A far slot of a fast-turning body can still be a candidate (slots.func_contact_slot: its
-    point's speed, not this bound) with an exactly zero force; leaving its pair out then moves the
-    step's rounding, as the spheres' test already did (14 bodies thrown at 20 rad/s: 3e-14 m in the
-    first step it happens; tests/test_many_bodies.py checks a pile at 6 rad/s to the bit). Without
-    gradients the plane and pair tests are branches (each pair evaluates its own: a fifth of the stage
-    on ANYmal); with them both are evaluated and selected (single-assignment form)."""
+    step); the pairs both leave in are tested again as oriented boxes (func_gap_obbs). A far slot of a
+    fast-turning body can still be a candidate (slots.func_contact_slot: its point's speed, not this
+    bound) with an exactly zero force; leaving its pair out then moves the step's rounding, as the
+    spheres' test already did (14 bodies thrown at 20 rad/s: 3e-14 m in the first step it happens;
+    tests/test_many_bodies.py checks a pile at 6 rad/s to the bit). The tests are branches (each pair
+    evaluates its own: a fifth of the stage on ANYmal), with gradients too: the stage writes only the
+    integer pair_active, so it has no adjoint (NO_ADJOINT: the gradient path's backward skips it)."""
     c = s.contact
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]
@@ -84,20 +86,76 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         rot_a = ti.min(ti.sqrt(wa.dot(wa) + TINY), 2.0 / h) * ti.min(c.geom_rbound[ga], 1e6)
         closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a
         gap = ti.cast(0.0, s.dtype)
-        if ti.static(s.requires_grad):
-            gap_plane = func_gap_plane(c, ga, Ra, Rb, ca, cb, False)
-            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
-            gap_pair = ti.max(gap_pair, func_gap_boxes(c, ga, gb, Ra, Rb, ca, cb, False))
-            gap = ti.select(is_plane, gap_plane, gap_pair)
-            closing += ti.select(is_plane, 0.0, rot_b)
+        if is_plane:
+            gap = func_gap_plane(c, ga, Ra, Rb, ca, cb, True)
         else:
-            if is_plane:
-                gap = func_gap_plane(c, ga, Ra, Rb, ca, cb, True)
-            else:
-                gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
-                gap = ti.max(gap_pair, func_gap_boxes(c, ga, gb, Ra, Rb, ca, cb, True))
-                closing += rot_b
+            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
+            gap = ti.max(gap_pair, func_gap_boxes(c, ga, gb, Ra, Rb, ca, cb, True))
+            closing += rot_b
+            if gap - h * closing < c.margin:  # the oriented boxes, for the pairs those two leave in
+                gap = ti.max(gap, func_gap_obbs(c, i_b, ga, gb, Ra, Rb))
+            if ti.static(GEOM_MESH in c.sdf_types):  # two meshes: their planes against the other's points
+                if gap - h * closing < c.margin and c.geom_type[ga] == GEOM_MESH and c.geom_type[gb] == GEOM_MESH:
+                    gap = ti.max(gap, func_gap_mesh_planes(c, i_b, i_p, ga, gb, Ra, Rb))
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
+
+
+@ti.func
+def func_gap_obbs(c: ti.template(), i_b, ga, gb, Ra, Rb):
+    """Gap of the oriented boxes around geoms ga and gb (rotations Ra, Rb; collision.geom_boxes) by the
+    separating-axis test: the largest separation along each box's three axes and the nine cross products
+    of one's with the other's. A lower bound of the distance of the two collision volumes, as the spheres'
+    and the world boxes' gaps are, and a tighter one for the parts of one robot that sit beside each other:
+    Genesis's MJCF Panda holding a bent pose has three pairs of its own meshes that the spheres and world
+    boxes leave in at every step (link 5 beside link 3, link 7 and the hand), 7-27 mm apart as oriented
+    boxes, 28-76 mm as hulls."""
+    A = func_mm(Ra, c.geom_obb_A[ga])
+    B = func_mm(Rb, c.geom_obb_A[gb])
+    T = c.geom_xpos[i_b, gb] + func_mv(Rb, c.geom_obb_c[gb]) - c.geom_xpos[i_b, ga] - func_mv(Ra, c.geom_obb_c[ga])
+    ha = c.geom_obb_h[ga]
+    hb = c.geom_obb_h[gb]
+    sep = func_box_axis_sep(T, ti.Vector([A[0, 0], A[1, 0], A[2, 0]]), A, ha, B, hb)
+    for k in ti.static(range(3)):
+        ak = ti.Vector([A[0, k], A[1, k], A[2, k]])
+        bk = ti.Vector([B[0, k], B[1, k], B[2, k]])
+        sep = ti.max(sep, func_box_axis_sep(T, ak, A, ha, B, hb), func_box_axis_sep(T, bk, A, ha, B, hb))
+        for m in ti.static(range(3)):
+            L = ak.cross(ti.Vector([B[0, m], B[1, m], B[2, m]]))
+            n2 = L.dot(L)
+            if n2 > 1e-12:  # (parallel axes: their cross product is no axis)
+                sep = ti.max(sep, func_box_axis_sep(T, L / ti.sqrt(n2), A, ha, B, hb))
+    return sep
+
+
+@ti.func
+def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb):
+    """A lower bound of every signed distance the slots of mesh pair i_p will find: for each side, the
+    largest over the SDF side's planes (geoms.hull_planes) of the least plane distance of the other side's
+    slot points (minus their radii), and the smaller of the two sides. A point's SDF outside the planes is
+    its largest plane distance (sdf.func_sdf_kdop), so a bound above the margin leaves each point outside
+    by at least as much. The oriented boxes bound the planes' intersection, which reaches up to
+    centimetres past a hull at its corners; this test sees the hull points themselves (the Panda's link 5
+    beside link 7: boxes overlapping by 17 mm, points 1.8 mm outside the planes at the least)."""
+    out = ti.cast(1e30, c.dtype)
+    for side in ti.static(range(2)):
+        X = gb if side == 0 else ga  # the SDF side
+        Y = ga if side == 0 else gb  # the point side
+        RX = Rb if side == 0 else Ra
+        RY = Ra if side == 0 else Rb
+        dx = c.geom_xpos[i_b, X] - c.geom_xpos[i_b, Y]
+        best = ti.cast(-1e30, c.dtype)
+        for k in range(N_KDOP):
+            nw = func_mv(RX, c.geom_kdop_dir[X, k])
+            # the plane in the point side's frame: n . p <= d there
+            nY = func_mtv(RY, nw)
+            dY = c.geom_kdop[X, k] + nw.dot(dx)
+            least = ti.cast(1e30, c.dtype)
+            for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
+                if c.slot_ga[i_s] == Y:
+                    least = ti.min(least, nY.dot(c.slot_p[i_s]) - dY - c.slot_r[i_s])
+            best = ti.max(best, least)
+        out = ti.min(out, best)
+    return out
 
 
 @ti.func
@@ -405,3 +463,7 @@ def func_slot_geometry(s: ti.template(), i_b, i_s):
     mid = pt - n * (0.5 * (ra + phi))
     cp = ti.select(c.link_dyn[c.geom_link[gb]] == 1, mid, pt - n * ra)
     return func_with_boxedge(c, i_s, kind, ga, gb, xa, Ra, xb, Rb, cp, n, depth)
+
+
+# stages that write no float: their adjoint is empty, and the gradient path's backward does not run it
+NO_ADJOINT = (func_broad_phase,)

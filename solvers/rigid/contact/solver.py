@@ -6,7 +6,7 @@ import numpy as np
 import taichi as ti
 
 from ... import taichi_compat
-from ..collision import N_KDOP, func_broad_phase, func_geom_pose, geom_rotations
+from ..collision import N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns, geom_rotations
 from ..kinematics import LINK_STATE
 from ..layout import FieldTree
 from .banks import AccBank
@@ -96,6 +96,8 @@ class ContactSolver:
         self.geom_thick = F(G, False)
         self.geom_kdop = F((G, N_KDOP), False)
         self.geom_kdop_dir = V3((G, N_KDOP), False)  # the planes' normals (collision.hull_planes)
+        # a box around the collision volume (collision.geom_boxes): centre, axes (columns), half sizes
+        self.geom_obb_c, self.geom_obb_A, self.geom_obb_h = V3(G, False), M3(G, False), V3(G, False)
         # the friction parameter [env, geom]; the scene sees its block through geom_friction
         self.geom_mu = F((B, G))
         self.link_dyn = I(L)
@@ -251,7 +253,7 @@ class ContactSolver:
         R = geom_rotations(geoms.quat / np.linalg.norm(geoms.quat, axis=1, keepdims=True)).reshape(G, 9)
         geom_f = np.concatenate([geoms.pos, geoms.center, geoms.size, R,
                                  np.minimum(geoms.rbound, np.finfo(npf).max)[:, None], geoms.beta[:, None],
-                                 np.minimum(geom_half_thickness(geoms), 1e30)[:, None]], -1)
+                                 np.minimum(geom_half_thickness(geoms), 1e30)[:, None], *geom_box_columns(geoms)], -1)
         self.clock.reset()
         self.n_deep_warned = 0
         dyn = np.zeros(max(plan.n_links, 1), dtype=np.int32)
@@ -295,6 +297,11 @@ class ContactSolver:
             self.geom_rbound[g] = geom_f[g, 18]
             self.geom_beta[g] = geom_f[g, 19]
             self.geom_thick[g] = geom_f[g, 20]
+            for k in ti.static(range(3)):
+                self.geom_obb_c[g][k] = geom_f[g, 21 + k]
+                self.geom_obb_h[g][k] = geom_f[g, 33 + k]
+            for k, l in ti.static(ti.ndrange(3, 3)):
+                self.geom_obb_A[g][k, l] = geom_f[g, 24 + 3 * k + l]
             for k in range(kdop.shape[1]):
                 self.geom_kdop[g, k] = kdop[g, k]
                 for d in ti.static(range(3)):
