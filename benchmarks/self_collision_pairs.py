@@ -4,8 +4,9 @@ fixed-joint links; shapes that overlap or touch with every joint at zero). Genes
 Go2 URDF (Genesis's assets: GS_ASSETS_DIR or a Genesis install), ours in this process, Genesis's in the
 python of its own venv (--genesis-python), in a child process. Prints a Markdown table: geom pairs and the
 set of link pairs on each side, and the link pairs only one side has; then what self-collision costs ours:
-the MJCF Panda over a plane, float64, 1 env, PD holding a pose, the median of 5 rounds of 200 steps' mean
-step time, self-collision off and on, in this process (kernels compiled or loaded before the rounds).
+the MJCF Panda over a plane, float64, PD holding a bent pose, at 1 env and 1,024 envs: both scenes built in
+this process, 5 alternated rounds of 400 (1 env) and 20 (1,024 envs) steps, the medians of the rounds' mean
+time an env-step, self-collision off and on (kernels compiled or loaded before the rounds).
 
     GS_ASSETS_DIR=<genesis>/assets python benchmarks/self_collision_pairs.py --genesis-python <venv>/bin/python
 """
@@ -48,33 +49,41 @@ def ours():
     return out
 
 
-def step_cost():
-    """{False: us, True: us} a step of the MJCF Panda over a plane (float64, 1 env), without and with
-    self-collision."""
+def step_cost(n_envs: int, steps: int, rounds: int = 5):
+    """{False: us, True: us} an env-step of the MJCF Panda over a plane (float64, n_envs envs, PD holding a
+    bent pose), without and with self-collision: both scenes built in this process, then `rounds` alternated
+    rounds of `steps` steps each, medians."""
     import statistics
     import time
 
+    import numpy as np
+
     import genesis_lite as gs
 
-    out = {}
+    scenes = {}
     for on in (False, True):
         scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_self_collision=on))
         scene.add_entity(gs.morphs.Plane())
         arm = scene.add_entity(gs.morphs.MJCF(file=ROBOTS["mjcf_panda"][1]))
-        scene.build()
-        q = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8, 0.02, 0.02]
+        if n_envs > 1:
+            scene.build(n_envs=n_envs)
+        else:
+            scene.build()
+        q = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8, 0.02, 0.02])
+        q = np.tile(q, (n_envs, 1)) if n_envs > 1 else q
         arm.set_dofs_position(q)
         arm.control_dofs_position(q)
         for _ in range(20):
             scene.step()
-        rounds = []
-        for _ in range(5):
+        scenes[on] = scene
+    times = {False: [], True: []}
+    for _ in range(rounds):
+        for on in (False, True):
             t0 = time.perf_counter()
-            for _ in range(200):
-                scene.step()
-            rounds.append((time.perf_counter() - t0) / 200 * 1e6)
-        out[on] = statistics.median(rounds)
-    return out
+            for _ in range(steps):
+                scenes[on].step()
+            times[on].append((time.perf_counter() - t0) / steps / n_envs * 1e6)
+    return {on: statistics.median(t) for on, t in times.items()}
 
 
 def main():
@@ -82,7 +91,7 @@ def main():
     ap.add_argument("--genesis-python", required=True, help="python of a venv with genesis-world")
     args = ap.parse_args()
     mine = ours()
-    cost = step_cost()
+    cost = {n: step_cost(n, steps) for n, steps in ((1, 400), (1024, 20))}
     done = subprocess.run([args.genesis_python, "-c", GENESIS_SIDE, json.dumps(ROBOTS)], capture_output=True,
                           text=True, timeout=1800)
     if done.returncode != 0:
@@ -95,8 +104,9 @@ def main():
         sa, sb = {tuple(p) for p in a["link_pairs"]}, {tuple(p) for p in b["link_pairs"]}
         print(f"| {key} | {a['n_geom_pairs']} / {b['n_geom_pairs']} | {len(sa)} / {len(sb)} | "
               f"{sorted(sa - sb) or '-'} | {sorted(sb - sa) or '-'} | {a['n_slots']} |")
-    print(f"\nOurs, MJCF Panda over a plane, 1 env, float64: a step {cost[False]:.0f} us without "
-          f"self-collision, {cost[True]:.0f} us with it ({cost[True] / cost[False]:.1f}x).")
+    for n, c in cost.items():
+        print(f"\nOurs, MJCF Panda over a plane, {n} env(s), float64: an env-step {c[False]:.2f} us without "
+              f"self-collision, {c[True]:.2f} us with it ({c[True] / c[False]:.1f}x).")
 
 
 if __name__ == "__main__":

@@ -108,9 +108,9 @@ class RigidOptions(_Options):
     those too) and pairs of collision shapes that already overlap or touch with every joint at zero, as a
     robot's shapes often do where its parts meet (enable_neutral_collision=True keeps those; the test is a
     voxel-like grid of ~24 cells along each shape, collision.neutral_overlaps). Unlike Genesis, self-collision
-    is off by default: a robot's parts that stay near each other pass the broad phase and compute their
-    sample-point slots every step (Genesis's MJCF Panda: a step 9x slower at 1 env,
-    benchmarks/self_collision_pairs.py). contact_stiffness (N/m per contact point) and contact_damping (N s/m
+    is off by default: it makes a robot scene's step two to four times longer (Genesis's MJCF Panda over a
+    plane: 1.8-2.0x at 1 env, 2.3-3.9x at 1,024 envs; every own pair through the broad phase, and the dense
+    contact system; benchmarks/results/self_collision.md). contact_stiffness (N/m per contact point) and contact_damping (N s/m
     per contact point) set the penalty model (the stiffness scaled up for pairs heavier than 100 kg). Joint
     limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit by d, the constraint asks for
     the reference acceleration -b v - k imp d (b = 2 / (0.95 tc), k = 1 / (0.95 tc)^2, tc =

@@ -14,7 +14,7 @@ from typing import Dict, Optional, Tuple
 
 import numpy as np
 
-from solvers.rigid.collision.geoms import hull_planes
+from solvers.rigid.collision.geoms import hull_planes, mesh_box
 from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, VisualDesc
 
 from .cache import note_file
@@ -153,8 +153,10 @@ def mesh_hull(vertices) -> Optional[dict]:
     try:
         hull = trimesh.Trimesh(vertices=V, process=False).convex_hull
         hv = np.asarray(hull.vertices, dtype=float)
+        planes = hull_planes(hv)
         return {"vertices": hv, "centroid": np.asarray(hull.centroid, dtype=float),
-                "volume": float(hull.volume), "is_volume": bool(hull.is_volume), "planes": hull_planes(hv)}
+                "volume": float(hull.volume), "is_volume": bool(hull.is_volume), "planes": planes,
+                "box": mesh_box(hv, *planes)}
     except Exception:
         return None
 

@@ -92,9 +92,12 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
             gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
             gap = ti.max(gap_pair, func_gap_boxes(c, ga, gb, Ra, Rb, ca, cb, True))
             closing += rot_b
-            if gap - h * closing < c.margin:  # the oriented boxes, for the pairs those two leave in
-                gap = ti.max(gap, func_gap_obbs(c, i_b, ga, gb, Ra, Rb))
-            if ti.static(GEOM_MESH in c.sdf_types):  # two meshes: their planes against the other's points
+            # the oriented boxes, for the pairs those two leave in (compiled where some pair is not against a
+            # plane), and two meshes' planes against each other's points
+            if ti.static(c.sdf_types != (GEOM_PLANE,)):
+                if gap - h * closing < c.margin:
+                    gap = ti.max(gap, func_gap_obbs(c, i_b, ga, gb, Ra, Rb))
+            if ti.static(GEOM_MESH in c.sdf_types):
                 if gap - h * closing < c.margin and c.geom_type[ga] == GEOM_MESH and c.geom_type[gb] == GEOM_MESH:
                     gap = ti.max(gap, func_gap_mesh_planes(c, i_b, i_p, ga, gb, Ra, Rb))
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
@@ -102,7 +105,7 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
 
 @ti.func
 def func_gap_obbs(c: ti.template(), i_b, ga, gb, Ra, Rb):
-    """Gap of the oriented boxes around geoms ga and gb (rotations Ra, Rb; collision.geom_boxes) by the
+    """Gap of the oriented boxes around geoms ga and gb (rotations Ra, Rb; geoms.mesh_box, primitive_box) by the
     separating-axis test: the largest separation along each box's three axes and the nine cross products
     of one's with the other's. A lower bound of the distance of the two collision volumes, as the spheres'
     and the world boxes' gaps are, and a tighter one for the parts of one robot that sit beside each other:

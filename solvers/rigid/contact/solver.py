@@ -96,7 +96,7 @@ class ContactSolver:
         self.geom_thick = F(G, False)
         self.geom_kdop = F((G, N_KDOP), False)
         self.geom_kdop_dir = V3((G, N_KDOP), False)  # the planes' normals (collision.hull_planes)
-        # a box around the collision volume (collision.geom_boxes): centre, axes (columns), half sizes
+        # a box around the collision volume (geoms.mesh_box, primitive_box): centre, axes (columns), half sizes
         self.geom_obb_c, self.geom_obb_A, self.geom_obb_h = V3(G, False), M3(G, False), V3(G, False)
         # the friction parameter [env, geom]; the scene sees its block through geom_friction
         self.geom_mu = F((B, G))
