@@ -4,8 +4,7 @@ contact slot (its point, normal and depth), in the single-assignment form of the
 import taichi as ti
 
 from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, N_KDOP,
-                    SLOT_BOXEDGE,
-                    SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG)
+                    SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG)
 from ..math3d import func_mm, func_mtv, func_mv
 from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_round, func_segment_closest, func_sgn3
 
@@ -105,13 +104,14 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
 
 @ti.func
 def func_gap_obbs(c: ti.template(), i_b, ga, gb, Ra, Rb):
-    """Gap of the oriented boxes around geoms ga and gb (rotations Ra, Rb; geoms.mesh_box, primitive_box) by the
-    separating-axis test: the largest separation along each box's three axes and the nine cross products
-    of one's with the other's. A lower bound of the distance of the two collision volumes, as the spheres'
-    and the world boxes' gaps are, and a tighter one for the parts of one robot that sit beside each other:
-    Genesis's MJCF Panda holding a bent pose has three pairs of its own meshes that the spheres and world
-    boxes leave in at every step (link 5 beside link 3, link 7 and the hand), 7-27 mm apart as oriented
-    boxes, 28-76 mm as hulls."""
+    """Gap of the oriented boxes around geoms ga and gb (rotations Ra, Rb; geoms.mesh_box, primitive_box)
+    by the separating-axis test: the largest separation along each box's three axes and the nine cross
+    products of one's with the other's. A lower bound of the distance of the two collision volumes, as the
+    spheres' and the world boxes' gaps are, and a tighter one for the parts of one robot that sit beside
+    each other: Genesis's MJCF Panda holding a bent pose has three pairs of its own meshes that the spheres
+    and world boxes leave in at every step (link 5's third piece beside link 3, link 7 and the hand; 28-76
+    mm apart as hulls); the boxes part it from link 3 and the hand (by 7.5 mm and more), and overlap link
+    7's by 17 mm (func_gap_mesh_planes parts those)."""
     A = func_mm(Ra, c.geom_obb_A[ga])
     B = func_mm(Rb, c.geom_obb_A[gb])
     T = c.geom_xpos[i_b, gb] + func_mv(Rb, c.geom_obb_c[gb]) - c.geom_xpos[i_b, ga] - func_mv(Ra, c.geom_obb_c[ga])
