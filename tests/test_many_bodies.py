@@ -208,6 +208,8 @@ def test_a_box_pushed_into_a_resting_box_keeps_its_momentum_up_to_coulomb_fricti
     assert float(boxes[1].get_dofs_velocity()[0]) > 0.5
 
 
+@pytest.mark.slow  # 50-120 s, for the default suite's margin under 15 minutes; by default the gradient
+# matrix's gripper_plane case records bound rounds (its pad's landing releases a law and brings it back)
 def test_grad_through_the_bound_rounds():
     """Gradients of the pushed pair's positions after two steps, in the pushing box's initial velocity
     (all six components) and the second box's friction, against central finite differences: the steps
