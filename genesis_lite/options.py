@@ -110,12 +110,13 @@ class RigidOptions(_Options):
     voxel-like grid of ~24 cells along each shape, collision.neutral_overlaps). Unlike Genesis, self-collision
     is off by default: it makes a robot scene's step two to four times longer (Genesis's MJCF Panda over a
     plane: 1.8-2.0x at 1 env, 2.3-3.9x at 1,024 envs; every own pair through the broad phase, and the dense
-    contact system; benchmarks/results/self_collision.md). contact_stiffness (N/m per contact point) and contact_damping (N s/m
-    per contact point) set the penalty model (the stiffness scaled up for pairs heavier than 100 kg). Joint
-    limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit by d, the constraint asks for
-    the reference acceleration -b v - k imp d (b = 2 / (0.95 tc), k = 1 / (0.95 tc)^2, tc =
-    max(constraint_timeconst, 2 substep dt), imp 0.9 -> 0.95 over the first mm or mrad; an MJCF joint's
-    solreflimit / solimplimit where it has them) with an impedance that scales with the joint's inverse weight
+    contact system; benchmarks/results/self_collision.md). contact_stiffness (N/m per contact point) and
+    contact_damping (N s/m per contact point) set the penalty model (the stiffness scaled up for pairs
+    heavier than 100 kg). Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
+    by d, the constraint asks for the reference acceleration -b v - k imp d (b = 2 / (0.95 tc),
+    k = 1 / (0.95 tc)^2, tc = max(constraint_timeconst, 2 substep dt), imp 0.9 -> 0.95 over the first mm or
+    mrad; an MJCF joint's solreflimit / solimplimit where it has them) with an impedance that scales with the
+    joint's inverse weight
     (M^-1)_jj at the initial configuration (recomputed when set_dofs_armature changes the armature), and lets go
     while the joint leaves the limit faster than that (tests/test_joint_limits.py: MuJoCo's trajectories to
     1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default) select penalty
