@@ -17,6 +17,10 @@ import numpy as np
 # 100-step rollout spent ~0.25 s of its 0.75 s forward in a control upload of 0.13 ms when they sleep at
 # once (benchmarks/results/omp_wait.md). Read when torch loads its OpenMP runtime: effective when
 # genesis_lite is imported before torch; a value the user set is kept.
+import sys  # noqa: E402
+
+# torch loaded before this line read the variable already (Scene.build warns when that can cost: many envs)
+TORCH_IMPORTED_FIRST = "torch" in sys.modules and "OMP_WAIT_POLICY" not in os.environ
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Lighter Taichi front-end bookkeeping and launches (same IR; solvers/taichi_compat), before any kernel

@@ -24,6 +24,12 @@ class ZeroGainWarning(GenesisWarning):
     """A PD target was set on dofs whose gain is 0, so the target has no effect."""
 
 
+class ImportOrderWarning(GenesisWarning):
+    """torch was imported before genesis_lite, whose setting of OMP_WAIT_POLICY then came too late: torch's
+    OpenMP threads spin after each of its ops on the cores the simulator's kernels need (scenes of many
+    envs run slower). Import genesis_lite first, or start Python with OMP_WAIT_POLICY=PASSIVE."""
+
+
 # Raised by the rigid solver, which does not import this package: a UserWarning, re-exported here so
 # that users find every warning of the library in one module.
 from solvers.rigid.contact import ContactPenetrationWarning  # noqa: E402,F401

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 import weakref
 from dataclasses import dataclass
 from typing import List, Optional
@@ -13,13 +14,34 @@ import torch
 from . import materials as gmat
 from . import morphs as gm
 from . import surfaces as gs_surfaces
-from .errors import GenesisException
+from .errors import GenesisException, ImportOrderWarning
 from .nan_watch import NaNWatch
 from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions, ViewerOptions, VisOptions
 from .validation import validate_model
 from solvers.rigid.schedule import Integrator, rk4_combine
 
 logger = logging.getLogger("genesis_lite")
+# envs from which a scene warns that torch was imported first (ImportOrderWarning): below it the simulator's
+# kernels are short and the spinning threads' cost was not measurable (1 env: the same times)
+IMPORT_ORDER_ENVS = 256
+_import_order_warned = False
+
+
+def _warn_import_order(n_envs):
+    """Once a process, at the build of a scene of IMPORT_ORDER_ENVS or more envs: torch was imported before
+    genesis_lite (OMP_WAIT_POLICY unset then) and runs more than one thread."""
+    global _import_order_warned
+    from . import TORCH_IMPORTED_FIRST
+
+    if _import_order_warned or not TORCH_IMPORTED_FIRST or n_envs < IMPORT_ORDER_ENVS or torch.get_num_threads() < 2:
+        return
+    _import_order_warned = True
+    warnings.warn(ImportOrderWarning(
+        "torch was imported before genesis_lite, so its OpenMP threads keep spinning after each torch op "
+        "(OMP_WAIT_POLICY was unset when torch loaded) on the cores this scene's kernels need: a 1,024-env "
+        "Panda's forward with gradients took ~1.5x as long on 2 cores. Import genesis_lite before torch, or "
+        "start Python with OMP_WAIT_POLICY=PASSIVE (or ACTIVE, to keep torch's threads spinning and silence "
+        "this)."), stacklevel=3)
 
 
 class SolverState(tuple):
@@ -343,6 +365,7 @@ class Scene:
         if not (isinstance(n_envs, (int, np.integer)) and n_envs >= 0):
             raise ValueError(f"scene.build(n_envs={n_envs!r}): n_envs must be an integer >= 0")
         self.n_envs = int(n_envs)
+        _warn_import_order(self.n_envs)
         coupled = bool(self.rigid_entities and self.mpm_entities and self.coupler_options.rigid_mpm)
         if self.rigid_entities or not self.mpm_entities:
             from .bridges.rigid import RigidSim

@@ -108,6 +108,43 @@ def test_importing_genesis_lite_first_makes_torch_s_openmp_threads_sleep():
     assert out.stdout.split()[-1] == "ACTIVE", out.stderr[-2000:]
 
 
+def test_a_many_env_scene_warns_when_torch_was_imported_first():
+    """torch imported before genesis_lite has read OMP_WAIT_POLICY already (unset: its threads spin), which
+    slows scenes of many envs: their build warns once (ImportOrderWarning), naming the remedy. Not when
+    genesis_lite came first, not when the user set the variable, not for a small scene. Fresh processes."""
+    code = """
+import sys, warnings
+first = sys.argv[1]
+if first == "torch":
+    import torch, genesis_lite as gs
+else:
+    import genesis_lite as gs, torch
+torch.set_num_threads(2)
+gs.init(backend=gs.cpu, precision="64")
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    for n in (int(a) for a in sys.argv[2:]):
+        scene = gs.Scene(show_viewer=False)
+        scene.add_entity(gs.morphs.Plane())
+        scene.build(n_envs=n)
+print("WARNED", [str(x.message) for x in w if issubclass(x.category, gs.errors.ImportOrderWarning)])
+"""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+
+    def warned(first, envs, extra=None):
+        out = subprocess.run([sys.executable, "-c", code, first] + [str(n) for n in envs], env={**env, **(extra or {})},
+                             capture_output=True, text=True, timeout=600)
+        line = [ln for ln in out.stdout.splitlines() if ln.startswith("WARNED")]
+        assert line, out.stderr[-3000:]
+        return eval(line[-1][len("WARNED "):])
+
+    msgs = warned("torch", [1, 256, 512])
+    assert len(msgs) == 1 and "Import genesis_lite before torch" in msgs[0] and "OMP_WAIT_POLICY=PASSIVE" in msgs[0]
+    assert warned("genesis_lite", [256]) == []
+    assert warned("torch", [256], {"OMP_WAIT_POLICY": "ACTIVE"}) == []
+    assert warned("torch", [64]) == []
+
+
 def test_a_stale_kernel_cache_lock_is_removed_and_a_live_one_kept(tmp_path):
     """A Taichi cache lock (ticache.lock) left by a killed process would keep every later process from
     the kernel cache; one a running process holds (recent) must stay."""

@@ -267,3 +267,59 @@ def test_mjcf_springs_follow_mujoco_trajectory(tmp_path):
         mujoco.mj_step(m, d2)
         free.append(d2.qpos.copy())
     assert np.abs(np.array(free) - ref).max() > 0.05
+
+
+def test_free_joint_pd_of_several_bodies_on_the_gradient_path():
+    """Two free cubes with an arm between them (free joints at links 0 and 3 + n, their dofs not the first of
+    the scene for the second): in a requires_grad scene (whose generalised force reads each free joint's
+    rotation error from a stage of its own, actuation.func_free_rot_errors) the first PD torques are
+    Genesis's law for both cubes, and the gradient of both cubes' motion after 8 steps in the second cube's
+    Euler-angle targets (unequal rotational gains) and its start orientation matches central differences
+    (the gains' own gradient: the matrix's free_box_pd case)."""
+    import torch
+
+    from conftest import ASSETS_DIR
+
+    def build():
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, gravity=(0.0, 0.0, 0.0), requires_grad=True),
+                         show_viewer=False)
+        a = scene.add_entity(gs.morphs.Box(size=(SIDE,) * 3, pos=(0.0, -1.0, 1.0)), material=gs.materials.Rigid(rho=1000.0))
+        scene.add_entity(gs.morphs.URDF(file=str(ASSETS_DIR / "urdf" / "arm.urdf"), fixed=True))
+        b = scene.add_entity(gs.morphs.Box(size=(SIDE,) * 3, pos=(0.0, 1.0, 1.0)), material=gs.materials.Rigid(rho=1000.0))
+        scene.build()
+        for c in (a, b):
+            c.set_dofs_kp([KP_LIN] * 3 + [KP_ROT] * 3)
+            c.set_dofs_kv([KV_LIN] * 3 + [KV_ROT] * 3)
+        return scene, a, b
+
+    scene, a, b = build()
+    rng = np.random.default_rng(11)
+    starts = [Rotation.random(random_state=rng) for _ in range(2)]
+    targets = [np.array([0.4, -0.9, 2.5]), np.array([-1.2, 0.3, 0.7])]
+    for c, st, tg, y in zip((a, b), starts, targets, (-1.0, 1.0)):
+        c.set_quat(_wxyz(st))
+        c.control_dofs_position(np.concatenate([[0.0, y, 1.0], tg]))
+    scene.step()
+    for c, st, tg in zip((a, b), starts, targets):
+        tau = _np(c.get_dofs_control_force())
+        body = (st.inv() * Rotation.from_euler("XYZ", tg)).as_rotvec()
+        np.testing.assert_allclose(tau[3:], st.apply(KP_ROT * body), rtol=1e-10, atol=1e-14)
+
+    quat_a, quat_b = (torch.tensor(_wxyz(st), dtype=torch.float64) for st in starts)
+    kp_rot_b = torch.tensor([KP_ROT * 1.3, KP_ROT * 0.8, KP_ROT * 1.1], dtype=torch.float64)  # unequal gains
+
+    def rollout(target_b, kp_rot_b, quat_b):
+        scene.reset()
+        a.set_quat(quat_a)
+        b.set_quat(quat_b)
+        b.set_dofs_kp(torch.cat([torch.full((3,), KP_LIN, dtype=torch.float64), kp_rot_b]))
+        a.control_dofs_position(torch.tensor([0.0, -1.0, 1.0, *targets[0]], dtype=torch.float64))
+        b.control_dofs_position(torch.cat([torch.tensor([0.0, 1.0, 1.0], dtype=torch.float64), target_b]))
+        for _ in range(8):
+            scene.step()
+        return (b.get_quat() ** 3).sum() + (b.get_ang() ** 2).sum() + (a.get_ang() ** 2).sum()
+
+    report = gs.grad.check(lambda target_b, quat_b: rollout(target_b, kp_rot_b, quat_b),
+                           {"target_b": torch.tensor(targets[1]), "quat_b": quat_b}, tol=1e-6)
+    print(report)
+    assert report.ok, str(report)

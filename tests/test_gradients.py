@@ -131,6 +131,44 @@ def test_physical_parameters(arm_env):
     scene.set_gravity(torch.tensor([0.0, 0.0, -9.81]))
 
 
+def test_friction_loss_gradient_at_zero_and_above(arm_env):
+    """The friction loss -fl tanh(v / 0.01) (set_dofs_frictionloss) is differentiable in fl: above 0 against
+    central differences, and at fl = 0 (where a loss-free joint starts an identification) against the
+    second-order one-sided difference (-3 f(0) + 4 f(h) - f(2h)) / 2h, as a negative friction loss is
+    refused. Until 2026-12-01 the gradient path skipped the tanh where fl = 0 and gave 0 there."""
+    scene, arm = arm_env
+    n, T = arm.n_dofs, 10
+    rng = np.random.default_rng(5)
+    q0 = torch.tensor(rng.uniform(-1, 1, n))
+    v0 = torch.tensor(rng.normal(0, 0.5, n))
+
+    def rollout(frictionloss):
+        scene.reset()
+        arm.set_dofs_frictionloss(frictionloss)
+        arm.set_dofs_position(q0)
+        arm.set_dofs_velocity(v0)
+        for _ in range(T):
+            scene.step()
+        return (arm.get_links_pos() ** 2).sum() + (arm.get_links_vel() ** 2).sum()
+
+    try:
+        assert_ok(gs.grad.check(rollout, {"frictionloss": torch.tensor(rng.uniform(0.05, 0.3, n))}, tol=TOL))
+        zero = torch.zeros(n, **F64, requires_grad=True)
+        rollout(zero).backward()
+        h = 1e-5
+        with torch.no_grad():
+            f0 = rollout(torch.zeros(n, **F64)).item()
+            for i in range(n):
+                e = torch.zeros(n, **F64)
+                e[i] = h
+                fd = (-3.0 * f0 + 4.0 * rollout(e).item() - rollout(2.0 * e).item()) / (2.0 * h)
+                assert abs(fd) > 1e-3, (i, fd)  # the friction loss does act on every joint here
+                assert abs(zero.grad[i].item() - fd) <= 1e-6 * abs(fd), (i, zero.grad[i].item(), fd)
+    finally:
+        scene.reset()
+        arm.set_dofs_frictionloss(torch.zeros(n, **F64))
+
+
 def test_every_output_kind_at_several_steps(arm_env):
     scene, arm = arm_env
     n = arm.n_dofs

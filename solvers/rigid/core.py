@@ -23,8 +23,8 @@ state_io.py.
 import taichi as ti
 
 from .. import taichi_compat
-from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_generalized_force, func_limit_release,
-                        func_limit_release_grad, func_limit_rounds_next)
+from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_free_rot_errors, func_generalized_force,
+                        func_limit_release, func_limit_release_grad, func_limit_rounds_next)
 from .bias import BIAS, func_link_forces
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
 from .external import AppliedWrench, func_applied_wrench
@@ -36,14 +36,14 @@ from .schedule import OP_DYN, OP_SOLVE, SPAN_BITS, SPAN_MASK
 
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
 SERIAL_MAX_ENVS = 16
-DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_generalized_force,)
+DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_free_rot_errors, func_generalized_force)
 # stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (taichi_compat.compile_options.AdjointCompile)
 PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:2]
 # smallest element capacity: the robots of one size class (Panda, UR5, arms up to 16 links/dofs/qs)
 # share a core
 MIN_ELEMS = 16
 # run-time sizes and options, indices into RigidCore.cfg_i / cfg_f
-I_ENVS, I_LINKS, I_DOFS, I_QS, I_QPOS_LEN, I_QVEL_LEN, I_LIMITS_ON, I_ELEMS, I_ANC, N_CFG_I = range(10)
+I_ENVS, I_LINKS, I_DOFS, I_QS, I_QPOS_LEN, I_QVEL_LEN, I_LIMITS_ON, I_ELEMS, I_ANC, I_FREE, N_CFG_I = range(11)
 F_LIMIT_K, F_LIMIT_D, F_IMPLICIT_ON, F_IMPLICIT_KV_ONLY, N_CFG_F = range(5)
 NO_NAN = 2**31 - 1  # nan_step of an env whose state has stayed finite
 
@@ -109,6 +109,7 @@ class RigidCore:
     implicit_on = _runtime(F_IMPLICIT_ON, True)
     implicit_kv_only = _runtime(F_IMPLICIT_KV_ONLY, True)  # 1.0: approximate_implicitfast's terms
     n_anc = _runtime(I_ANC)  # pairs (i, j) with dof j an ancestor-or-self of dof i (anc_i, anc_j)
+    n_free_links = _runtime(I_FREE)  # the links of free joints, listed in free_link (actuation.func_free_rot_errors)
 
     def __init__(self, key):
         f, g, B, N, S, E, n_ops, specialized, tree = key
@@ -145,10 +146,12 @@ class RigidCore:
         self.dof_limit_lo, self.dof_limit_hi = F(N, False), F(N, False)
         self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
         self.dof_fold_leader = I(N)  # a folded mimic follower's leader, else -1 (flatten.np_fold_leader)
+        self.free_link = I(N)  # n_free_links entries
         self.dof_springref = F(N, False)  # rest position of the joint spring (MJCF springref; else 0)
-        # the limit constraint's k and b (actuation.limit_gains) and solimp (dmin, dmax, width, mid, power)
+        # the limit constraint's k and b (actuation.limit_gains) and solimp (dmin, dmax, width, mid, power), then
+        # the impedance curve's two scales 1 / mid^(power - 1), 1 / (1 - mid)^(power - 1) (func_limit_constraint)
         self.dof_lim_k, self.dof_lim_b = F(N, False), F(N, False)
-        self.dof_imp = ti.Vector.field(5, f, shape=N)
+        self.dof_imp = ti.Vector.field(7, f, shape=N)
         # per-env fields: declared without a shape and placed env-major (_place_env_major)
         s3 = lambda grad=g: ti.field(f, needs_grad=grad)  # noqa: E731
         v3 = lambda: ti.Vector.field(3, f, needs_grad=g)  # noqa: E731
@@ -162,6 +165,7 @@ class RigidCore:
         # the limit constraint of the evaluation: its term on M's diagonal and in the force, its direction
         # (+1 lower limit, -1 upper), and whether the solve released it (actuation.func_limit_release)
         self.dof_lim_D, self.dof_lim_f = s3(), s3()
+        self.dof_rot_err = s3()  # a free joint's rotational dofs' PD error, with gradients (func_free_rot_errors)
         self.dof_lim_j = s3(False)
         self.dof_lim_off = ti.field(ti.i32)
         # without gradients: the dofs whose limit is active, and how many (the release visits those only)
@@ -194,7 +198,7 @@ class RigidCore:
                 self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J, self.cdof_w, self.cdof_v,
                 self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w, self.cacc_v, self.crb_m,
                 self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f, self.bias, self.force,
-                self.dof_tau, self.dof_qf]
+                self.dof_tau, self.dof_qf, self.dof_rot_err]
         mats, ones = [self.mass_mat, self.mass_fac], [self.gravity, self.dof_lim_n]
         slots = [(S, [self.qpos, self.qvel]), (E, [self.qacc, self.qvel_move]), (1, [self.solve_tmp])]
         _place_env_major(B, N, elem, mats, ones, slots)
@@ -218,7 +222,7 @@ class RigidCore:
         scratch = [self.link_pos, self.link_quat, self.link_R, self.link_cpos, self.link_h, self.link_J,
                    self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v, self.cvel_w, self.cvel_v, self.cacc_w,
                    self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f,
-                   self.mass_mat, self.bias, self.force, self.dof_lim_D, self.dof_lim_f]
+                   self.mass_mat, self.bias, self.force, self.dof_lim_D, self.dof_lim_f, self.dof_rot_err]
         self.zero_plan = ZeroPlan([self.mass_mat, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v], [], N)
         self.grad_fields0 = [x.grad for x in params + scratch] if g else []
         self.grad_fields1 = [x.grad for x in state] if g else []
@@ -247,6 +251,7 @@ class RigidCore:
             self.link_q_start[i] = link_i[i, 2]
             self.link_dof_start[i] = link_i[i, 3]
             self.link_ndof[i] = link_i[i, 4]
+            self.free_link[i] = link_i[i, 5]
             for k in ti.static(range(3)):
                 self.link_jpos[i][k] = link_f[i, k]
                 self.link_jaxis[i][k] = link_f[i, 7 + k]
@@ -267,6 +272,9 @@ class RigidCore:
             self.dof_lim_b[i] = dof_f[i, 6]
             for k in ti.static(range(5)):
                 self.dof_imp[i][k] = dof_f[i, 7 + k]
+            mid, power = dof_f[i, 10], dof_f[i, 11]
+            self.dof_imp[i][5] = 1.0 / ti.pow(mid, power - 1.0)
+            self.dof_imp[i][6] = 1.0 / ti.pow(1.0 - mid, power - 1.0)
         for i, j in ti.ndrange(anc.shape[0], anc.shape[1]):
             self.dof_anc[i, j] = anc[i, j]
         for t in range(anc_pairs.shape[0]):

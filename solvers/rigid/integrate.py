@@ -73,7 +73,21 @@ def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
         follower = lead >= 0
         j = ti.max(lead, 0)
         m = s.dof_mimic_mult[i_d]
-        if ti.static(s.requires_grad):
+        if ti.static(s.requires_grad) and kind == INT_EULER:
+            # Euler (and implicitfast), the gradient path's usual kind: a branch on the kernel's argument
+            # (uniform over the envs; no local outlives it) that reads one slot of qvel and of qacc; the
+            # select form below also reads the RK slots and the leader's, and its adjoint adds into every
+            # one of them
+            if follower:
+                v_lead = s.qvel[base, i_b, j] + h * s.qacc[e, i_b, j]
+                gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
+                s.qvel[dst, i_b, i_d] = m * v_lead
+                s.qvel_move[e, i_b, i_d] = m * v_lead + gap / h
+            else:
+                v_own = s.qvel[base, i_b, i_d] + h * s.qacc[e, i_b, i_d]
+                s.qvel[dst, i_b, i_d] = v_own
+                s.qvel_move[e, i_b, i_d] = v_own
+        elif ti.static(s.requires_grad):
             v_own, move_own = func_dof_update(s, i_b, kind, e, base, src, h, i_d)
             v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
             gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]

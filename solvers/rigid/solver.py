@@ -30,16 +30,17 @@ import taichi as ti
 from ..taichi_compat.adstack import require as require_ad_stack
 from ..taichi_compat.compile_options import AdjointCompile, ForwardCompile
 from . import state_io
-from .actuation import LIMITS_CONSTRAINT, LIMITS_OFF, LIMITS_SPRING, func_generalized_force, limit_gains
+from .actuation import (LIMITS_CONSTRAINT, LIMITS_OFF, LIMITS_SPRING, func_free_rot_errors, func_generalized_force,
+                        limit_gains)
 from .collision import NO_ADJOINT
 from .contact import ContactPlan
-from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_ELEMS, I_ENVS, I_LIMITS_ON,
+from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_FREE, I_ELEMS, I_ENVS, I_LIMITS_ON,
                    I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
                    elem_capacity, env_capacity, with_applied)
 from .external import ExternalWrench
 from .flatten import FlatModel
 from .inertia import TreeSchedule
-from .kinematics import LINK_STATE
+from .kinematics import JOINT_FREE, LINK_STATE
 from .model import EntityModel
 from .pool import POOL
 from .schedule import OP_DYN, OP_INT, Integrator, StepSchedule, pack_span
@@ -49,6 +50,10 @@ from .schedule import OP_DYN, OP_INT, Integrator, StepSchedule, pack_span
 # its first step on an empty cache, specialised, against 19.7 s sharing its class's kernels; the ~25 %
 # faster step repays ~60 s after ~170,000 steps there, after ~12,000 at 1,024 envs on a quadruped
 SPECIALIZE_MIN_ENVS = 512
+
+# stages whose adjoint runs in the kernel of the stage before them (RigidSolver._evaluation_unit): the generalised
+# force, whose adjoint alone left ~1e-250 in an env outside the loss, and the free joints' rotation errors it reads
+MERGED_STAGES = (func_free_rot_errors, func_generalized_force)
 
 
 def _core_field(name, doc):
@@ -202,11 +207,16 @@ class RigidSolver:
         cfg[I_QPOS_LEN], cfg[I_QVEL_LEN], cfg[I_LIMITS_ON] = self.flat.qpos_len, self.flat.qvel_len, self.limit_model
         cfg[I_ELEMS] = max(self.n_links, self.n_dofs, self.n_qs, 1)
         cfg[I_ANC] = len(self.flat.np_anc_pairs)
+        cfg[I_FREE] = len(self._free_links())
         cfg[N_CFG_I + F_LIMIT_K] = float(self.limit_k or 0.0)
         cfg[N_CFG_I + F_LIMIT_D] = float(self.limit_d or 0.0)
         cfg[N_CFG_I + F_IMPLICIT_ON] = float(self.implicit_on)
         cfg[N_CFG_I + F_IMPLICIT_KV_ONLY] = float(self.implicit_kv_only)
         return cfg
+
+    def _free_links(self):
+        """The links of free joints, in order (core.free_link): int32."""
+        return np.flatnonzero(self.flat.np_link_jtype == JOINT_FREE).astype(np.int32)
 
     def limit_constraint_params(self):
         """(n_dofs, 7): each dof's limit constraint (k, b, dmin, dmax, width, mid, power), Genesis's reading of the
@@ -254,8 +264,10 @@ class RigidSolver:
         cfg = self.core.scene_cfg
         cfg_i = np.array(cfg[:N_CFG_I], dtype=np.int32)
         cfg_f = np.array(cfg[N_CFG_I:], dtype=self.np_dtype)
-        link_i = np.stack([pad(a, L) for a in (m.np_link_parent, m.np_link_jtype, m.np_link_q_start,
-                                                 m.np_link_dof_start, m.np_link_ndof)], -1).astype(np.int32)
+        link_i = [pad(a, L) for a in (m.np_link_parent, m.np_link_jtype, m.np_link_q_start, m.np_link_dof_start,
+                                      m.np_link_ndof)]
+        free = self._free_links()
+        link_i = np.stack(link_i + [np.pad(free, (0, len(link_i[0]) - len(free)))], -1).astype(np.int32)
         link_f = np.concatenate([pad(m.np_link_jpos, L), pad(m.np_link_jquat, L), pad(m.np_link_jaxis, L)],
                                 -1).astype(self.np_dtype)
         # "no limit" as a large finite number: infinities turn masked-out terms into NaN
@@ -352,8 +364,9 @@ class RigidSolver:
         and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, stage by stage in reverse
         order: the same computation as the adjoint of one kernel of every stage, but Taichi
         compiles an adjoint in time superlinear in its size (the Panda's 13 stages: 9 s as separate
-        kernels, 24 s as one). The generalised force shares the kernel of the stage before it: its
-        adjoint alone left ~1e-250 (not 0) in the gradient of an env outside the loss
+        kernels, 24 s as one). The generalised force shares the kernel of the stage before it (with the free
+        joints' rotation errors, MERGED_STAGES): its adjoint alone left ~1e-250 (not 0) in the gradient of an env
+        outside the loss
         (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient). A stage that
         writes no float (the broad phase: collision.NO_ADJOINT) has an empty adjoint, which is not run.
 
@@ -371,7 +384,7 @@ class RigidSolver:
                 and getattr(step_core, "applied", None) is None)
 
         def parts_of(stages):
-            bounds = [k for k, f in enumerate(stages) if f is not func_generalized_force or k == 0]
+            bounds = [k for k, f in enumerate(stages) if f not in MERGED_STAGES or k == 0]
             bounds.append(len(stages))
             return [(k0, k1, all(f in PLAIN_ADJOINT for f in stages[k0:k1]))
                     for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))
