@@ -269,6 +269,9 @@ def test_mjcf_springs_follow_mujoco_trajectory(tmp_path):
     assert np.abs(np.array(free) - ref).max() > 0.05
 
 
+# slow: ~50 s on empty caches (the cubes and the arm make a scene whose contacts couple moving bodies, whose
+# adjoint kernels are the largest), 13 s warm; the matrix's free_box_pd case checks a free joint's PD by default
+@pytest.mark.slow
 def test_free_joint_pd_of_several_bodies_on_the_gradient_path():
     """Two free cubes with an arm between them (free joints at links 0 and 3 + n, their dofs not the first of
     the scene for the second): in a requires_grad scene (whose generalised force reads each free joint's
