@@ -615,6 +615,20 @@ INPUTS: Dict[str, InputKind] = {
     "dofs_stiffness": InputKind(0, lambda b, e, n, rng: rng.uniform(1, 10, _n_dofs(b, e, n)),
                                 lambda b, e, n, x, t: e.set_dofs_stiffness(x, dofs_idx_local=_dsel(b, n)), h=1e-4,
                                 jitter=0.5),
+    # smooth dry joint friction, -fl tanh(v / 0.01 rad/s) (fl = 0: tests/test_gradients.py)
+    "dofs_frictionloss": InputKind(0, lambda b, e, n, rng: rng.uniform(0.05, 0.3, _n_dofs(b, e, n)),
+                                   lambda b, e, n, x, t: e.set_dofs_frictionloss(x, dofs_idx_local=_dsel(b, n)),
+                                   h=1e-4, jitter=0.02),
+    # Genesis's domain randomisation: shifts of the model's masses and centres of mass, the entity's mass
+    # (every moving link's mass and inertia scaled), ratios of the model's friction
+    "mass_shift": InputKind(0, lambda b, e, n, rng: rng.uniform(0.05, 0.2, e.n_links),
+                            lambda b, e, n, x, t: e.set_mass_shift(x), h=1e-4, jitter=0.02),
+    "COM_shift": InputKind(0, lambda b, e, n, rng: rng.normal(0, 0.01, (e.n_links, 3)),
+                           lambda b, e, n, x, t: e.set_COM_shift(x), jitter=0.005),
+    "mass": InputKind(0, lambda b, e, n, rng: np.array(float(_one_env(e.get_mass(), b)) * 1.2),
+                      lambda b, e, n, x, t: e.set_mass(x), h=1e-4, jitter=0.05),
+    "friction_ratio": InputKind(0, lambda b, e, n, rng: rng.uniform(0.8, 1.2, e.n_links),
+                                lambda b, e, n, x, t: e.set_friction_ratio(x), jitter=0.05),
     "gravity": InputKind(0, lambda b, e, n, rng: np.array([0.4, -0.3, -9.81]) + rng.normal(0, 0.1, 3),
                          lambda b, e, n, x, t: b.scene.set_gravity(x), jitter=0.2),
     "friction": InputKind(0, lambda b, e, n, rng: _one_env(e.get_friction(), b),
@@ -717,6 +731,7 @@ def _table() -> List[Case]:
     # PD on the free joint's six dofs: Euler-angle targets and the pose through the rotation-vector error, and
     # the gains (kv's path is the joints' own: left to the arm's cases, to keep this one ~10 s)
     add("free_box_pd", ("box.ctrl_position", "box.dofs_kp", "box.quat"), BOX_OUT + ("box.dofs_position",))
+    add("free_box_pd", ("box.mass", "box.ctrl_position"), BOX_OUT)
     slow("free_box", FB_SHORT, BOX_OUT, V(checkpoint_every=2))
     add("free_box", FB_SHORT, BOX_OUT, V(process="first"))
     add("free_box", FB_SHORT, BOX_OUT, V(integrator="Euler"))
@@ -737,6 +752,7 @@ def _table() -> List[Case]:
     add("arm", ARM_STATE, ARM_OUT_ALL)
     add("arm", ARM_PD, ARM_OUT)
     add("arm", ("arm.ctrl_velocity", "arm.dofs_kv", "arm.dofs_damping", "arm.dofs_stiffness"), ARM_OUT)
+    add("arm", ("arm.dofs_velocity", "arm.dofs_frictionloss", "arm.mass_shift", "arm.COM_shift"), ARM_OUT)
     add("arm", ARM_PD + ("arm.dofs_velocity",), ARM_OUT, V(n_envs=3))
     add("arm", ("arm.dofs_position", "arm.ctrl_force", "arm.links_inertia"), ARM_OUT, V(checkpoint_every=3))
     add("arm", ARM_STATE, ARM_OUT, V(process="after"))
@@ -796,6 +812,7 @@ def _table() -> List[Case]:
     add("slide_contact", SLIDE[1:] + ("box.links_inertia", "box.gravity"), BOX_OUT)
     add("slide_land", SLIDE + ("box.pos", "box.quat"), BOX_OUT + ("box.qpos",))
     add("slide_land", SLIDE[:3], BOX_OUT, V(n_envs=3))
+    add("slide_land", ("box.dofs_velocity", "box.friction_ratio"), BOX_OUT)
     slow("slide_land", SLIDE, BOX_OUT, V(checkpoint_every=4))
     slow("slide_land", SLIDE, BOX_OUT, V(process="after"))
     slow("slide_land", SLIDE, BOX_OUT, V(process="first"))
