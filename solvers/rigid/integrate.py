@@ -73,16 +73,15 @@ def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
         follower = lead >= 0
         j = ti.max(lead, 0)
         m = s.dof_mimic_mult[i_d]
-        if ti.static(s.requires_grad) and kind == INT_EULER:
-            # Euler (and implicitfast), the gradient path's usual kind: a branch on the kernel's argument
-            # (uniform over the envs; no local outlives it) that reads one slot of qvel and of qacc; the
-            # select form below also reads the RK slots and the leader's, and its adjoint adds into every
-            # one of them
+        if kind == INT_EULER:
+            # Euler (and implicitfast), with or without gradients: a branch on the kernel's argument (the same
+            # for every env; no local outlives it) that reads the dof's own slots, or the leader's for a
+            # follower; the select form below also reads the RK slots and the leader's, and its adjoint adds
+            # into every one of them
             if follower:
                 v_lead = s.qvel[base, i_b, j] + h * s.qacc[e, i_b, j]
-                gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
                 s.qvel[dst, i_b, i_d] = m * v_lead
-                s.qvel_move[e, i_b, i_d] = m * v_lead + gap / h
+                s.qvel_move[e, i_b, i_d] = m * v_lead + func_mimic_gap(s, i_b, base, i_d, j, m) / h
             else:
                 v_own = s.qvel[base, i_b, i_d] + h * s.qacc[e, i_b, i_d]
                 s.qvel[dst, i_b, i_d] = v_own
@@ -90,34 +89,27 @@ def func_integrate_qvel(s: ti.template(), i_b, kind, e, base, src, dst, h):
         elif ti.static(s.requires_grad):
             v_own, move_own = func_dof_update(s, i_b, kind, e, base, src, h, i_d)
             v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
-            gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
+            gap = func_mimic_gap(s, i_b, base, i_d, j, m)
             s.qvel[dst, i_b, i_d] = ti.select(follower, m * v_lead, v_own)
             s.qvel_move[e, i_b, i_d] = ti.select(follower, m * move_lead + gap / h, move_own)
         else:
-            # without gradients a branch: the leader's update only for followers, and the Euler update
-            # without the RK slots' reads (the same numbers as the selects above)
+            # without gradients a branch: the leader's update only for followers (the same numbers as the
+            # selects above)
             if follower:
-                v_lead, move_lead = func_dof_update_branch(s, i_b, kind, e, base, src, h, j)
-                gap = m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
+                v_lead, move_lead = func_dof_update(s, i_b, kind, e, base, src, h, j)
                 s.qvel[dst, i_b, i_d] = m * v_lead
-                s.qvel_move[e, i_b, i_d] = m * move_lead + gap / h
+                s.qvel_move[e, i_b, i_d] = m * move_lead + func_mimic_gap(s, i_b, base, i_d, j, m) / h
             else:
-                v_own, move_own = func_dof_update_branch(s, i_b, kind, e, base, src, h, i_d)
+                v_own, move_own = func_dof_update(s, i_b, kind, e, base, src, h, i_d)
                 s.qvel[dst, i_b, i_d] = v_own
                 s.qvel_move[e, i_b, i_d] = move_own
 
 
 @ti.func
-def func_dof_update_branch(s: ti.template(), i_b, kind, e, base, src, h, j):
-    """func_dof_update with a branch on the kind (no-gradient path): Euler reads only its own slots."""
-    v_new = ti.cast(0.0, s.dtype)
-    v_move = ti.cast(0.0, s.dtype)
-    if kind == INT_EULER:
-        v_new = s.qvel[base, i_b, j] + h * s.qacc[e, i_b, j]
-        v_move = v_new
-    else:
-        v_new, v_move = func_dof_update(s, i_b, kind, e, base, src, h, j)
-    return v_new, v_move
+def func_mimic_gap(s: ti.template(), i_b, base, i_d, j, m):
+    """How far follower i_d's position is from m q_j + offset at slot base (its leader j), which its velocity
+    closes within the step."""
+    return m * s.qpos[base, i_b, ti.max(s.dof_q[j], 0)] + s.dof_mimic_off[i_d] - s.qpos[base, i_b, ti.max(s.dof_q[i_d], 0)]
 
 
 INTEGRATE = (func_integrate_qvel, func_integrate_qpos)
