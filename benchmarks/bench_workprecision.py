@@ -259,6 +259,12 @@ def _mj_build_box(files, integrator, dt):
 QUAD_REF = ("RK4", 1e-4)
 QUAD_ARMATURE = 0.1  # kg m^2: Genesis's default_armature, genesis_lite's since 2026-11-28
 QUAD_REF_CHECK = ("RK4", 2e-4)
+# the base position every 0.1 s from t = 0.5 s (standing; the drop lands at ~0.2 s), not at t = 1 s alone: at rest
+# one sample's error swings with the phase of the settling (2026-12-01, the armature row: ours, implicitfast,
+# 1.2e-5 m at dt = 20 ms and 3e-4 m at 5 ms; MuJoCo's RK4 1.7e-7 m at 10 ms and 6.3e-5 m at 5 ms), so that lucky
+# runs set an engine's front. Samples before the landing measure the free fall alone, where the two engines'
+# Euler steps are the same algorithm (the same errors to four digits at t = 0.1 s, 0.49 dt m)
+QUAD_SAMPLES = tuple(round(0.1 * k, 10) for k in range(5, 11))
 
 
 def _quad_files(tmp):
@@ -489,12 +495,12 @@ SCENES: dict[str, WPScene] = {
         _mj_build_box, genesis=True),
     "quadruped": WPScene(
         "quadruped", "ANYmal B dropped on the ground from 0.62 m, PD holding the standing pose (kp 100, kv 5)",
-        1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref, _gl_build_quad,
+        1.0, QUAD_SAMPLES, "max over t = 0.5, 0.6 .. 1 s of norm(base pos - ref) (m)", _quad_files, _quad_ref, _gl_build_quad,
         _mj_build_quad, genesis=True),
     "quadruped_armature": WPScene(
         "quadruped_armature", "the quadruped with Genesis's default armature (0.1 kg m^2 on each of the 12 joints; "
         "genesis_lite's default too) in both engines",
-        1.0, (1.0,), "norm(base pos - ref) at t = 1 s (m)", _quad_files, _quad_ref,
+        1.0, QUAD_SAMPLES, "max over t = 0.5, 0.6 .. 1 s of norm(base pos - ref) (m)", _quad_files, _quad_ref,
         functools.partial(_gl_build_quad, armature=QUAD_ARMATURE),
         functools.partial(_mj_build_quad, armature=QUAD_ARMATURE), genesis=False),
     "push": WPScene(
@@ -521,9 +527,7 @@ def _error(obs, ref, key):
     if not np.all(np.isfinite(obs)):
         return math.inf
     d = obs - ref
-    if key.startswith("quadruped"):
-        return float(np.linalg.norm(d, axis=1).max())
-    if key == "push":  # positions (x, y, z) at each sample time
+    if key.startswith("quadruped") or key == "push":  # positions (x, y, z) at each sample time
         return float(np.linalg.norm(d.reshape(d.shape[0], -1, 3), axis=2).max())
     return float(np.abs(d).max())
 
@@ -543,11 +547,11 @@ def _samples(scene: WPScene, dt):
 # --- genesis_lite worker (child process) ---------------------------------------------------------------------
 
 
-def worker_gl(scene_key, files, points, n_envs, repeats) -> dict:
+def worker_gl(scene_key, files, points, n_envs, repeats, precision="64") -> dict:
     """Run each (integrator, dt, substeps) point of one scene: observables and stepping wall times."""
     import genesis_lite as gs
 
-    gs.init(backend=gs.cpu, precision="64")
+    gs.init(backend=gs.cpu, precision=precision)
     wps = SCENES[scene_key]
     files = {k: Path(v) for k, v in files.items()}
     out = []
@@ -593,10 +597,11 @@ def _worker_main(argv):
     print(json.dumps(worker_gl(**json.loads(a.args))), flush=True)
 
 
-def run_gl(scene_key, files, points, n_envs, repeats, timeout=3600):
+def run_gl(scene_key, files, points, n_envs, repeats, timeout=3600, precision="64"):
     return run_python([str(Path(__file__).resolve()), "--worker", "gl", "--args",
                        json.dumps({"scene_key": scene_key, "files": {k: str(v) for k, v in files.items()},
-                                   "points": points, "n_envs": n_envs, "repeats": repeats})], timeout=timeout)
+                                   "points": points, "n_envs": n_envs, "repeats": repeats,
+                                   "precision": precision})], timeout=timeout)
 
 
 # --- MuJoCo (in this process) ------------------------------------------------------------------------------------
@@ -698,10 +703,13 @@ def _fine_reference(engine, wps, files, ref: Reference):
 QUICK_BATCHED = ("panda",)  # --quick runs the batch on these scenes only
 
 
-def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=print, integrators=None) -> dict:
+def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=print, integrators=None,
+        f32=False) -> dict:
     """The whole study: {scene: {"reference": ..., "envs": {n: {engine: [points with error]}}}}. Real Genesis
     runs 1 env only (its CPU backend with 1,024 envs would take the better part of an hour per scene here), and not
-    in --quick (its first scene compiles for minutes); --quick runs the batch on QUICK_BATCHED only."""
+    in --quick (its first scene compiles for minutes); --quick runs the batch on QUICK_BATCHED only. f32: also
+    genesis_lite in float32 (gs.init's default precision, and Genesis's), engine "genesis_lite_f32", its errors
+    against the float64 reference."""
     results = {}
     def counts(key):
         return [n for n in env_counts if n <= 1 or (SCENES[key].batched and (not quick or key in QUICK_BATCHED))]
@@ -720,14 +728,17 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
         ref = (wps.quick_reference if quick and wps.quick_reference else wps.reference)(files)
         entry["reference"] = ref.label
         refs = {}
-        engines = (["genesis_lite"] + (["mujoco"] if wps.mj_build else [])
+        engines = (["genesis_lite"] + (["genesis_lite_f32"] if f32 and wps.sweep is None else [])
+                   + (["mujoco"] if wps.mj_build else [])
                    + (["genesis"] if with_genesis and wps.genesis and not quick else []))
         if wps.note:
             entry["notes"].append(wps.note)
         if not wps.batched and any(n > 1 for n in env_counts):
             entry["notes"].append("1 env only: the batched run is not part of this row")
         for engine in engines:
-            if ref.kind == "fine":
+            if engine == "genesis_lite_f32":
+                refs[engine] = refs["genesis_lite"]  # float32 runs measured against the float64 reference
+            elif ref.kind == "fine":
                 obs, self_err, err = _fine_reference(engine, wps, files, ref)
                 refs[engine] = obs
                 entry.setdefault("ref_self_error", {})[engine] = self_err
@@ -747,8 +758,9 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
                     pts = wps.sweep(engine, n_envs > 1, quick)
                 else:
                     pts = [p for p in sweep(engine, n_envs > 1, quick) if not integrators or p[0] in integrators]
-                if engine == "genesis_lite":
-                    res, err = run_gl(key, files, pts, n_envs, repeats)
+                if engine.startswith("genesis_lite"):
+                    res, err = run_gl(key, files, pts, n_envs, repeats,
+                                      precision="32" if engine == "genesis_lite_f32" else "64")
                 elif engine == "mujoco":
                     res, err = run_mj(wps, files, pts, n_envs, repeats), None
                 else:
@@ -789,10 +801,31 @@ def time_at(fr, e):
     return min(ts) if ts else math.inf
 
 
-def equal_error_ratio(points_a, points_b, n=25):
+def time_at_interp(fr, e):
+    """The wall time to reach error e along the front, interpolated log-log between the two runs whose errors
+    bracket e (a step between them is a choice the user has: for an integrator of order p, error ~ dt^p and
+    time ~ 1 / dt make that a straight line); the cheapest run's time above its error (no extrapolation to a
+    cheaper run), inf below the smallest error. time_at is the step function of the runs alone, which made two
+    engines running the same algorithm at the same dt (the double pendulum's Euler at 20 ms: 0.016770 rad for
+    both, to rounding) differ by a whole halving of dt at the grid's edge."""
+    if not fr or e < fr[-1][0]:
+        return math.inf
+    if e >= fr[0][0]:
+        return fr[0][1]
+    for (e0, t0), (e1, t1) in zip(fr, fr[1:]):
+        if e1 <= e <= e0:
+            if e0 <= e1 or t0 <= 0.0:
+                return t1
+            return math.exp(math.log(t0) + (math.log(t1) - math.log(t0)) * (math.log(e0) - math.log(e))
+                            / (math.log(e0) - math.log(e1)))
+    return fr[-1][1]
+
+
+def equal_error_ratio(points_a, points_b, n=25, interpolate=True):
     """Run-time ratio a / b at equal error: on a log grid of error levels both fronts reach (from the larger of
-    their best errors to the smaller of their worst), time_at(a, e) / time_at(b, e). Returns (max, median,
-    (e_lo, e_hi)) or None when the ranges do not overlap."""
+    their best errors to the smaller of their worst), time_at_interp(a, e) / time_at_interp(b, e) (time_at's
+    steps with interpolate=False). Returns (max, median, (e_lo, e_hi)) or None when the ranges do not overlap."""
+    at = time_at_interp if interpolate else time_at
     fa, fb = front(points_a), front(points_b)
     if not fa or not fb:
         return None
@@ -801,7 +834,7 @@ def equal_error_ratio(points_a, points_b, n=25):
     if not lo <= hi:
         return None
     grid = np.geomspace(lo, hi, n) if hi > lo else np.array([lo])
-    r = [time_at(fa, e) / time_at(fb, e) for e in grid]
+    r = [at(fa, e) / at(fb, e) for e in grid]
     return max(r), float(np.median(r)), (lo, hi)
 
 
@@ -927,13 +960,57 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-genesis", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--f32", action="store_true", help="also genesis_lite in float32 (gs.init's default precision), "
+                    "against the float64 reference")
+    ap.add_argument("--md", type=Path, default=None, help="write the equal-error summary and the tables here")
+    ap.add_argument("--from-json", type=Path, nargs="+", default=None,
+                    help="no run: the results of earlier --json files (merged, later files' scenes win)")
     a = ap.parse_args()
-    with tempfile.TemporaryDirectory(prefix="bench_wp_") as tmp:
-        res = run(a.scenes.split(","), [0, a.envs], a.quick, a.repeats, not a.no_genesis, Path(tmp))
-    for t in tables(res):
+    if a.from_json:
+        merged = {}
+        for f in a.from_json:
+            merged.update(json.loads(f.read_text()))
+        res = {k: merged[k] for k in list(SCENES) + list(merged) if k in merged}  # the scenes' order
+    else:
+        with tempfile.TemporaryDirectory(prefix="bench_wp_") as tmp:
+            res = run(a.scenes.split(","), [0, a.envs], a.quick, a.repeats, not a.no_genesis, Path(tmp), f32=a.f32)
+    text = tables(res)
+    for t in text:
         print(t)
-    if a.json:
+    if a.json and not a.from_json:
         a.json.write_text(json.dumps(res, indent=1))
+    if a.md:
+        a.md.write_text("\n\n".join([summary(res)] + text) + "\n")
+        print(f"wrote {a.md}")
+
+
+def summary(res) -> str:
+    """Markdown: genesis_lite's run time over MuJoCo's at equal error per scene and env count (float64 runs, and
+    float64 or float32 where the float32 runs exist), with the error range both engines reach; and each engine's
+    smallest error (below the other's, the comparison has no common range)."""
+    lines = ["Run time at equal error, genesis_lite / MuJoCo: the least time each engine needs to reach an error (any "
+             "integrator, dt or substeps; interpolated log-log between the two runs of its front that bracket the "
+             f"error), on a log grid of the errors both reach (<= {ERR_CAP}); below the smaller error range's end one "
+             "engine reaches errors the other does not.", "",
+             "| scene | envs | genesis_lite precision | error range compared | max ratio | median ratio | "
+             "smallest error genesis_lite | smallest error MuJoCo |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for key, entry in res.items():
+        for n, per in entry.get("envs", {}).items():
+            mj = per.get("mujoco", {}).get("points", [])
+            if not mj:
+                continue
+            f64 = per.get("genesis_lite", {}).get("points", [])
+            variants = [("f64", f64)]
+            if "genesis_lite_f32" in per:
+                variants.append(("f64 or f32", f64 + per["genesis_lite_f32"].get("points", [])))
+            for prec, pts in variants:
+                r = equal_error_ratio(pts, mj)
+                fa, fb = front(pts), front(mj)
+                best = lambda fr: f"{fr[-1][0]:.1e}" if fr else "-"  # noqa: E731
+                cells = ([f"{r[2][0]:.1e} .. {r[2][1]:.1e}", f"{r[0]:.2f}", f"{r[1]:.2f}"] if r
+                         else ["no common range", "-", "-"])
+                lines.append(f"| {key} | {n} | {prec} | " + " | ".join(cells) + f" | {best(fa)} | {best(fb)} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

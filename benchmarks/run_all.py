@@ -164,7 +164,7 @@ def section_workprecision(a, tmp, data, log):
 
     envs = [0] + ([a.envs] if a.envs else [])
     scenes = a.scenes or list(wp.SCENES)
-    res = wp.run(scenes, envs, a.quick, 3, not a.no_genesis, tmp, log=log, integrators=a.integrators)
+    res = wp.run(scenes, envs, a.quick, 3, not a.no_genesis, tmp, log=log, integrators=a.integrators, f32=not a.quick)
     data["workprecision"] = res
     out = []
     plots = []
@@ -180,11 +180,13 @@ def section_workprecision(a, tmp, data, log):
     eq = equal_error_rows(res, str(a.envs) if a.envs else "1")
     data["equal_error"] = eq
     out.append(print_table(eq, [
-        ("scene", "scene", ""), ("envs", "envs", ""), ("peer", "peer", ""), ("range", "error range compared", ""),
+        ("scene", "scene", ""), ("envs", "envs", ""), ("peer", "peer", ""), ("prec", "genesis_lite precision", ""),
+        ("range", "error range compared", ""),
         ("max", "max time ratio genesis_lite / peer", ".2f"), ("median", "median ratio", ".2f"),
         ("met", f"no worse at equal error (<= {GOAL_EQUAL_ERROR})", "")],
         title="Run time at equal error: the least time each engine needs to reach an error (any integrator, dt or "
-              f"substeps), compared on a log grid of errors both reach (<= {wp.ERR_CAP})"))
+              "substeps; interpolated log-log between the two runs of its front that bracket the error), compared on "
+              f"a log grid of errors both reach (<= {wp.ERR_CAP})"))
     out += wp.tables(res)
     return out
 
@@ -199,16 +201,21 @@ def equal_error_rows(res, n_envs: str):
             continue
         per = entry["envs"].get(n_envs, {})
         gl = per.get("genesis_lite", {}).get("points", [])
+        ours = [("f64", gl)]
+        if "genesis_lite_f32" in per:  # --f32: float32 runs too; the user picks the precision as the step
+            ours.append(("f64 or f32", gl + per["genesis_lite_f32"].get("points", [])))
         for peer in ("mujoco", "genesis"):
             if peer not in per:
                 continue
-            r = wp.equal_error_ratio(gl, per[peer].get("points", []))
-            if r is None:
-                rows.append({"scene": key, "envs": n_envs, "peer": peer, "met": "no common error range"})
-                continue
-            mx, med, (lo, hi) = r
-            rows.append({"scene": key, "envs": n_envs, "peer": peer, "range": f"{lo:.1e} .. {hi:.1e}", "max": mx,
-                         "median": med, "met": _met(mx <= GOAL_EQUAL_ERROR)})
+            for prec, pts in ours:
+                r = wp.equal_error_ratio(pts, per[peer].get("points", []))
+                if r is None:
+                    rows.append({"scene": key, "envs": n_envs, "peer": peer, "prec": prec,
+                                 "met": "no common error range"})
+                    continue
+                mx, med, (lo, hi) = r
+                rows.append({"scene": key, "envs": n_envs, "peer": peer, "prec": prec, "range": f"{lo:.1e} .. {hi:.1e}",
+                             "max": mx, "median": med, "met": _met(mx <= GOAL_EQUAL_ERROR)})
     return rows
 
 
@@ -388,13 +395,18 @@ def headline(a, data) -> list[dict]:
                                  "NOT MET (failed)" if not r8.get("gl_rate") else "not measured (no Genesis figure)")})
     eq = data.get("equal_error")
     if eq:
-        mj = [r for r in eq if r.get("peer") == "mujoco" and r.get("max") is not None]
+        # the verdict on the float64 runs; with --f32 the float32-or-float64 figure beside each
+        mj = [r for r in eq if r.get("peer") == "mujoco" and r.get("max") is not None and r.get("prec", "f64") == "f64"]
+        either = {r["scene"]: r["max"] for r in eq
+                  if r.get("peer") == "mujoco" and r.get("max") is not None and r.get("prec") == "f64 or f32"}
         if mj:
             worst = max(mj, key=lambda r: r["max"])
             n = eq[0]["envs"]
             rows.append({"goal": f"at equal error, run time no worse than MuJoCo's ({n} env{'s' if n != '1' else ''} "
-                                 "work-precision)",
-                         "measured": "; ".join(f"{r['scene']} {r['max']:.2f}x" for r in mj),
+                                 "work-precision, float64)",
+                         "measured": "; ".join(f"{r['scene']} {r['max']:.2f}x" + (
+                             f" (float32 or 64: {either[r['scene']]:.2f}x)" if r["scene"] in either else "")
+                             for r in mj),
                          "peer": "MuJoCo rollout, same scenes, its Euler / implicitfast / RK4",
                          "ratio": worst["max"], "target": f"max time ratio <= {GOAL_EQUAL_ERROR:g}",
                          "met": _met(all(r["max"] <= GOAL_EQUAL_ERROR for r in mj))})

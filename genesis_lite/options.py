@@ -124,9 +124,12 @@ class RigidOptions(_Options):
     contact_damping_ratio (None by default) makes the damper
     mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the
     reduced mass of the two links, and at least 4 k h (h the step). A legged landing without rotor inertia
-    (default_armature=None) then converges as dt shrinks, which it does not with the fixed damper (a light
-    foot's m / c ~ 1e-5 s; with the default armature it does); it is not the default because a sliding
-    box's friction is less accurate with it at steps below ~2.5 ms (issue #24).
+    (default_armature=None) then converges as dt shrinks below ~0.1 ms, which it does not with the fixed damper
+    (a light foot's m / c ~ 1e-5 s). With the default armature neither converges at practical steps in the
+    standing phase: the fixed damper's posture moves by 1-3e-4 m per halving of dt down to 0.3 ms, the
+    mass-relative one's by 1.4 mm where its 4 k h floor fades (benchmarks/results/quadruped_convergence.md).
+    It is not the default, also because a sliding box's friction is less accurate with it at steps below
+    ~2.5 ms (issue #24).
 
     Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which

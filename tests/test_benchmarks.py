@@ -57,6 +57,23 @@ def test_equal_error_ratio_on_a_known_pair():
     assert wp.equal_error_ratio(a, [_pt(1.0, 0.5)]) is None
 
 
+def test_time_at_equal_error_interpolates_between_runs():
+    """Between two runs of a front the time to an error is the log-log line through them (error ~ dt^p, time ~
+    1 / dt), above the cheapest run its time (no extrapolation), below the best run none. Two engines running the
+    same algorithm, whose errors at the coarsest step agree to rounding (the double pendulum's Euler at 20 ms,
+    2026-12-01: 0.016770 rad for both), compare at their run times, not a whole halving of dt apart."""
+    fr = [(1e-2, 1.0), (1e-4, 100.0)]
+    assert wp.time_at_interp(fr, 1e-3) == pytest.approx(10.0)
+    assert wp.time_at_interp(fr, 1e-1) == 1.0
+    assert wp.time_at_interp(fr, 1e-4) == pytest.approx(100.0)
+    assert wp.time_at_interp(fr, 1e-5) == math.inf
+    a = [_pt(1.0, 0.0167701), _pt(2.0, 0.00848)]
+    b = [_pt(1.5, 0.0167700), _pt(3.0, 0.00848)]
+    assert wp.equal_error_ratio(a, b, interpolate=False)[0] == pytest.approx(2.0 / 1.5)
+    mx, med, _ = wp.equal_error_ratio(a, b)
+    assert mx == pytest.approx(1.0 / 1.5, rel=1e-3) and med == pytest.approx(1.0 / 1.5, rel=1e-3)
+
+
 def test_sample_times_must_be_whole_steps():
     assert wp._samples(wp.SCENES["box"], 0.005) == [40, 160]
     with pytest.raises(ValueError, match="not a multiple"):
@@ -73,6 +90,8 @@ def test_error_measure_flags_nan_and_takes_the_worst_env():
     assert wp._error([[0.0, 1.0], [0.0, 1.5]], [0.0, 1.0], "pendulum") == pytest.approx(0.5)
     assert wp._error([[np.nan, 1.0]], [0.0, 1.0], "pendulum") == math.inf
     assert wp._error([[3.0, 4.0, 0.0]], [0.0, 0.0, 0.0], "quadruped") == pytest.approx(5.0)
+    # the quadruped's samples (x, y, z) at each sample time: the worst one's norm
+    assert wp._error([[0.0, 0.0, 1.0, 3.0, 4.0, 0.0]], [0.0] * 6, "quadruped_armature") == pytest.approx(5.0)
 
 
 def _wave_speed(E, nu, rho):
