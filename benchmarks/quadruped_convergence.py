@@ -70,6 +70,28 @@ def run(gs, files, dt, damping=None, start=None, t_end=T_END, integrator="RK4"):
     return np.array(out), robot
 
 
+def foot_mass(gs, files):
+    """A line: the vertical effective mass 1 / (J M^-1 J^T)_zz of the left front shank's centre of mass (the foot's
+    link) at the standing pose with the default armature, M the joint-space mass matrix of the whole robot
+    (floating base included), and the contact's critical damping 2 sqrt(k m) at the default stiffness."""
+    import torch
+
+    scene, _, _ = build(gs, files, 5e-3, {"armature": 0.1}, "implicitfast")
+    ent = scene.entities[1]
+    sim = ent._sim
+    dofs = slice(ent._dof_start, ent._dof_start + ent.n_dofs)
+    M = sim.mass_at_qpos0(ent) + torch.diag_embed(sim.params["armature"][:1, dofs].double())
+    q = ent.get_qpos().double().reshape(1, -1)
+    i = [ln.name for ln in ent.links].index("LF_SHANK")
+    J = ent._jacobian_at(q, i, sim.param_base["com"][0, ent._link_start + i].double())[:, :3]
+    m = 1.0 / float((J @ torch.linalg.inv(M) @ J.transpose(-1, -2))[0, 2, 2])
+    k = gs.options.RigidOptions().contact_stiffness
+    return (f"LF_SHANK (0.348 kg, its foot sphere): vertical effective mass {m:.2f} kg at the standing pose, "
+            f"critical damping 2 sqrt(k m) = {2 * (k * m) ** 0.5:.0f} N s/m at k = {k:g} N/m (the default fixed "
+            f"damper: 4e4 N s/m, m / c = {m / 4e4:.1e} s; the mass-relative one takes the link's own mass: "
+            f"{2 * (k * 0.348) ** 0.5:.0f} N s/m).")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="three steps per model, no restart")
@@ -85,6 +107,10 @@ def main():
               ("the defaults (armature 0.1, fixed damping), RK4", {"armature": 0.1}, "RK4", halving),
               ("armature 0.1 and contact_damping_ratio = 1 (the mass-relative damper with the default armature), "
                "implicitfast", {"armature": 0.1, "contact_damping_ratio": 1.0}, "implicitfast", halving[:8]),
+              ("armature 0.1, a fixed contact_damping of 4e3 N s/m (about critical for a foot's effective mass, "
+               "see below), implicitfast", {"armature": 0.1, "contact_damping": 4e3}, "implicitfast", halving[:8]),
+              ("armature 0.1, a fixed contact_damping of 1e3 N s/m (under-damped), implicitfast",
+               {"armature": 0.1, "contact_damping": 1e3}, "implicitfast", halving[:8]),
               ("no armature, contact_damping_ratio = 1 (damping critical per pair, at least 4 k h), RK4",
                {"contact_damping_ratio": 1.0}, "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
               ("no armature, fixed contact_damping 4e4 N s/m, RK4", None, "RK4",
@@ -110,9 +136,10 @@ def main():
             print(lines[-1], flush=True)
             prev = traj
         lines.append("")
+    lines += ["## A foot's effective mass", "", foot_mass(gs, files), ""]
     if not args.quick:
         fine = 1e-4
-        ratio = models[3][1]
+        ratio = models[5][1]
         traj, robot = run(gs, files, fine, ratio, t_end=0.5)
         start = (robot.get_qpos().clone(), robot.get_dofs_velocity().clone())
         lines += ["## Restart at t = 0.5 s (contact_damping_ratio = 1)", "",
