@@ -495,8 +495,8 @@ SCENES: dict[str, WPScene] = {
         _mj_build_box, genesis=True),
     "quadruped": WPScene(
         "quadruped", "ANYmal B dropped on the ground from 0.62 m, PD holding the standing pose (kp 100, kv 5)",
-        1.0, QUAD_SAMPLES, "max over t = 0.5, 0.6 .. 1 s of norm(base pos - ref) (m)", _quad_files, _quad_ref, _gl_build_quad,
-        _mj_build_quad, genesis=True),
+        1.0, QUAD_SAMPLES, "max over t = 0.5, 0.6 .. 1 s of norm(base pos - ref) (m)", _quad_files, _quad_ref,
+        _gl_build_quad, _mj_build_quad, genesis=True),
     "quadruped_armature": WPScene(
         "quadruped_armature", "the quadruped with Genesis's default armature (0.1 kg m^2 on each of the 12 joints; "
         "genesis_lite's default too) in both engines",
@@ -814,7 +814,7 @@ def time_at_interp(fr, e):
         return fr[0][1]
     for (e0, t0), (e1, t1) in zip(fr, fr[1:]):
         if e1 <= e <= e0:
-            if e0 <= e1 or t0 <= 0.0:
+            if e0 <= e1 or e1 <= 0.0 or t0 <= 0.0:  # no line through an error of 0 (or a time of 0)
                 return t1
             return math.exp(math.log(t0) + (math.log(t1) - math.log(t0)) * (math.log(e0) - math.log(e))
                             / (math.log(e0) - math.log(e1)))

@@ -67,6 +67,7 @@ def test_time_at_equal_error_interpolates_between_runs():
     assert wp.time_at_interp(fr, 1e-1) == 1.0
     assert wp.time_at_interp(fr, 1e-4) == pytest.approx(100.0)
     assert wp.time_at_interp(fr, 1e-5) == math.inf
+    assert wp.time_at_interp([(1e-2, 1.0), (0.0, 3.0)], 1e-3) == 3.0  # an exact run: no log of 0
     a = [_pt(1.0, 0.0167701), _pt(2.0, 0.00848)]
     b = [_pt(1.5, 0.0167700), _pt(3.0, 0.00848)]
     assert wp.equal_error_ratio(a, b, interpolate=False)[0] == pytest.approx(2.0 / 1.5)
