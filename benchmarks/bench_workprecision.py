@@ -984,32 +984,46 @@ def main():
         print(f"wrote {a.md}")
 
 
+def equal_error_rows(res, n_envs=None, peers=("mujoco", "genesis")):
+    """genesis_lite's run time over each peer's at equal error: a dict per scene, env count (all, or `n_envs`),
+    peer and genesis_lite precision (float64 runs; float64 or float32 where the --f32 runs exist, the user picking
+    the precision as the step), with the ratio's max, median and error range (None without a common range) and
+    each side's smallest error."""
+    for key, entry in res.items():
+        for n, per in entry.get("envs", {}).items():
+            if n_envs is not None and n != n_envs:
+                continue
+            f64 = per.get("genesis_lite", {}).get("points", [])
+            ours = [("f64", f64)]
+            if "genesis_lite_f32" in per:
+                ours.append(("f64 or f32", f64 + per["genesis_lite_f32"].get("points", [])))
+            for peer in peers:
+                if peer not in per:
+                    continue
+                theirs = per[peer].get("points", [])
+                for prec, pts in ours:
+                    r = equal_error_ratio(pts, theirs)
+                    fa, fb = front(pts), front(theirs)
+                    yield {"scene": key, "envs": n, "peer": peer, "prec": prec, "max": r[0] if r else None,
+                           "median": r[1] if r else None, "range": r[2] if r else None,
+                           "best": fa[-1][0] if fa else None, "peer_best": fb[-1][0] if fb else None}
+
+
 def summary(res) -> str:
-    """Markdown: genesis_lite's run time over MuJoCo's at equal error per scene and env count (float64 runs, and
-    float64 or float32 where the float32 runs exist), with the error range both engines reach; and each engine's
-    smallest error (below the other's, the comparison has no common range)."""
+    """Markdown: equal_error_rows against MuJoCo for every scene and env count, with the error range both engines
+    reach and each engine's smallest error (below the other's, the comparison has no common range)."""
     lines = ["Run time at equal error, genesis_lite / MuJoCo: the least time each engine needs to reach an error (any "
              "integrator, dt or substeps; interpolated log-log between the two runs of its front that bracket the "
              f"error), on a log grid of the errors both reach (<= {ERR_CAP}); below the smaller error range's end one "
              "engine reaches errors the other does not.", "",
              "| scene | envs | genesis_lite precision | error range compared | max ratio | median ratio | "
              "smallest error genesis_lite | smallest error MuJoCo |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for key, entry in res.items():
-        for n, per in entry.get("envs", {}).items():
-            mj = per.get("mujoco", {}).get("points", [])
-            if not mj:
-                continue
-            f64 = per.get("genesis_lite", {}).get("points", [])
-            variants = [("f64", f64)]
-            if "genesis_lite_f32" in per:
-                variants.append(("f64 or f32", f64 + per["genesis_lite_f32"].get("points", [])))
-            for prec, pts in variants:
-                r = equal_error_ratio(pts, mj)
-                fa, fb = front(pts), front(mj)
-                best = lambda fr: f"{fr[-1][0]:.1e}" if fr else "-"  # noqa: E731
-                cells = ([f"{r[2][0]:.1e} .. {r[2][1]:.1e}", f"{r[0]:.2f}", f"{r[1]:.2f}"] if r
-                         else ["no common range", "-", "-"])
-                lines.append(f"| {key} | {n} | {prec} | " + " | ".join(cells) + f" | {best(fa)} | {best(fb)} |")
+    e = lambda x: "-" if x is None else f"{x:.1e}"  # noqa: E731
+    for r in equal_error_rows(res, peers=("mujoco",)):
+        cells = ([f"{r['range'][0]:.1e} .. {r['range'][1]:.1e}", f"{r['max']:.2f}", f"{r['median']:.2f}"]
+                 if r["range"] else ["no common range", "-", "-"])
+        lines.append(f"| {r['scene']} | {r['envs']} | {r['prec']} | " + " | ".join(cells)
+                     + f" | {e(r['best'])} | {e(r['peer_best'])} |")
     return "\n".join(lines)
 
 

@@ -199,23 +199,13 @@ def equal_error_rows(res, n_envs: str):
         if entry.get("skipped"):
             rows.append({"scene": key, "envs": n_envs, "met": "pending: " + entry["skipped"]})
             continue
-        per = entry["envs"].get(n_envs, {})
-        gl = per.get("genesis_lite", {}).get("points", [])
-        ours = [("f64", gl)]
-        if "genesis_lite_f32" in per:  # --f32: float32 runs too; the user picks the precision as the step
-            ours.append(("f64 or f32", gl + per["genesis_lite_f32"].get("points", [])))
-        for peer in ("mujoco", "genesis"):
-            if peer not in per:
-                continue
-            for prec, pts in ours:
-                r = wp.equal_error_ratio(pts, per[peer].get("points", []))
-                if r is None:
-                    rows.append({"scene": key, "envs": n_envs, "peer": peer, "prec": prec,
-                                 "met": "no common error range"})
-                    continue
-                mx, med, (lo, hi) = r
-                rows.append({"scene": key, "envs": n_envs, "peer": peer, "prec": prec, "range": f"{lo:.1e} .. {hi:.1e}",
-                             "max": mx, "median": med, "met": _met(mx <= GOAL_EQUAL_ERROR)})
+        for r in wp.equal_error_rows({key: entry}, n_envs):
+            row = {k: r[k] for k in ("scene", "envs", "peer", "prec")}
+            if r["range"] is None:
+                rows.append({**row, "met": "no common error range"})
+            else:
+                rows.append({**row, "range": f"{r['range'][0]:.1e} .. {r['range'][1]:.1e}", "max": r["max"],
+                             "median": r["median"], "met": _met(r["max"] <= GOAL_EQUAL_ERROR)})
     return rows
 
 
