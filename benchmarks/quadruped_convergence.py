@@ -88,8 +88,9 @@ def foot_mass(gs, files):
     k = gs.options.RigidOptions().contact_stiffness
     return (f"LF_SHANK (0.348 kg, its foot sphere): vertical effective mass {m:.2f} kg at the standing pose, "
             f"critical damping 2 sqrt(k m) = {2 * (k * m) ** 0.5:.0f} N s/m at k = {k:g} N/m (the default fixed "
-            f"damper: 4e4 N s/m, m / c = {m / 4e4:.1e} s; the mass-relative one takes the link's own mass: "
-            f"{2 * (k * 0.348) ** 0.5:.0f} N s/m).")
+            f"damper: 4e4 N s/m, m / c = {m / 4e4:.1e} s; the mass-relative one, contact_damping_ratio = 1, takes "
+            f"this mass through the robot at its initial configuration, not the link's own: "
+            f"{2 * (k * 0.348) ** 0.5:.0f} N s/m until 2026-12-01).")
 
 
 def main():
@@ -105,13 +106,13 @@ def main():
     models = [("the defaults (Genesis's armature of 0.1 kg m^2 on every joint, fixed contact damping 4e4 N s/m), "
                "implicitfast", {"armature": 0.1}, "implicitfast", halving),
               ("the defaults (armature 0.1, fixed damping), RK4", {"armature": 0.1}, "RK4", halving),
-              ("armature 0.1 and contact_damping_ratio = 1 (the mass-relative damper with the default armature), "
-               "implicitfast", {"armature": 0.1, "contact_damping_ratio": 1.0}, "implicitfast", halving[:8]),
+              ("armature 0.1 and contact_damping_ratio = 1 (the damper critical for the mass each contact moves through "
+               "the robot), implicitfast", {"armature": 0.1, "contact_damping_ratio": 1.0}, "implicitfast", halving[:8]),
               ("armature 0.1, a fixed contact_damping of 4e3 N s/m (about critical for a foot's effective mass, "
                "see below), implicitfast", {"armature": 0.1, "contact_damping": 4e3}, "implicitfast", halving[:8]),
               ("armature 0.1, a fixed contact_damping of 1e3 N s/m (under-damped), implicitfast",
                {"armature": 0.1, "contact_damping": 1e3}, "implicitfast", halving[:8]),
-              ("no armature, contact_damping_ratio = 1 (damping critical per pair, at least 4 k h), RK4",
+              ("no armature, contact_damping_ratio = 1 (critical for each contact's mass, at least 4 k h), RK4",
                {"contact_damping_ratio": 1.0}, "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
               ("no armature, fixed contact_damping 4e4 N s/m, RK4", None, "RK4",
                [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5])]

@@ -122,14 +122,17 @@ class RigidOptions(_Options):
     1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default) select penalty
     springs instead (either one given; the other then 1e4 / 1e2), genesis_lite's limits before 2026-11-29.
     contact_damping_ratio (None by default) makes the damper
-    mass-relative instead: critical times the ratio for each pair, 2 ratio sqrt(k m_eff) with m_eff the
-    reduced mass of the two links, and at least 4 k h (h the step). A legged landing without rotor inertia
-    (default_armature=None) then converges as dt shrinks below ~0.1 ms, which it does not with the fixed damper
-    (a light foot's m / c ~ 1e-5 s). With the default armature neither converges at practical steps in the
-    standing phase: the fixed damper's posture moves by 1-3e-4 m per halving of dt down to 0.3 ms, the
-    mass-relative one's by 1.4 mm where its 4 k h floor fades (benchmarks/results/quadruped_convergence.md).
-    It is not the default, also because a sliding box's friction is less accurate with it at steps below
-    ~2.5 ms (issue #24).
+    mass-relative instead: critical times the ratio for each contact, 2 ratio sqrt(k m_eff) with m_eff the
+    mass the contact moves along its normal, each side's link weighed through its articulation at the
+    initial configuration, armature included (MuJoCo's body_invweight0 along the normal: ANYmal's foot moves
+    4-5 kg, its own mass is 0.35 kg; computed at build from the model's masses and armature, while a lone free
+    body takes its own mass as it is set), and at least 4 k h (h the step). A landing then rebounds with
+    exp(-2) of its speed whatever the mass behind the contact (tests/test_contact_damper.py). A legged
+    landing without rotor inertia (default_armature=None) converges as dt shrinks with it, not with the fixed
+    damper (a bare foot's m / c ~ 1e-5 s); with the default armature its standing posture moves by 1.7e-4,
+    1.05e-4, 3.9e-5, 3.2e-5 m per halving from 2.5 to 0.3 ms against the fixed damper's irregular 0.9-2.4e-4
+    m (benchmarks/results/quadruped_convergence.md). It is not the default because a sliding box's friction
+    is less accurate with it at steps below ~2.5 ms (friction's load from the frictionless solve; issue #24).
 
     Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which

@@ -116,7 +116,9 @@ def test_sliding_box_converges_to_coulomb_as_the_step_shrinks():
     pitches back; with the soft contact law's slopes differing front to back its f2 sum to 9.70 N for a
     9.81 N box at 0.3125 ms. A prototype taking the bound from the normal force at the Coulomb-predicted
     velocity (step 3) passes this test (error 0.88-0.99 dt, ratio 0.9999) but, as tried, breaks gradient
-    and friction-cone tests elsewhere (the closing note of 2026-11-28)."""
+    and friction-cone tests elsewhere (the closing note of 2026-11-28); tried again 2026-12-01 with the
+    share of Coulomb's force that acts and a cap (contact/__init__.py, the end of step 4): the gradient
+    tests pass, the friction cone of a box sliding over an edge does not."""
     mu, v0 = 0.5, 2.0
     t_stop = v0 / (mu * G)
     exact = v0 * t_stop - 0.5 * mu * G * t_stop ** 2
@@ -262,10 +264,24 @@ def test_quadruped_drop_converges_as_dt_shrinks(urdf_path):
     assert 0.45 < z < 0.52  # standing
 
 
+@pytest.mark.xfail(strict=True, reason="friction takes its bound from the frictionless solve's normal forces, which "
+                   "miss the load friction moves between the feet (contact/__init__.py, the end of step 4)")
+def test_quadruped_standing_converges_as_dt_shrinks(urdf_path):
+    """Issue #24: the standing phase (t = 0.5 .. 1 s) of the same drop should converge at practical steps with
+    the default options: the base positions, sampled every 50 ms, changing less and less as dt halves from
+    5 ms. Measured 2026-12-01: 2.0e-4, 1.2e-4, 2.5e-4 m. With the prototype that takes friction's load with
+    Coulomb's forces applied (contact/__init__.py, the end of step 4): 8.9e-5, 6.0e-5, 4.8e-5 m."""
+    runs = [_anymal_drop_heights(urdf_path, dt, 1.0, 0.05)[9:] for dt in (5e-3, 2.5e-3, 1.25e-3, 6.25e-4)]
+    changes = [float(np.linalg.norm(b - a, axis=1).max()) for a, b in zip(runs, runs[1:])]
+    assert changes[2] < 0.7 * changes[0], changes
+    assert max(changes) < 1.2e-4, changes
+
+
 @pytest.mark.slow
 def test_quadruped_drop_converges_as_dt_shrinks_with_mass_relative_damping(urdf_path):
-    """The same with RigidOptions(contact_damping_ratio=1) (the damper critical per pair). Measured: 3.3e-4
-    then 1.8e-4 m (before the default armature: 1.3e-4 then 3.7e-5 m)."""
+    """The same with RigidOptions(contact_damping_ratio=1) (the damper critical for the mass each contact moves
+    through the robot). Measured 2026-12-01: 7.4e-5 then 3.7e-5 m, as the fixed damper's (with each link's own
+    mass, before that day: 3.3e-4 then 1.8e-4 m)."""
     changes, z = _drop_changes(urdf_path, contact_damping_ratio=1.0)
     assert changes[1] < 0.6 * changes[0], changes
     assert changes[1] < 2.5e-4, changes

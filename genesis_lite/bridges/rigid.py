@@ -107,6 +107,8 @@ class RigidSim:
         self.param_base["invweight"] = self._invweight(self.param_base["armature"])
         if s.contact is not None:
             self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
+            if s.contact.zeta > 0.0:  # the mass-relative damper weighs each link through its articulation
+                s.contact.set_link_weights(*self.contact_link_weights(scene.rigid_entities))
         # the applied wrench accumulated for the next step: a numpy (B, n_links, 6) array of what needs no
         # gradient and a torch tensor of what may, each None when nothing
         self._pending_np = self._pending_t = None
@@ -186,6 +188,39 @@ class RigidSim:
                 for k in (j.dof_start_local, j.dof_start_local + 3):
                     avg[k:k + 3, k:k + 3] = 1.0 / 3.0
         return w @ avg
+
+    def contact_link_weights(self, entities):
+        """(W, own_mass): the links' weights for the mass-relative contact damper (contact.law.func_link_invmass),
+        numpy (n_links, 3, 3) and (n_links,). W: J (M0 + diag(armature))^-1 J^T, J the Jacobian of the link's
+        centre of mass, M0 the entity's mass matrix at its initial configuration (mass_at_qpos0), the model's
+        masses and armature: the inverse mass the link's centre of mass has through the articulation, as
+        MuJoCo's body_invweight0 (whose mean of the diagonal MuJoCo takes; here the normal's direction picks
+        the entry). own_mass 1 for a link that moves alone (an entity of one link on a free joint without
+        armature: W is then 1 / mass, and the link's own mass follows the mass setters and their
+        gradients) and for an entity whose matrix is singular (massless links without armature), whose
+        links take their own masses as under the fixed damper."""
+        W = np.zeros((max(self.n_links, 1), 3, 3))
+        own = np.ones(max(self.n_links, 1), dtype=np.int32)
+        arm = self.param_base["armature"][:1].double()
+        for ent in entities:
+            if ent.n_dofs == 0:
+                continue
+            d = slice(ent._dof_start, ent._dof_start + ent.n_dofs)
+            if ent.n_links == 1 and ent.joints[0].type == "free" and not bool((arm[:, d] != 0).any()):
+                continue
+            M = self.mass_at_qpos0(ent) + torch.diag_embed(arm[:, d])
+            inv, info = torch.linalg.inv_ex(M)
+            if bool((info != 0).any()) or not bool(torch.isfinite(inv).all()):
+                continue
+            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
+            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
+            fk = ent.forward_kinematics(q)
+            com = self.param_base["com"][0].double()
+            for i in range(ent.n_links):
+                J = ent._jacobian_at(q, i, com[ent._link_start + i], fk=fk)[:, :3]
+                W[ent._link_start + i] = (J @ inv @ J.transpose(-1, -2))[0].numpy()
+                own[ent._link_start + i] = 0
+        return W, own
 
     def _invweight(self, armature):
         """(B, n_dofs) the limit constraint's inverse weights: entity_invweight for each entity with limits (1

@@ -10,12 +10,14 @@ of the step (u' the velocity after it):
 
 The damper c is RigidOptions.contact_damping (4e4 N s/m per point), or, with
 RigidOptions.contact_damping_ratio set, the pair's critical damping times the ratio, 2 zeta sqrt(k m_eff)
-(m_eff the reduced mass of the two links, a static side infinitely heavy; at least 4 k h). The fixed
-damper gives a 0.3 kg foot a damping time m / c ~ 1e-5 s that no practical step resolves: the quadruped
-drop's stance height changed by ~1e-3 m at every halving of dt down to 12.5 us; the mass-relative one
-converges (issue #24, benchmarks/results/quadruped_convergence.md) but biases a sliding box's friction
-at steps below ~2.5 ms (friction takes its bound from the frictionless solve's normal forces, step 3
-below), so it is not the default.
+(at least 4 k h), m_eff the mass the contact moves along its normal: each side's link weighed through its
+articulation at the initial configuration, armature included (law.func_link_invmass; ANYmal's foot moves
+4-5 kg, its own mass is 0.35 kg), a static side infinitely heavy. The fixed damper gives a bare 0.3 kg
+foot (no rotor inertia) a damping time m / c ~ 1e-5 s that no practical step resolves; the mass-relative
+one converges there (issue #24, benchmarks/results/quadruped_convergence.md) but biases a sliding box's
+friction at steps below ~2.5 ms (friction takes its bound from the frictionless solve's normal forces,
+step 4 below, the larger cause of the contact scenes' slow convergence: see the end of step 4), so it is
+not the default.
 The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
 step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
 spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.
@@ -123,7 +125,15 @@ of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differe
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse; the gradient path
 keeps each bound round's starting solution and factor for its adjoint). Friction uses the
 normal forces of a frictionless solve: where friction carries load (legs, chains), the final normal
-forces differ from f2 and so does the friction bound.
+forces differ from f2 and so does the friction bound. Measured 2026-12-01 with a prototype that takes
+the load at the velocity of step 3 instead (the law's force with Coulomb's forces applied, f2 + r
+(f_law(u_c) - f2), r the share of Coulomb's force that acts, at most 2 f2): the sliding box's error falls
+at first order (-9.9e-3 .. -2.7e-4 m from 10 to 0.3125 ms) and ANYmal's standing posture converges
+(1.1e-4, 5.2e-5, 4.4e-5, 1.5e-5 m per halving from 2.5 to 0.3 ms, against 0.9-2.8e-4 m irregular), the
+default suite passing; but a box sliding over an edge then leaves Coulomb's cone in 6 steps by up to 3.4 N
+(tests/test_faults_contact.py), bounding the rounds by the solution's own normal force breaks the
+broad phase's bit-for-bit invariance (tests/test_many_bodies.py), and the cap matters (uncapped, or at
+1.25 f2, the thrown pile goes to NaN): not merged (issue #24's next step).
 
 Every term is differentiable in the state and in mu, k and c; the kinks are the contact's on/off (at
 the margin, where the force is below 1e-8 k delta, and where the force of the current and of the

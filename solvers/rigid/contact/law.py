@@ -24,6 +24,8 @@ HEAVY_MASS = 100.0
 # as h shrinks, leaving the dt-independent critical law once h < zeta sqrt(m_eff / k) / 2 (MuJoCo
 # keeps its constraints' time constant at least 2 dt, solref's safety clamp, for the same reason)
 STEP_DAMPING = 4.0
+# the mass-relative damper's mass of a link through its articulation is at most this many times its own
+MAX_WEIGHED_MASS = 1e4
 # a link lighter than this (a massless frame) counts as this heavy in m_eff: 1 / 0 has no adjoint
 MIN_LINK_MASS = 1e-9
 
@@ -41,22 +43,37 @@ def func_softplus(x, xc):
 
 
 @ti.func
-def func_heavy_scale(s: ti.template(), i_b, i_s):
-    """(heavy, scale, inv): whether slot i_s's pair is heavier than HEAVY_MASS, m_eff / HEAVY_MASS (the
-    factor on its stiffness, and on a fixed damping: see HEAVY_MASS) and 1 / m_eff, where m_eff = 1 /
-    (1 / m_a + 1 / m_b) over the sides that move (a static side is infinitely heavy), each side its own
-    link's mass: a light link pressed by a heavy load through its joints (a foot under a heavy robot)
-    keeps the options' stiffness."""
+def func_link_invmass(s: ti.template(), i_b, l, n):
+    """(own, weighed): link l's inverse mass, its own 1 / mass, and the inverse mass along the normal n
+    the mass-relative damper takes: n.W n, W the inverse weight of the link's centre of mass through its
+    articulation at the initial configuration (ContactSolver.set_link_weights: a foot moves with the leg
+    and the body above it, ANYmal's with about 13 times its own mass), at least MAX_WEIGHED_MASS times less
+    than its own (a direction its joints cannot move it in has n.W n = 0), or its own where the link moves
+    alone (a free body: link_wmass 1); both 0 for a static link."""
     c = s.contact
-    la = c.geom_link[c.slot_ga[i_s]]
-    lb = c.geom_link[c.slot_gb[i_s]]
-    inv_a = ti.select(c.link_dyn[la] == 1, 1.0 / ti.max(s.link_mass[i_b, la], MIN_LINK_MASS), 0.0)
-    inv_b = ti.select(c.link_dyn[lb] == 1, 1.0 / ti.max(s.link_mass[i_b, lb], MIN_LINK_MASS), 0.0)
-    inv = inv_a + inv_b
-    heavy = inv * HEAVY_MASS < 1.0
-    # inv > 0 on the heavy side; the other side's value is never used (nor its adjoint: 0)
-    scale = ti.select(heavy, 1.0 / (ti.max(inv, 1e-30) * HEAVY_MASS), 1.0)
-    return heavy, scale, inv
+    own = ti.select(c.link_dyn[l] == 1, 1.0 / ti.max(s.link_mass[i_b, l], MIN_LINK_MASS), 0.0)
+    weighed = own
+    if ti.static(c.zeta > 0.0):
+        weighed = ti.select(c.link_wmass[l] == 1, own, ti.max(n.dot(c.link_W[l] @ n), own / MAX_WEIGHED_MASS))
+    return own, weighed
+
+
+@ti.func
+def func_heavy_scale(s: ti.template(), i_b, i_s, n):
+    """(heavy, scale, inv): whether slot i_s's pair is heavier than HEAVY_MASS, m_eff / HEAVY_MASS (the
+    factor on its stiffness, and on a fixed damping: see HEAVY_MASS) and the inverse mass the
+    mass-relative damper takes; m_eff = 1 / (1 / m_a + 1 / m_b) over the sides that move (a static side
+    is infinitely heavy), each side its own link's mass: a light link pressed by a heavy load through its
+    joints (a foot under a heavy robot) keeps the options' stiffness. The damper's inverse mass sums
+    each side's along the normal n through its articulation (func_link_invmass)."""
+    c = s.contact
+    own_a, w_a = func_link_invmass(s, i_b, c.geom_link[c.slot_ga[i_s]], n)
+    own_b, w_b = func_link_invmass(s, i_b, c.geom_link[c.slot_gb[i_s]], n)
+    own = own_a + own_b
+    heavy = own * HEAVY_MASS < 1.0
+    # own > 0 on the heavy side; the other side's value is never used (nor its adjoint: 0)
+    scale = ti.select(heavy, 1.0 / (ti.max(own, 1e-30) * HEAVY_MASS), 1.0)
+    return heavy, scale, w_a + w_b
 
 
 @ti.func

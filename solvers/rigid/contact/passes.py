@@ -174,7 +174,7 @@ def func_relinearise_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.
     # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
     # start-of-step velocity, was ~0): it acts if the law pushes there
     lin = c.sl_Fn[i_b, i_s] - c.sl_wn[i_b, i_s] / h * du
-    heavy, scale, inv = func_heavy_scale(s, i_b, i_s)
+    heavy, scale, inv = func_heavy_scale(s, i_b, i_s, n)
     f1, w1, _ = func_normal_law(c, depth, depth - c.sl_corr[i_b, i_s] - h * (u0.dot(n) + du), h, heavy, scale, inv)
     cand = c.sl_cand[i_b, i_s] == 1
     keep = ti.select(cand, f1 > 0, lin > 0)

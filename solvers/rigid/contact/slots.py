@@ -39,7 +39,7 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand, c
     # the normal force is linearised about the depth predicted for the end of the step, so a contact
     # that closes its gap within the step acts in it (speculative contact, see the module docstring)
     # (corr: how much further the rotations close the gap than the linear prediction h u.n says)
-    heavy, scale, inv = func_heavy_scale(s, i_b, i_s)
+    heavy, scale, inv = func_heavy_scale(s, i_b, i_s, n)
     fn_pred, wn, fn_now = func_normal_law(c, depth, depth - h * u.dot(n) - corr, h, heavy, scale, inv)
     # on while the force of the current state pushes (a contact creeping out of a deep overlap, whose
     # predicted force sits at ~0), the predicted one does (a gap closing within the step), or the pair

@@ -101,6 +101,11 @@ class ContactSolver:
         # the friction parameter [env, geom]; the scene sees its block through geom_friction
         self.geom_mu = F((B, G))
         self.link_dyn = I(L)
+        # the contact damper's weights of the links (law.func_heavy_scale, set_link_weights): whether a link's
+        # inverse mass is its own 1 / mass (1), else its 3x3 inverse weight at the centre of mass through the
+        # articulation at the initial configuration (link_W)
+        self.link_wmass = I(L)
+        self.link_W = M3(L, False)
         # pairs and slots
         self.pair_ga, self.pair_gb = I(Pn), I(Pn)
         # the pair's slots: pair_s0[p] .. pair_s0[p + 1] - 1 (build_slots stores them by pair)
@@ -245,6 +250,7 @@ class ContactSolver:
         """Make `plan` (a scene of n_envs envs) the model this solver's kernels run."""
         self.plan = plan
         self.n_envs = n_envs
+        self.plan_np_dtype = np_dtype
         for name in ("geoms", "pairs", "entity_geom_start", "entity_geom_count", "np_slot_ga", "np_slot_gb",
                      "np_slot_pair", "np_slot_link_a", "np_slot_link_b"):
             setattr(self, name, getattr(plan, name))
@@ -310,6 +316,8 @@ class ContactSolver:
             self.geom_mu[i_b, g] = mu[i_b, g]
         for i in range(dyn.shape[0]):
             self.link_dyn[i] = dyn[i]
+        for i in range(self.link_wmass.shape[0]):
+            self.link_wmass[i] = 1  # until set_link_weights: each link its own mass
         for p in range(pair.shape[0]):
             self.pair_ga[p] = pair[p, 0]
             self.pair_gb[p] = pair[p, 1]
@@ -346,6 +354,20 @@ class ContactSolver:
         self.deep_any[0] = 0
         for i_p in range(self.pair_warned.shape[0]):
             self.pair_warned[i_p] = 0
+
+    def set_link_weights(self, W, own_mass):
+        """The links' weights for the mass-relative contact damper (law.func_heavy_scale): W (n_links, 3, 3)
+        the inverse weight of each link's centre of mass through its articulation (1/kg), own_mass (n_links,)
+        1 where a link's own 1 / mass is used instead."""
+        self._kernel_link_weights(np.ascontiguousarray(W, dtype=self.plan_np_dtype),
+                                  np.ascontiguousarray(own_mass, dtype=np.int32))
+
+    @ti.kernel
+    def _kernel_link_weights(self, W: ti.types.ndarray(), own_mass: ti.types.ndarray()):
+        for l in range(own_mass.shape[0]):
+            self.link_wmass[l] = own_mass[l]
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                self.link_W[l][a, b] = W[l, a, b]
 
     @ti.kernel
     def kernel_rearm(self, i_p: ti.i32):
