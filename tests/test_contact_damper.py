@@ -97,7 +97,7 @@ def test_a_landing_rebounds_as_a_critically_damped_contact(tmp_path, case):
     """A linear spring-damper critically damped for the mass m it stops, x = v0 t exp(-w t), pushes until
     its force k x + c x' = m v0 w exp(-w t) (2 - w t) reaches 0 at w t = 2, and lets go at x' = -v0 exp(-2):
     a restitution of exp(-2) = 0.1353 whatever m. The ball alone (2 kg), a 1 kg ball on a vertical slider
-    with a rotor inertia of 3 kg (4 kg along the normal; its own mass alone would be half-critical, 0.30),
+    with a rotor inertia of 3 kg (4 kg along the normal: its own mass alone would make the damper half-critical),
     and on a slider leaning 40 degrees (6.8 kg along the normal) all rebound with it. At dt = 10 us (the
     contact lasts 2 / w = 2.8-5.2 ms) and the default contact smoothing (5 um against ~0.4-1 mm of
     overlap). Measured 2026-12-01: 0.1344, 0.1347, 0.1348 (0.1334, 0.1340, 0.1343 at 20 us; 0.1349, 0.1350,
