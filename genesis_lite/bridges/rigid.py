@@ -108,7 +108,8 @@ class RigidSim:
         if s.contact is not None:
             self.param_base["friction"] = self._field_to_torch(s.contact.geom_friction)
             if s.contact.zeta > 0.0:  # the mass-relative damper weighs each link through its articulation
-                s.contact.set_link_weights(*self.contact_link_weights(scene.rigid_entities))
+                W, own = self.contact_link_weights(scene.rigid_entities)
+                s.contact.set_link_weights(W.astype(s.np_dtype), own)
         # the applied wrench accumulated for the next step: a numpy (B, n_links, 6) array of what needs no
         # gradient and a torch tensor of what may, each None when nothing
         self._pending_np = self._pending_t = None
@@ -142,28 +143,46 @@ class RigidSim:
         return [ent for ent in entities
                 if ent.n_dofs and np.isfinite(lim[ent._dof_start:ent._dof_start + ent.n_dofs]).any()]
 
+    def _com_jacobians_at_qpos0(self, ent):
+        """([(1, 6, n) per link], link quaternions (1, n_links, 4)), float64, kept: the Jacobians of `ent`'s links'
+        centres of mass (the COM's velocity, the link's rate) and the links' orientations at its initial
+        configuration, with the model's centres of mass (mass_at_qpos0's and contact_link_weights')."""
+        cache = self.__dict__.setdefault("_com_jac0", {})
+        if ent.name not in cache:
+            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
+            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
+            com = self.param_base["com"][0, ent._link_start:ent._link_start + ent.n_links].double()
+            fk = ent.forward_kinematics(q)
+            cache[ent.name] = ([ent._jacobian_at(q, i, com[i], fk=fk) for i in range(ent.n_links)], fk[1])
+        return cache[ent.name]
+
     def mass_at_qpos0(self, ent):
         """(1, n, n) float64: `ent`'s joint-space mass matrix without armature at its initial configuration,
         from the model's masses and inertias (what Genesis computes its dofs_invweight from), kept."""
         cache = self.__dict__.setdefault("_mass0", {})
         if ent.name not in cache:
             n = ent.n_dofs
-            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
-            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
             ls = slice(ent._link_start, ent._link_start + ent.n_links)
             mass = self.param_base["mass"][:1, ls].double()
-            com = self.param_base["com"][:1, ls].double()
             inertia = self.param_base["inertia"][:1, ls].double()
-            fk = ent.forward_kinematics(q)
+            jacs, quat = self._com_jacobians_at_qpos0(ent)
             M = torch.zeros(1, n, n, dtype=torch.float64)
-            for i in range(ent.n_links):
-                J = ent._jacobian_at(q, i, com[0, i], fk=fk)  # (1, 6, n): the COM's velocity, the link's rate
-                R = _quat_to_R(fk[1][:, i])
+            for i, J in enumerate(jacs):
+                R = _quat_to_R(quat[:, i])
                 I_w = R @ inertia[:, i] @ R.transpose(-1, -2)
                 M = M + mass[:, i, None, None] * J[:, :3].transpose(-1, -2) @ J[:, :3]
                 M = M + J[:, 3:].transpose(-1, -2) @ I_w @ J[:, 3:]
             cache[ent.name] = M
         return cache[ent.name]
+
+    def _inverse_mass_at_qpos0(self, ent, armature):
+        """(M0 + diag(armature))^-1 (armature (B, ent.n_dofs), differentiable in it; M0 mass_at_qpos0), or None
+        where that matrix is singular (a joint that moves no mass and has no armature)."""
+        M = self.mass_at_qpos0(ent).to(armature.dtype) + torch.diag_embed(armature)
+        inv, info = torch.linalg.inv_ex(M)
+        if bool((info != 0).any()) or not bool(torch.isfinite(inv).all()):
+            return None
+        return inv
 
     def entity_invweight(self, ent, armature):
         """(B, ent.n_dofs) Genesis's dofs_invweight: diag((M0 + diag(armature))^-1), M0 `ent`'s joint-space
@@ -172,10 +191,9 @@ class RigidSim:
         mean as Genesis's. Genesis computes it at build and again when set_dofs_armature changes the armature
         (v0.4.5 rigid_solver.py _init_invweight_and_meaninertia; masses set later leave it as it is), and so
         do we; differentiable in the armature. Raises when the matrix is singular."""
-        M = self.mass_at_qpos0(ent).to(armature.dtype) + torch.diag_embed(armature)
-        inv, info = torch.linalg.inv_ex(M)
-        w = torch.diagonal(inv, dim1=-2, dim2=-1)
-        if bool((info != 0).any()) or not bool(torch.isfinite(w).all() and (w > 0).all()):
+        inv = self._inverse_mass_at_qpos0(ent, armature)
+        w = None if inv is None else torch.diagonal(inv, dim1=-2, dim2=-1)
+        if w is None or not bool((w > 0).all()):
             raise GenesisException(
                 f"entity '{ent.name}': its joint-space mass matrix at the initial configuration, armature included, "
                 "is singular (a joint moves no mass and has no armature), and the joint-limit constraint needs "
@@ -208,17 +226,12 @@ class RigidSim:
             d = slice(ent._dof_start, ent._dof_start + ent.n_dofs)
             if ent.n_links == 1 and ent.joints[0].type == "free" and not bool((arm[:, d] != 0).any()):
                 continue
-            M = self.mass_at_qpos0(ent) + torch.diag_embed(arm[:, d])
-            inv, info = torch.linalg.inv_ex(M)
-            if bool((info != 0).any()) or not bool(torch.isfinite(inv).all()):
+            inv = self._inverse_mass_at_qpos0(ent, arm[:, d])
+            if inv is None:
                 continue
-            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
-            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
-            fk = ent.forward_kinematics(q)
-            com = self.param_base["com"][0].double()
-            for i in range(ent.n_links):
-                J = ent._jacobian_at(q, i, com[ent._link_start + i], fk=fk)[:, :3]
-                W[ent._link_start + i] = (J @ inv @ J.transpose(-1, -2))[0].numpy()
+            jacs, _ = self._com_jacobians_at_qpos0(ent)
+            for i, J in enumerate(jacs):
+                W[ent._link_start + i] = (J[:, :3] @ inv @ J[:, :3].transpose(-1, -2))[0].numpy()
                 own[ent._link_start + i] = 0
         return W, own
 

@@ -250,7 +250,6 @@ class ContactSolver:
         """Make `plan` (a scene of n_envs envs) the model this solver's kernels run."""
         self.plan = plan
         self.n_envs = n_envs
-        self.plan_np_dtype = np_dtype
         for name in ("geoms", "pairs", "entity_geom_start", "entity_geom_count", "np_slot_ga", "np_slot_gb",
                      "np_slot_pair", "np_slot_link_a", "np_slot_link_b"):
             setattr(self, name, getattr(plan, name))
@@ -357,9 +356,9 @@ class ContactSolver:
 
     def set_link_weights(self, W, own_mass):
         """The links' weights for the mass-relative contact damper (law.func_heavy_scale): W (n_links, 3, 3)
-        the inverse weight of each link's centre of mass through its articulation (1/kg), own_mass (n_links,)
-        1 where a link's own 1 / mass is used instead."""
-        self._kernel_link_weights(np.ascontiguousarray(W, dtype=self.plan_np_dtype),
+        the inverse weight of each link's centre of mass through its articulation (1/kg, in the solver's float
+        type), own_mass (n_links,) 1 where a link's own 1 / mass is used instead."""
+        self._kernel_link_weights(np.ascontiguousarray(W),
                                   np.ascontiguousarray(own_mass, dtype=np.int32))
 
     @ti.kernel
