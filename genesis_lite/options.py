@@ -133,6 +133,13 @@ class RigidOptions(_Options):
     1.05e-4, 3.9e-5, 3.2e-5 m per halving from 2.5 to 0.3 ms against the fixed damper's irregular 0.9-2.4e-4
     m (benchmarks/results/quadruped_convergence.md). It is not the default because a sliding box's friction
     is less accurate with it at steps below ~2.5 ms (friction's load from the frictionless solve; issue #24).
+    friction_load ("frictionless" by default) is the normal force Coulomb's bound mu f_n takes: the frictionless
+    solve's, or with "coulomb" the force the contact law gives with Coulomb's forces applied (at most twice
+    the frictionless one), which carries the load friction's own torque moves between a body's contacts (a
+    box sliding on a face presses its leading edge; a standing robot's feet): a sliding box then converges
+    to Coulomb's slide at first order as dt shrinks (2.7e-4 m at 0.3 ms, 3.2e-3 m with the default,
+    tests/test_contact.py). Not the default: the load is a prediction, and a box sliding over an edge can
+    leave Coulomb's cone with it (by up to 3.4 N on ~10 N in 6 of ~1,300 steps; contact/__init__.py).
 
     Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which
@@ -163,6 +170,7 @@ class RigidOptions(_Options):
     contact_stiffness: float = 1e6
     contact_damping: float = 4e4
     contact_damping_ratio: Optional[float] = None
+    friction_load: str = "frictionless"
     joint_limit_stiffness: Optional[float] = None
     joint_limit_damping: Optional[float] = None
     constraint_timeconst: float = 0.01
@@ -234,6 +242,8 @@ class RigidOptions(_Options):
                 continue
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 self._err(name, v, "must be a finite number > 0")
+        if self.friction_load not in ("frictionless", "coulomb"):
+            self._err("friction_load", self.friction_load, 'must be "frictionless" (the default) or "coulomb"')
         m = self.max_mesh_contact_points
         if not (isinstance(m, (int, np.integer)) and not isinstance(m, bool) and m >= 4):
             self._err("max_mesh_contact_points", m, "must be an integer >= 4")

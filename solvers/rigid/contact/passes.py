@@ -291,6 +291,24 @@ def func_friction_slots(s: ti.template(), i_b):
 
 
 @ti.func
+def func_coulomb_load(s: ti.template(), i_b, i_s, u0, uc, n, f2, w, s2, keep):
+    """Friction's load of slot i_s with RigidOptions(friction_load="coulomb") (package docstring, step 4):
+    the normal force its law gives at the velocity uc predicted with Coulomb's forces applied, not the
+    frictionless solve's f2: friction's own torque moves load between a body's contacts (a box sliding on a
+    face presses its leading edge; a standing robot's splayed legs load their feet through friction), and the
+    normal law carries that shift within the step. Only the share r of Coulomb's force that acts counts: all
+    of it while the slip goes on (w, the predicted slip along the slip before, s2, at least 0), the part that
+    stops it where the slip would reverse (s2 / (s2 - w)). At least 0, at most LOAD_SHIFT f2, 0 where f2 is
+    (the slot leaves the final system); kept in sl_load_c for the bound rounds."""
+    c = s.contact
+    fc = func_normal_after(c, i_b, i_s, u0, uc, n)
+    r = ti.select(w >= 0.0, 1.0, s2 / ti.max(s2 - w, s2))
+    load = ti.select(keep, ti.min(ti.max(f2 + r * (fc - f2), 0.0), c.load_shift * f2), 0.0)
+    c.sl_load_c[i_b, i_s] = load
+    return load
+
+
+@ti.func
 def func_friction_slot(s: ti.template(), i_b, i_s):
     c = s.contact
     h = c.eval_h[i_b]
@@ -308,7 +326,10 @@ def func_friction_slot(s: ti.template(), i_b, i_s):
     # (func_softplus's two branches, so that the adjoint at w == 0 is 1/2 as the derivative)
     vp = ti.select(w > 0, w + c.eps * ti.log(1.0 + ti.exp(-wc)), c.eps * ti.log(1.0 + ti.exp(wc)))
     keep = f2 > 0
-    eta = c.sl_mu[i_b, i_s] * ti.max(f2, 0.0) / ti.sqrt(vp * vp + c.eps * c.eps)
+    # the load: the frictionless solve's f2 (the default), or the normal force predicted with Coulomb's forces
+    # applied (RigidOptions.friction_load = "coulomb": func_coulomb_load)
+    load = func_coulomb_load(s, i_b, i_s, u0, uc, n, f2, w, s2, keep) if ti.static(c.load_shift > 0.0) else ti.max(f2, 0.0)
+    eta = c.sl_mu[i_b, i_s] * load / ti.sqrt(vp * vp + c.eps * c.eps)
     drop = ti.select(keep, 0.0, 1.0)
     nn = n.outer_product(n)
     u0t = u0 - u0.dot(n) * n
@@ -416,9 +437,10 @@ def func_tangential(s: ti.template(), i_b, i_s, u3):
 
 @ti.func
 def func_coulomb_bound(s: ti.template(), i_b, i_s):
-    """Coulomb's bound mu f2 of slot i_s (f2 its load after the normal solve, at least 0)."""
+    """Coulomb's bound of slot i_s: mu times friction's load, f2 (after the normal solve, at least 0) or with
+    RigidOptions(friction_load="coulomb") the friction pass's (func_coulomb_load)."""
     c = s.contact
-    return c.sl_mu[i_b, i_s] * ti.max(c.sl_load[i_b, i_s], 0.0)
+    return c.sl_mu[i_b, i_s] * (c.sl_load_c[i_b, i_s] if ti.static(c.load_shift > 0.0) else ti.max(c.sl_load[i_b, i_s], 0.0))
 
 
 @ti.func

@@ -4,7 +4,7 @@ import numpy as np
 
 from ..collision import SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG, build_geoms, build_slots, candidate_pairs, link_is_dynamic
 from ..flatten import JTYPE
-from .law import MARGIN_WIDTHS
+from .law import LOAD_SHIFT, MARGIN_WIDTHS
 
 # run-time sizes of the contact model (indices into ContactSolver.cfg_i): the contact kernels read them
 # from a field, so one compile serves every scene of a contact class. The model's constants (k, d,
@@ -53,6 +53,9 @@ class ContactPlan:
         self.d = 0.0 if ratio is not None else float(options.contact_damping)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
+        # friction's load (RigidOptions.friction_load): 0 takes the frictionless solve's normal forces (the
+        # default), > 0 the normal force predicted with Coulomb's forces applied, at most this many times those
+        self.load_shift = LOAD_SHIFT if getattr(options, "friction_load", "frictionless") == "coulomb" else 0.0
         self.margin = MARGIN_WIDTHS * self.delta
         # static: code is generated only for the slot kinds and SDF types this scene uses
         self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
@@ -107,7 +110,7 @@ class ContactPlan:
             self.caps = (_cap(self.n_geoms, 16), _cap(self.n_pairs, 16), _cap(self.n_slots, 64),
                          _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
         self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types,
-                      (self.k, self.d, self.zeta, self.delta, self.eps), self.static)
+                      (self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift), self.static)
 
 
 def _dense_order(flat):

@@ -73,7 +73,7 @@ class ContactSolver:
         (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types, consts,
          self.static_sizes) = plan.flags
         self.baked_sizes = tuple(plan.cfg_i)
-        self.k, self.d, self.zeta, self.delta, self.eps = consts
+        self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift = consts
         self.margin = MARGIN_WIDTHS * self.delta
         self.dtype = core.dtype
         G, Pn, S, n_lp, n_cross = plan.caps
@@ -124,6 +124,8 @@ class ContactSolver:
         self.sl_pos, self.sl_n, self.sl_u = V3((B, S)), V3((B, S)), V3((B, S))
         self.sl_u_normal = V3((B, S))
         self.sl_Fn, self.sl_wn, self.sl_mu, self.sl_load = F((B, S)), F((B, S)), F((B, S)), F((B, S))
+        # friction's load with RigidOptions(friction_load="coulomb") (passes.func_friction_slot)
+        self.sl_load_c = F((B, S))
         self.sl_depth, self.sl_Fn_normal, self.sl_wn_normal = F((B, S)), F((B, S)), F((B, S))
         self.sl_corr = F((B, S))
         # sl_*_normal: the slot in the normal (second) system: its linear law there, and whether it is in
@@ -223,6 +225,7 @@ class ContactSolver:
                                     + self.bank_friction.grad_fields + [self.sl_eta] + self.bnd_x + self.bnd_w
                                     + self.bnd_v + self.bnd_eta + [x for b in self.bank_bound for x in b.grad_fields]
                                     + [x for b in self.bank_toggle for x in b.grad_fields]
+                                    + ([self.sl_load_c] if self.load_shift > 0.0 else [])
                                     ) if g else []
         # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
         # are zeroed before every solve's adjoint instead
