@@ -231,3 +231,97 @@ def test_pd_step_terms_of_the_implicit_integrators(tmp_path, integrator, saturat
     q1 = q0 + h * v1
     np.testing.assert_allclose(slider.get_dofs_velocity().numpy(), [v1], rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(slider.get_dofs_position().numpy(), [q1], rtol=1e-12, atol=1e-14)
+
+
+# ----------------------------------------------------------------------------------------------
+# a free body tumbling fast: the gyroscopic moment, implicit with the implicit integrators
+# ----------------------------------------------------------------------------------------------
+PLANK = (1.2, 0.15, 0.08)  # m, 1000 kg/m^3: 14.4 kg, principal inertias 0.035 / 1.74 / 1.76 kg m^2
+PLANK_Q0 = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
+
+
+def _plank_spin(w0):
+    rng = np.random.default_rng(0)
+    axis = rng.normal(size=3)
+    return w0 * axis / np.linalg.norm(axis)
+
+
+def _plank_inertia():
+    a, b, c = PLANK
+    return 1000.0 * a * b * c / 12.0 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+
+
+def _quat_mat(q):
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _plank_reference(w0, t_end):
+    """The torque-free tumbling (Euler's equations in the body frame and the quaternion's kinematics), by
+    scipy's DOP853 at rtol = atol = 1e-12: the world angular velocity and the orientation at t_end."""
+    from scipy.integrate import solve_ivp
+
+    inertia = _plank_inertia()
+
+    def f(_, y):
+        wb, q = y[:3], y[3:]
+        dw = -np.cross(wb, inertia * wb) / inertia
+        w, x, yy, z = q
+        dq = 0.5 * np.array([-x * wb[0] - yy * wb[1] - z * wb[2], w * wb[0] + yy * wb[2] - z * wb[1],
+                             w * wb[1] + z * wb[0] - x * wb[2], w * wb[2] + x * wb[1] - yy * wb[0]])
+        return np.concatenate([dw, dq])
+
+    wb0 = _quat_mat(PLANK_Q0).T @ _plank_spin(w0)
+    sol = solve_ivp(f, (0.0, t_end), np.concatenate([wb0, PLANK_Q0]), method="DOP853", rtol=1e-12, atol=1e-12)
+    q = sol.y[3:, -1] / np.linalg.norm(sol.y[3:, -1])
+    return _quat_mat(q) @ sol.y[:3, -1], q
+
+
+def _plank_run(integrator, w0, dt, t_end):
+    """Our plank thrown tumbling in flight (gravity on): its world angular velocity and orientation at t_end,
+    and the tumbling's kinetic energy and angular momentum's size over the run, relative to the start."""
+    import genesis_lite as gs
+
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt),
+                     rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator)))
+    box = scene.add_entity(gs.morphs.Box(size=PLANK, pos=(0.0, 0.0, 10.0), quat=tuple(PLANK_Q0)))
+    scene.build()
+    box.set_dofs_velocity(np.concatenate([[0.5, -0.2, 1.0], _plank_spin(w0)]))
+    inertia = _plank_inertia()
+
+    def invariants():
+        wb = _quat_mat(box.get_quat().numpy()).T @ box.get_ang().numpy()
+        return 0.5 * float(wb @ (inertia * wb)), float(np.linalg.norm(inertia * wb))
+
+    e0, l0 = invariants()
+    drift = 0.0
+    for _ in range(int(round(t_end / dt))):
+        scene.step()
+        e, l = invariants()
+        drift = max(drift, abs(e / e0 - 1.0), abs(l / l0 - 1.0))
+    return box.get_ang().numpy(), box.get_quat().numpy(), drift
+
+
+@pytest.mark.parametrize("integrator", ["approximate_implicitfast", "implicitfast"])
+def test_a_plank_tumbling_in_flight_keeps_its_energy_and_converges(integrator):
+    """A 1.2 x 0.15 x 0.08 m plank thrown tumbling at 40 rad/s about a skewed axis, in flight: its tumbling
+    energy and angular momentum stay within 2 % over 1 s at dt = 10 ms (0.4 rad a step), and its angular
+    velocity at t = 0.5 s converges to the torque-free reference (scipy, DOP853) at first order as dt halves.
+    The implicit integrators take a free body's gyroscopic moment implicitly (solvers/rigid/bias.py,
+    func_gyro_implicit: the implicit midpoint's linearisation). Until 2026-12-02 it was explicit, as in
+    MuJoCo's Euler, and the plank went to NaN at step 74; MuJoCo's implicitfast (implicit Euler on the
+    moment) keeps it finite but loses 97 % of the tumbling energy over the second. Measured 2026-12-02: the
+    error of w at t = 0.5 s (|w| 38.7 rad/s there) 9.3, 4.2, 2.0, 0.96 rad/s at dt = 10, 5, 2.5, 1.25 ms, the
+    invariants' drift over 1 s 1.1 % at 10 ms (0.3 % at 5 ms); MuJoCo's implicitfast 20, 46, 39, 23 rad/s, its
+    Euler (and ours, the same to the digits shown) 175, 33, 43, 24 rad/s."""
+    _, _, drift = _plank_run(integrator, 40.0, 0.01, 1.0)
+    assert drift < 0.02, drift
+    w_ref, q_ref = _plank_reference(40.0, 0.5)
+    errs = []
+    for dt in (0.01, 0.005, 0.0025):
+        w, q, _ = _plank_run(integrator, 40.0, dt, 0.5)
+        errs.append(float(np.linalg.norm(w - w_ref)))
+    assert errs[0] < 10.0, errs
+    assert all(1.6 < a / b < 2.6 for a, b in zip(errs, errs[1:])), errs

@@ -84,9 +84,12 @@ class Pair:
                 assert j >= 0, f"{file}: name every joint"
                 self.m.dof_armature[self.m.jnt_dofadr[j]] = 0.1
         self.d = mujoco.MjData(self.m)
-        # contacts off on both sides (the quadruped's feet meet its file's floor at random configurations)
+        # contacts off on both sides (the quadruped's feet meet its file's floor at random configurations);
+        # semi-implicit Euler, whose step takes the dynamics' own qacc (mj_forward's): the implicit integrators
+        # take a free base's gyroscopic moment implicitly (solvers/rigid/bias.py), an O(h) change of the step
         self.scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, gravity=GRAVITY),
-                              rigid_options=gs.options.RigidOptions(enable_collision=False))
+                              rigid_options=gs.options.RigidOptions(enable_collision=False,
+                                                                    integrator=gs.integrator.Euler))
         self.robot = self.scene.add_entity(gs.morphs.MJCF(file=str(self.path)))
         self.scene.build()
         zeros = _t(np.zeros(self.robot.n_dofs))
