@@ -103,9 +103,13 @@ def main():
     gs.init(backend=gs.cpu, precision="64", logging_level="warning")
     files = W._quad_files(Path(tempfile.mkdtemp()))
     halving = [5e-3 / 2**k for k in range(9)]  # 5 ms .. 19.5 us
-    models = [("the defaults (Genesis's armature of 0.1 kg m^2 on every joint, fixed contact damping 4e4 N s/m), "
-               "implicitfast", {"armature": 0.1}, "implicitfast", halving),
+    models = [("the defaults (Genesis's armature of 0.1 kg m^2 on every joint, fixed contact damping 4e4 N s/m, "
+               "friction's load with Coulomb's forces applied), implicitfast", {"armature": 0.1}, "implicitfast",
+               halving),
               ("the defaults (armature 0.1, fixed damping), RK4", {"armature": 0.1}, "RK4", halving),
+              ("armature 0.1, fixed damping, friction_load = \"frictionless\" (friction's load from the frictionless "
+               "solve, the model before 2026-12-02), implicitfast", {"armature": 0.1, "friction_load": "frictionless"},
+               "implicitfast", halving[:8]),
               ("armature 0.1 and contact_damping_ratio = 1 (the damper critical for the mass each contact moves through "
                "the robot), implicitfast", {"armature": 0.1, "contact_damping_ratio": 1.0}, "implicitfast", halving[:8]),
               ("armature 0.1, a fixed contact_damping of 4e3 N s/m (about critical for a foot's effective mass, "
@@ -140,7 +144,7 @@ def main():
     lines += ["## A foot's effective mass", "", foot_mass(gs, files), ""]
     if not args.quick:
         fine = 1e-4
-        ratio = models[5][1]
+        ratio = next(d for n, d, i, _ in models if d == {"contact_damping_ratio": 1.0})
         traj, robot = run(gs, files, fine, ratio, t_end=0.5)
         start = (robot.get_qpos().clone(), robot.get_dofs_velocity().clone())
         lines += ["## Restart at t = 0.5 s (contact_damping_ratio = 1)", "",

@@ -129,17 +129,18 @@ class RigidOptions(_Options):
     body takes its own mass as it is set), and at least 4 k h (h the step). A landing then rebounds with
     exp(-2) of its speed whatever the mass behind the contact (tests/test_contact_damper.py). A legged
     landing without rotor inertia (default_armature=None) converges as dt shrinks with it, not with the fixed
-    damper (a bare foot's m / c ~ 1e-5 s); with the default armature its standing posture moves by 1.7e-4,
-    1.05e-4, 3.9e-5, 3.2e-5 m per halving from 2.5 to 0.3 ms against the fixed damper's irregular 0.9-2.4e-4
-    m (benchmarks/results/quadruped_convergence.md). It is not the default because a sliding box's friction
-    is less accurate with it at steps below ~2.5 ms (friction's load from the frictionless solve; issue #24).
-    friction_load ("frictionless" by default) is the normal force Coulomb's bound mu f_n takes: the frictionless
-    solve's, or with "coulomb" the force the contact law gives with Coulomb's forces applied (at most twice
-    the frictionless one), which carries the load friction's own torque moves between a body's contacts (a
-    box sliding on a face presses its leading edge; a standing robot's feet): a sliding box then converges
-    to Coulomb's slide at first order as dt shrinks (2.7e-4 m at 0.3 ms, 3.2e-3 m with the default,
-    tests/test_contact.py). Not the default: the load is a prediction, and a box sliding over an edge can
-    leave Coulomb's cone with it (by up to 3.4 N on ~10 N in 6 of ~1,300 steps; contact/__init__.py).
+    damper (a bare foot's m / c ~ 1e-5 s); with the default armature its standing posture moves by 6.8e-5,
+    3.0e-5, 2.7e-5, 1.4e-5 m per halving from 2.5 to 0.3 ms against the fixed damper's 1.1e-4, 5.2e-5, 4.4e-5,
+    1.5e-5 m (benchmarks/results/quadruped_convergence.md). It is not the default because a sliding box's
+    friction is less accurate with it at fine steps (+3.9e-3 m from Coulomb's slide at 0.3 ms, -2.4e-4 m with
+    the fixed damper).
+    friction_load ("coulomb" by default, since 2026-12-02) is the normal force Coulomb's bound mu f_n takes:
+    the force the contact law gives with Coulomb's forces applied (at most twice the frictionless solve's, and
+    in the bound rounds at most the law's force at the solution), which carries the load friction's own
+    torque moves between a body's contacts (a box sliding on a face presses its leading edge; a standing
+    robot's feet): a sliding box converges to Coulomb's slide at first order as dt shrinks (2.4e-4 m at
+    0.3 ms) and a standing quadruped's posture converges (tests/test_contact.py). "frictionless" takes the
+    frictionless solve's normal forces, the model before that day (3.2e-3 m at 0.3 ms, growing as dt shrank).
 
     Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which
@@ -170,7 +171,7 @@ class RigidOptions(_Options):
     contact_stiffness: float = 1e6
     contact_damping: float = 4e4
     contact_damping_ratio: Optional[float] = None
-    friction_load: str = "frictionless"
+    friction_load: str = "coulomb"
     joint_limit_stiffness: Optional[float] = None
     joint_limit_damping: Optional[float] = None
     constraint_timeconst: float = 0.01
@@ -243,7 +244,7 @@ class RigidOptions(_Options):
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 self._err(name, v, "must be a finite number > 0")
         if self.friction_load not in ("frictionless", "coulomb"):
-            self._err("friction_load", self.friction_load, 'must be "frictionless" (the default) or "coulomb"')
+            self._err("friction_load", self.friction_load, 'must be "coulomb" (the default) or "frictionless"')
         m = self.max_mesh_contact_points
         if not (isinstance(m, (int, np.integer)) and not isinstance(m, bool) and m >= 4):
             self._err("max_mesh_contact_points", m, "must be an integer >= 4")

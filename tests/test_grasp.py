@@ -111,12 +111,12 @@ def test_the_abrupt_lift_holds_lighter_and_heavier_cubes(urdf_path, rho):
 
 
 @pytest.mark.xfail(strict=True, reason="the final system lets go of a pad's rows of laws (and the bound rounds' "
-                   "releases oscillate): a 192 g cube turns at up to 8.9 rad/s in the abrupt lift's first steps (6.5 "
-                   "at 52afb4e, before the releases)")
+                   "releases oscillate): a 192 g cube turns at up to 7.4 rad/s in the abrupt lift's first steps (8.9 "
+                   "before friction's load was the law's force with Coulomb's forces applied, 6.5 at 52afb4e)")
 def test_the_abrupt_lift_of_a_heavy_cube_does_not_turn_it(urdf_path):
     """A 192 g cube (3,000 kg/m^3; the pads squeeze with ~2 N each) lifted at once: it should rise between
     the pads without turning. Measured (2026-11-29): it ends held at (0.650, -0.0004, 0.175), but turns at up
-    to 8.9 rad/s on the way (6.5 rad/s before the releases, 52afb4e). Traced on Genesis's MJCF Panda (mesh
+    to 8.9 rad/s on the way (7.4 rad/s on 2026-12-02, friction's load with Coulomb's forces applied) (6.5 rad/s before the releases, 52afb4e). Traced on Genesis's MJCF Panda (mesh
     pads, ~40 contact points a pad): in the lift's first step the bound rounds release ~10 of a pad's 16
     laws and the ground's four, bring the ground's back at 279-439 N, release them again, and end (8 rounds)
     with a pad held by a few points: the cube tilts at 1.8 rad/s in that step; with the MJCF Panda a 128-192 g

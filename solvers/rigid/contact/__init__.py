@@ -15,9 +15,9 @@ articulation at the initial configuration, armature included (law.func_link_invm
 4-5 kg, its own mass is 0.35 kg), a static side infinitely heavy. The fixed damper gives a bare 0.3 kg
 foot (no rotor inertia) a damping time m / c ~ 1e-5 s that no practical step resolves; the mass-relative
 one converges there (issue #24, benchmarks/results/quadruped_convergence.md) but biases a sliding box's
-friction at steps below ~2.5 ms (friction takes its bound from the frictionless solve's normal forces by
-default, step 4 below, the larger cause of the contact scenes' slow convergence; RigidOptions(friction_load=
-"coulomb") is the other choice: see after step 5), so it is not the default.
+friction at fine steps (its error against Coulomb's slide +3.3e-3, +3.9e-3 m at 0.625, 0.3125 ms, its friction
+impulse 0.990 of mu times the normal one, measured 2026-12-02 with friction's default load; the fixed damper:
+-6.1e-4, -2.4e-4 m, 0.9997), so it is not the default.
 The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
 step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
 spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.
@@ -78,9 +78,9 @@ contact's linear force pulls where another contact stops the body first:
  3. Coulomb's forces -mu f2 g2 (g2 the smoothed slip direction of u2) applied to A2 (a back-substitution
     with its factor) predict each contact's slip speed at the end of the step, v = (u2 + h J A2^-1 J^T
     f_c)_t . g2, smoothly clipped at 0 (a slip that would reverse sticks).
- 4. the final system adds friction as a viscosity eta = mu f2 / sqrt(v^2 + eps^2) (f2, friction's load: the
-    frictionless solve's normal force, or with RigidOptions(friction_load="coulomb") the law's force with
-    Coulomb's forces applied, see after step 5) (the secant of the
+ 4. the final system adds friction as a viscosity eta = mu f2 / sqrt(v^2 + eps^2) (f2 here friction's load:
+    the law's force with Coulomb's forces applied, see after step 5, or with RigidOptions(friction_load=
+    "frictionless") the frictionless solve's normal force) (the secant of the
     law at the predicted slip, so the implicit step can stop a contact but never reverse it: while a
     contact slides, eta |u_t'| = mu f2 to the accuracy of the prediction, exact for a body whose contact
     points slip alike; a sticking contact gets eta = mu f2 / eps, the static friction of a stiff
@@ -125,22 +125,25 @@ the first solve (a Newton step), and it acts if the law pushes there. Contacts a
 their first linearisation (linearising them again too left a 30-link chain on the ground swinging). The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse; the gradient path
-keeps each bound round's starting solution and factor for its adjoint). Friction uses the
-normal forces of a frictionless solve by default: where friction carries load (legs, chains), the final
-normal forces differ from f2 and so does the friction bound. RigidOptions(friction_load="coulomb") takes
-the load at the velocity of step 3 instead (passes.func_coulomb_load: the law's force with Coulomb's forces
-applied, f2 + r (f_law(u_c) - f2), r the share of Coulomb's force that acts, at most LOAD_SHIFT = 2 times
-f2; the bound rounds then bound by mu times that load): the sliding box's error falls at first order
-(-9.9e-3, -2.5e-3, -6.1e-4, -2.7e-4 m at 10, 2.5, 0.625, 0.3125 ms; the default's -9.9e-3, -2.0e-3, +1.2e-3,
-+3.2e-3 m; tests/test_contact.py) and ANYmal's standing posture converges (measured 2026-12-01 with the
-same code as a prototype: 1.1e-4, 5.2e-5, 4.4e-5, 1.5e-5 m per halving from 2.5 to 0.3 ms, against the
-default's 0.9-2.8e-4 m, irregular). It is not the default because the load is a prediction: where the final
-solve's normal forces fall far below it, friction leaves Coulomb's cone (a box sliding over an edge, 8
-spins of 200 steps at 1 ms: 6 steps over, by up to 3.4 N on ~10 N, against one step of 0.6 N by default;
-tests/test_faults_contact.py). Tried 2026-12-02 and not kept: bounding the rounds also by the law's force
-at each round's solution (mu min(load, f3)) keeps that cone, but one of 30 thrown piles
-(tests/workers/broad_phase_pile.py, seed 14) then ended with a 1.2 m plank spinning at 350 rad/s on a 2-3 cm
-deep corner (the default and the option as it is: 0 of 30 above 61 rad/s or 7.7 m/s).
+keeps each bound round's starting solution and factor for its adjoint).
+
+Friction's load (RigidOptions.friction_load). The frictionless solve's normal forces f2 miss the load that
+friction itself moves between a body's contacts (a box sliding on a face presses its leading edge; a
+standing robot's splayed legs load their feet through friction): the final normal forces differ from f2,
+and so should the friction bound. By default ("coulomb", since 2026-12-02) the load is taken at the velocity
+of step 3 (passes.func_coulomb_load: the law's force with Coulomb's forces applied, f2 + r (f_law(u_c) - f2), r
+the share of Coulomb's force that acts, at least 0, at most LOAD_SHIFT = 2 times f2), and the bound rounds
+bound friction by mu times that load or, where less, the law's force at the round's solution
+(passes.func_coulomb_bound: the load was a prediction). Measured 2026-12-02: a sliding box's error against
+Coulomb's slide falls at first order, -9.9e-3, -2.5e-3, -6.1e-4, -2.4e-4 m at 10, 2.5, 0.625, 0.3125 ms
+("frictionless": -9.9e-3, -2.0e-3, +1.2e-3, +3.2e-3 m, its f2 summing to 9.70 N for a 9.81 N box while it
+pitched); ANYmal's standing posture converges (its base, every 50 ms of t = 0.5 .. 1 s, moves by 8.9e-5,
+6.0e-5, 4.8e-5 m per halving of dt from 5 to 0.6 ms; "frictionless": 2.0e-4, 1.2e-4, 2.5e-4 m;
+tests/test_contact.py); a box sliding over an edge stays in Coulomb's cone in all of its ~1,500 face steps
+("frictionless": one step 0.6 N over; tests/test_faults_contact.py). Without the rounds' second bound the
+predicted load left that cone in 6 steps by up to 3.4 N. The thrown piles of tests/workers/broad_phase_pile.py
+stay bounded (seeds 1-30: at most 7.6 m/s and 61 rad/s); one of them went to 350 rad/s until a free body's gyroscopic moment became
+implicit the same day (solvers/rigid/bias.py).
 
 Every term is differentiable in the state and in mu, k and c; the kinks are the contact's on/off (at
 the margin, where the force is below 1e-8 k delta, and where the force of the current and of the

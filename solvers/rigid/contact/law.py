@@ -26,9 +26,10 @@ HEAVY_MASS = 100.0
 STEP_DAMPING = 4.0
 # the mass-relative damper's mass of a link through its articulation is at most this many times its own
 MAX_WEIGHED_MASS = 1e4
-# with RigidOptions(friction_load="coulomb"), friction's load is at most this many times the frictionless
-# solve's (passes.func_friction_slot): Coulomb's forces applied explicitly can overshoot and predict a load far
-# off; uncapped (and at 1.25), a pile of thrown bodies (tests/workers/broad_phase_pile.py) went to NaN
+# friction's load (RigidOptions(friction_load="coulomb"), the default) is at most this many times the
+# frictionless solve's (passes.func_coulomb_load): Coulomb's forces applied explicitly can overshoot and predict a
+# load far off (measured 2026-12-01, before a free body's gyroscopic moment was implicit: uncapped, and at 1.25,
+# a pile of thrown bodies, tests/workers/broad_phase_pile.py, went to NaN)
 LOAD_SHIFT = 2.0
 # a link lighter than this (a massless frame) counts as this heavy in m_eff: 1 / 0 has no adjoint
 MIN_LINK_MASS = 1e-9

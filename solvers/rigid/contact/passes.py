@@ -436,28 +436,43 @@ def func_tangential(s: ti.template(), i_b, i_s, u3):
 
 
 @ti.func
-def func_coulomb_bound(s: ti.template(), i_b, i_s):
-    """Coulomb's bound of slot i_s: mu times friction's load, f2 (after the normal solve, at least 0) or with
-    RigidOptions(friction_load="coulomb") the friction pass's (func_coulomb_load)."""
+def func_coulomb_bound(s: ti.template(), i_b, i_s, u3):
+    """Coulomb's bound of slot i_s at its relative velocity u3 after a solve (func_u_at): mu times friction's
+    load. By default (RigidOptions.friction_load = "coulomb") the friction pass's load (func_coulomb_load), or
+    where less the normal force the slot's law gives at u3: the load was a prediction, and a bound round holds
+    friction to the normal force the solution applies (a law at or below 0 there is func_release_slot's to
+    release: it keeps the load); with "frictionless" mu f2, f2 the normal solve's load (at least 0)."""
     c = s.contact
-    return c.sl_mu[i_b, i_s] * (c.sl_load_c[i_b, i_s] if ti.static(c.load_shift > 0.0) else ti.max(c.sl_load[i_b, i_s], 0.0))
+    # (one assignment per local: a static ternary, not an overwrite; DESIGN's autodiff-stack rule)
+    load = func_bound_load(s, i_b, i_s, u3) if ti.static(c.load_shift > 0.0) else ti.max(c.sl_load[i_b, i_s], 0.0)
+    return c.sl_mu[i_b, i_s] * load
 
 
 @ti.func
-def func_law_secant(s: ti.template(), i_b, i_s, u3t):
+def func_bound_load(s: ti.template(), i_b, i_s, u3):
+    """func_coulomb_bound's load with friction_load = "coulomb": the friction pass's, or where less (and
+    positive) the law's force at u3."""
+    c = s.contact
+    f3 = func_normal_after(c, i_b, i_s, c.sl_u[i_b, i_s], u3, c.sl_n[i_b, i_s])
+    lc = c.sl_load_c[i_b, i_s]
+    return ti.select(f3 > 0.0, ti.min(lc, f3), lc)
+
+
+@ti.func
+def func_law_secant(s: ti.template(), i_b, i_s, u3, u3t):
     """The smoothed friction law's secant at the slip u3t: mu f2 / sqrt(|u_t|^2 + eps^2)."""
     c = s.contact
-    return func_coulomb_bound(s, i_b, i_s) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+    return func_coulomb_bound(s, i_b, i_s, u3) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
 
 
 @ti.func
-def func_bound_next(s: ti.template(), i_b, i_s, u3t, eta):
+def func_bound_next(s: ti.template(), i_b, i_s, u3, u3t, eta):
     """func_bound_eta for slot i_s of viscosity eta at the slip u3t of a solve (func_tangential): its slip
     speed (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at rest),
     Coulomb's bound and the law's secant."""
     c = s.contact
     speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * c.eps * c.eps)
-    return func_bound_eta(eta, speed, func_coulomb_bound(s, i_b, i_s), func_law_secant(s, i_b, i_s, u3t))
+    return func_bound_eta(eta, speed, func_coulomb_bound(s, i_b, i_s, u3), func_law_secant(s, i_b, i_s, u3, u3t))
 
 
 @ti.func
@@ -505,8 +520,8 @@ def func_bound_slot(s: ti.template(), i_b, i_s, u3, src: ti.template(), dst: ti.
     # a law brought back: the friction pass's viscosity or, where lower, the law's secant at the slip there
     # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
     # round, threw two boxes pushed into each other into a 7 rad/s spin)
-    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, i_b, i_s, u3t))
-    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, u3t, eta),
+    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, i_b, i_s, u3, u3t))
+    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, u3, u3t, eta),
                                                                         eta)))
     stays = back | (inside & (not release))  # in the system after the round
     if back | inside:
@@ -591,7 +606,7 @@ def func_bound_count(s: ti.template(), i_b, e, rel: ti.template()):
             # (a slot in the system now is in the final one: only those are released and brought back)
             if (r == 0) & (c.sl_in_now[i_b, i_s] == 1):
                 eta = c.sl_eta_now[i_b, i_s]
-                n += ti.select(func_bound_next(s, i_b, i_s, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
+                n += ti.select(func_bound_next(s, i_b, i_s, u3, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
         rel[i_b, i_s] = r
         n += ti.select(r > 0, 1, 0)
     return n

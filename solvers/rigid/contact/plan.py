@@ -53,9 +53,9 @@ class ContactPlan:
         self.d = 0.0 if ratio is not None else float(options.contact_damping)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
-        # friction's load (RigidOptions.friction_load): 0 takes the frictionless solve's normal forces (the
-        # default), > 0 the normal force predicted with Coulomb's forces applied, at most this many times those
-        self.load_shift = LOAD_SHIFT if getattr(options, "friction_load", "frictionless") == "coulomb" else 0.0
+        # friction's load (RigidOptions.friction_load): > 0 the normal force predicted with Coulomb's forces
+        # applied, at most this many times the frictionless solve's (the default), 0 the frictionless solve's
+        self.load_shift = LOAD_SHIFT if getattr(options, "friction_load", "coulomb") == "coulomb" else 0.0
         self.margin = MARGIN_WIDTHS * self.delta
         # static: code is generated only for the slot kinds and SDF types this scene uses
         self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
