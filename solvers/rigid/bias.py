@@ -8,18 +8,11 @@ Euler; MuJoCo's implicitfast keeps it, but damps the tumbling; tests/test_integr
 import taichi as ti
 
 from .kinematics import func_link_joint_velocity, func_parent_slot
-from .math3d import func_add, func_cross_force, func_inertia_mul
+from .math3d import func_add, func_cross_force, func_inertia_mul, func_mm, func_mv, func_skew
 
 # a link lighter than this (kg) gets no implicit gyroscopic moment (func_gyro_implicit: its centre of mass
 # is mc / m)
 GYRO_MIN_MASS = 1e-9
-
-
-@ti.func
-def func_skew(a):
-    """[a]x: [a]x b = a x b (its zeros in a's type)."""
-    z = 0.0 * a[0]
-    return ti.Matrix([[z, -a[2], a[1]], [a[2], z, -a[0]], [-a[1], a[0], z]])
 
 
 @ti.func
@@ -38,15 +31,16 @@ def func_gyro_implicit(s: ti.template(), on, m, mc, J, w, h):
     E = ti.Matrix.identity(s.dtype, 3)
     Ic = on * (J - m * (c.dot(c) * E - c.outer_product(c))) + (1.0 - on) * E
     ws = on * w
-    L = Ic @ ws
+    # (func_mm / func_mv, not `@`: math3d.func_rotate_inertia on the adjoint's compile time)
+    L = func_mv(Ic, ws)
     g = ws.cross(L)
     # theta 1/2 (the implicit midpoint's linearisation: second order, the tumbling's energy kept to 1 %
     # over 5 s up to h |w| = 1) rising smoothly to 1 (implicit Euler: damped, stable at any spin) from
     # h |w| = 1 to 2 (in h^2 |w|^2, so that the adjoint stays finite at w = 0)
     x = ti.min(ti.max((h * h * ws.dot(ws) - 1.0) / 3.0, 0.0), 1.0)
     theta = 0.5 + 0.5 * x * x * (3.0 - 2.0 * x)
-    A = Ic + (theta * h) * (func_skew(ws) @ Ic - func_skew(L))
-    return Ic @ (A.inverse() @ g) - g
+    A = Ic + (theta * h) * (func_mm(func_skew(ws), Ic) - func_skew(L))
+    return func_mv(Ic, func_mv(A.inverse(), g)) - g
 
 
 @ti.func

@@ -94,6 +94,12 @@ def func_rotate_inertia(R, I):
 
 
 @ti.func
+def func_skew(p):
+    """[p]x, the cross-product matrix: [p]x v = p x v."""
+    return ti.Matrix([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+
+
+@ti.func
 def func_mm(A, B):
     """A @ B for 3x3 matrices, entry by entry in the order of Taichi's `@` (the same numbers; see
     func_rotate_inertia for why: the adjoint of a slot stage with two such products compiled for 4-7 s,

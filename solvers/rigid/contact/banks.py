@@ -5,12 +5,7 @@ coupling outside the tree sparsity, see the package docstring)."""
 import taichi as ti
 
 from ..layout import FieldTree
-from ..math3d import func_mm, func_mtv, func_mv
-
-
-@ti.func
-def func_skew(p):
-    return ti.Matrix([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+from ..math3d import func_mm, func_mtv, func_mv, func_skew
 
 
 @ti.func

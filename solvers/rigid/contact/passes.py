@@ -459,20 +459,22 @@ def func_bound_load(s: ti.template(), i_b, i_s, u3):
 
 
 @ti.func
-def func_law_secant(s: ti.template(), i_b, i_s, u3, u3t):
-    """The smoothed friction law's secant at the slip u3t: mu f2 / sqrt(|u_t|^2 + eps^2)."""
+def func_law_secant(s: ti.template(), bound, u3t):
+    """The smoothed friction law's secant at the slip u3t for Coulomb's bound `bound` (func_coulomb_bound):
+    bound / sqrt(|u_t|^2 + eps^2)."""
     c = s.contact
-    return func_coulomb_bound(s, i_b, i_s, u3) / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+    return bound / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
 
 
 @ti.func
-def func_bound_next(s: ti.template(), i_b, i_s, u3, u3t, eta):
-    """func_bound_eta for slot i_s of viscosity eta at the slip u3t of a solve (func_tangential): its slip
-    speed (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at rest),
-    Coulomb's bound and the law's secant."""
+def func_bound_next(s: ti.template(), bound, u3t, eta):
+    """func_bound_eta for a slot of viscosity eta and Coulomb's bound `bound` (func_coulomb_bound, computed
+    once per slot and round by the caller) at the slip u3t of a solve (func_tangential): its slip speed
+    (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at rest), the bound
+    and the law's secant."""
     c = s.contact
     speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * c.eps * c.eps)
-    return func_bound_eta(eta, speed, func_coulomb_bound(s, i_b, i_s, u3), func_law_secant(s, i_b, i_s, u3, u3t))
+    return func_bound_eta(eta, speed, bound, func_law_secant(s, bound, u3t))
 
 
 @ti.func
@@ -520,8 +522,9 @@ def func_bound_slot(s: ti.template(), i_b, i_s, u3, src: ti.template(), dst: ti.
     # a law brought back: the friction pass's viscosity or, where lower, the law's secant at the slip there
     # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
     # round, threw two boxes pushed into each other into a 7 rad/s spin)
-    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, i_b, i_s, u3, u3t))
-    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, i_b, i_s, u3, u3t, eta),
+    bound = func_coulomb_bound(s, i_b, i_s, u3)
+    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, bound, u3t))
+    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, bound, u3t, eta),
                                                                         eta)))
     stays = back | (inside & (not release))  # in the system after the round
     if back | inside:
@@ -606,7 +609,8 @@ def func_bound_count(s: ti.template(), i_b, e, rel: ti.template()):
             # (a slot in the system now is in the final one: only those are released and brought back)
             if (r == 0) & (c.sl_in_now[i_b, i_s] == 1):
                 eta = c.sl_eta_now[i_b, i_s]
-                n += ti.select(func_bound_next(s, i_b, i_s, u3, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
+                bound = func_coulomb_bound(s, i_b, i_s, u3)
+                n += ti.select(func_bound_next(s, bound, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
         rel[i_b, i_s] = r
         n += ti.select(r > 0, 1, 0)
     return n
