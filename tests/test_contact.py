@@ -19,6 +19,8 @@ import torch
 import genesis_lite as gs
 from genesis_lite.errors import GenesisException, SimulationNaNError
 
+from conftest import robot_urdf
+
 G = 9.81
 DT = 0.01
 F64 = torch.float64
@@ -610,6 +612,37 @@ def test_an_arm_over_a_plane_it_never_reaches_runs_no_contact_kernel_and_gives_t
     assert int(contact.eval_count.to_numpy().sum()) == 0
     assert torch.equal(q_plane, q_alone) and torch.equal(g_plane, g_alone)
     assert g_alone.abs().min() > 1e-3  # (every start angle moves the links)
+
+
+def test_a_box_the_arm_never_touches_leaves_the_arm_s_numbers_to_the_bit():
+    """A free box beside a Panda makes the contact system a dense one (a pair of moving links could couple:
+    mass_cross and the envelope factorisation). Without gradients an evaluation in which no listed slot
+    couples two moving links factors and solves M's tree instead (contact/linalg.py func_tree_env): the
+    box lands and rests 2 m away, and the arm's trajectory under its PD is the arm's alone, bit for bit
+    (before 2026-12-02 the dense factorisation moved it by 8e-16)."""
+    q = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8, 0.02, 0.02])
+    out = {}
+    for box in (False, True):
+        scene = gs.Scene()
+        scene.add_entity(gs.morphs.Plane())
+        arm = scene.add_entity(gs.morphs.URDF(file=str(robot_urdf("panda")), fixed=True))
+        if box:
+            cube = scene.add_entity(gs.morphs.Box(size=(0.05, 0.05, 0.05), pos=(1.5, 1.5, 0.1)))
+        scene.build()
+        assert scene.sim.rigid_solver.contact.dense == box
+        arm.set_dofs_position(q)
+        arm.set_dofs_kp(np.full(9, 100.0))
+        arm.set_dofs_kv(np.full(9, 10.0))
+        arm.control_dofs_position(q + 0.3)
+        traj = []
+        for _ in range(150):
+            scene.step()
+            traj.append(np.concatenate([arm.get_dofs_position().numpy(), arm.get_dofs_velocity().numpy()]))
+        out[box] = np.asarray(traj)
+        if box:  # it landed and rests on the ground
+            assert abs(float(cube.get_pos()[2]) - 0.025) < 1e-3
+    assert np.abs(out[True][-1] - out[True][0]).max() > 0.1  # the arm moved
+    np.testing.assert_array_equal(out[True], out[False])
 
 
 def test_grad_of_a_ball_that_starts_out_of_reach_and_lands():

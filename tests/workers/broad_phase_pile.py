@@ -18,7 +18,7 @@ if sys.argv[1] == "spheres":
     from solvers.rigid.collision import narrow
 
     @ti.func
-    def _never_apart(c: ti.template(), ga, gb, Ra, Rb, ca, cb, branch: ti.template()):
+    def _never_apart(c: ti.template(), i_b, ga, gb, ca, cb):
         return -1e30
 
     @ti.func
@@ -26,7 +26,7 @@ if sys.argv[1] == "spheres":
         return -1e30
 
     @ti.func
-    def _never_apart_meshes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb):
+    def _never_apart_meshes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
         return -1e30
 
     narrow.func_gap_boxes = _never_apart

@@ -1,12 +1,17 @@
 """Collision, Taichi side: the stages of the step (geom poses, the broad phase) and the geometry of each
-contact slot (its point, normal and depth), in the single-assignment form of the differentiated stages.
+contact slot (its point, normal and depth): in the single-assignment form of the differentiated stages
+where the scene takes gradients (every slot kind and SDF type the scene has, evaluated and selected), with
+runtime branches where it does not (a slot evaluates its own kind and type only: a box corner on the ground
+of a scene with meshes and box pairs no longer computes their planes and separating axes; the slot stage of
+a Panda over a plane beside a box, 4.6 -> 1.2 us a step). The two forms agree slot by slot to round-off
+(tests/test_narrow_phase.py), not to the bit: the compiler arranges each kernel's arithmetic its own way.
 """
 import taichi as ti
 
 from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, N_KDOP,
                     SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG)
 from ..math3d import func_mm, func_mtv, func_mv
-from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_round, func_segment_closest, func_sgn3
+from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_branched, func_sdf_round, func_segment_closest, func_sgn3
 
 @ti.func
 def func_geom_pose(s: ti.template(), i_b, e, src, h):
@@ -62,43 +67,54 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
     spheres' test already did (14 bodies thrown at 20 rad/s: 3e-14 m in the first step it happens;
     tests/test_many_bodies.py checks a pile at 6 rad/s to the bit). The tests are branches (each pair
     evaluates its own: a fifth of the stage on ANYmal), with gradients too: the stage writes only the
-    integer pair_active, so it has no adjoint (NO_ADJOINT: the gradient path's backward skips it)."""
+    integer pair_active and its own per-geom terms (fields without adjoints), so it has no adjoint
+    (NO_ADJOINT: the gradient path's backward skips it). The terms of each geom (its sphere's centre,
+    world box, speed and sweep) are computed once per geom before the pairs' loop, the same expressions
+    the pairs evaluated each for themselves before (Genesis's MJCF Panda with self-collision: 211 pairs
+    of 40 geoms, the stage 4.5 -> ~1 us a step)."""
     c = s.contact
+    # each geom's share of its pairs' tests, once per geom (a robot's own links with self-collision: 211
+    # pairs among 40 geoms): the bounding sphere's centre, the world box's half widths, and how fast the
+    # geom can approach another, its centre's speed and its rotation's sweep of its extent (capped at 2 / h)
+    for g in range(c.n_geoms):
+        l = c.geom_link[g]
+        R = c.geom_xR[i_b, g]
+        cg = c.geom_xpos[i_b, g] + func_mv(R, c.geom_center[g])
+        c.geom_bc[i_b, g] = cg
+        c.geom_ext[i_b, g] = ti.Vector([func_plane_extent(c, g, R, ti.Vector([1.0, 0.0, 0.0]), True),
+                                        func_plane_extent(c, g, R, ti.Vector([0.0, 1.0, 0.0]), True),
+                                        func_plane_extent(c, g, R, ti.Vector([0.0, 0.0, 1.0]), True)])
+        v = s.cvel_v[i_b, l] + s.cvel_w[i_b, l].cross(cg)
+        w = s.cvel_w[i_b, l]
+        c.geom_speed[i_b, g] = ti.sqrt(v.dot(v) + TINY)
+        c.geom_sweep[i_b, g] = ti.min(ti.sqrt(w.dot(w) + TINY), 2.0 / h) * ti.min(c.geom_rbound[g], 1e6)
     for i_p in range(c.n_pairs):
         ga = c.pair_ga[i_p]
         gb = c.pair_gb[i_p]
-        la = c.geom_link[ga]
-        lb = c.geom_link[gb]
-        Ra = c.geom_xR[i_b, ga]
-        Rb = c.geom_xR[i_b, gb]
-        ca = c.geom_xpos[i_b, ga] + func_mv(Ra, c.geom_center[ga])
-        cb = c.geom_xpos[i_b, gb] + func_mv(Rb, c.geom_center[gb])
+        ca = c.geom_bc[i_b, ga]
+        cb = c.geom_bc[i_b, gb]
         is_plane = c.geom_type[gb] == GEOM_PLANE
         # closing speed bound: centre velocities, plus rotation of the geoms' extents (a plane does not
         # move: candidate_pairs rejects moving planes); either body may also turn towards the other
         # within the step (stopped by a third one): their speeds bound that (contact.py linearises such
         # candidate contacts again after its first solve)
-        va = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(ca)
-        vb = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(cb)
-        wa = s.cvel_w[i_b, la]
-        # (a turn sweeps a geom's extent by at most its diameter, whatever the spin: 2 / h caps |w|)
-        rot_a = ti.min(ti.sqrt(wa.dot(wa) + TINY), 2.0 / h) * ti.min(c.geom_rbound[ga], 1e6)
-        closing = ti.sqrt(va.dot(va) + TINY) + ti.sqrt(vb.dot(vb) + TINY) + rot_a
+        closing = c.geom_speed[i_b, ga] + c.geom_speed[i_b, gb] + c.geom_sweep[i_b, ga]
         gap = ti.cast(0.0, s.dtype)
         if is_plane:
-            gap = func_gap_plane(c, ga, Ra, Rb, ca, cb, True)
+            gap = func_gap_plane(c, ga, c.geom_xR[i_b, ga], c.geom_xR[i_b, gb], ca, cb, True)
         else:
-            gap_pair, rot_b = func_gap_spheres(s, ga, gb, lb, i_b, ca, cb, h)
-            gap = ti.max(gap_pair, func_gap_boxes(c, ga, gb, Ra, Rb, ca, cb, True))
-            closing += rot_b
+            gap = ti.max(func_gap_spheres(c, ga, gb, ca, cb), func_gap_boxes(c, i_b, ga, gb, ca, cb))
+            closing += c.geom_sweep[i_b, gb]
             # the oriented boxes, for the pairs those two leave in (compiled where some pair is not against a
             # plane), and two meshes' planes against each other's points
             if ti.static(c.sdf_types != (GEOM_PLANE,)):
                 if gap - h * closing < c.margin:
+                    Ra = c.geom_xR[i_b, ga]
+                    Rb = c.geom_xR[i_b, gb]
                     gap = ti.max(gap, func_gap_obbs(c, i_b, ga, gb, Ra, Rb))
-            if ti.static(GEOM_MESH in c.sdf_types):
-                if gap - h * closing < c.margin and c.geom_type[ga] == GEOM_MESH and c.geom_type[gb] == GEOM_MESH:
-                    gap = ti.max(gap, func_gap_mesh_planes(c, i_b, i_p, ga, gb, Ra, Rb))
+                    if ti.static(GEOM_MESH in c.sdf_types):
+                        if gap - h * closing < c.margin and c.geom_type[ga] == GEOM_MESH and c.geom_type[gb] == GEOM_MESH:
+                            gap = ti.max(gap, func_gap_mesh_planes(c, i_b, i_p, ga, gb, Ra, Rb, c.margin + h * closing))
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
 
 
@@ -131,33 +147,46 @@ def func_gap_obbs(c: ti.template(), i_b, ga, gb, Ra, Rb):
 
 
 @ti.func
-def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb):
-    """A lower bound of every signed distance the slots of mesh pair i_p will find: for each side, the
-    largest over the SDF side's planes (geoms.hull_planes) of the least plane distance of the other side's
-    slot points (minus their radii), and the smaller of the two sides. A point's SDF outside the planes is
-    its largest plane distance (sdf.func_sdf_kdop), so a bound above the margin leaves each point outside
-    by at least as much. The oriented boxes bound the planes' intersection, which reaches up to
-    centimetres past a hull at its corners; this test sees the hull points themselves (the Panda's link 5
-    beside link 7: boxes overlapping by 17 mm, points 1.8 mm outside the planes at the least)."""
+def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
+    """Whether mesh pair i_p is apart by at least thr: a value >= thr if it is, else a lower bound of
+    every signed distance its slots will find (below thr). For each side, the largest over the SDF side's
+    planes (geoms.hull_planes) of the least plane distance of the other side's slot points (minus their
+    radii), and the smaller of the two sides. A point's SDF outside the planes is its largest plane
+    distance (sdf.func_sdf_kdop), so a bound above the margin leaves each point outside by at least as
+    much. The oriented boxes bound the planes' intersection, which reaches up to centimetres past a hull
+    at its corners; this test sees the hull points themselves (the Panda's link 5 beside link 7: boxes
+    overlapping by 17 mm, points 1.8 mm outside the planes at the least).
+    Only whether the bound reaches thr decides (func_broad_phase), so a side stops at the first plane
+    that parts it by thr, starting from the one that did in the pair's last test (pair_hint), and the
+    second side is tested only where the first is apart: the same pair_active as the largest over all
+    planes and both sides, at a plane or two a side instead of 26 (a robot's own links beside each other
+    at every step: Genesis's MJCF Panda with self-collision)."""
     out = ti.cast(1e30, c.dtype)
     for side in ti.static(range(2)):
         X = gb if side == 0 else ga  # the SDF side
         Y = ga if side == 0 else gb  # the point side
         RX = Rb if side == 0 else Ra
         RY = Ra if side == 0 else Rb
-        dx = c.geom_xpos[i_b, X] - c.geom_xpos[i_b, Y]
-        best = ti.cast(-1e30, c.dtype)
-        for k in range(N_KDOP):
-            nw = func_mv(RX, c.geom_kdop_dir[X, k])
-            # the plane in the point side's frame: n . p <= d there
-            nY = func_mtv(RY, nw)
-            dY = c.geom_kdop[X, k] + nw.dot(dx)
-            least = ti.cast(1e30, c.dtype)
-            for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
-                if c.slot_ga[i_s] == Y:
-                    least = ti.min(least, nY.dot(c.slot_p[i_s]) - dY - c.slot_r[i_s])
-            best = ti.max(best, least)
-        out = ti.min(out, best)
+        if out >= thr:
+            dx = c.geom_xpos[i_b, X] - c.geom_xpos[i_b, Y]
+            best = ti.cast(-1e30, c.dtype)
+            k0 = c.pair_hint[i_b, i_p, side]
+            j = 0
+            while j < N_KDOP and best < thr:
+                k = (k0 + j) % N_KDOP
+                nw = func_mv(RX, c.geom_kdop_dir[X, k])
+                # the plane in the point side's frame: n . p <= d there
+                nY = func_mtv(RY, nw)
+                dY = c.geom_kdop[X, k] + nw.dot(dx)
+                least = ti.cast(1e30, c.dtype)
+                for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
+                    if c.slot_ga[i_s] == Y:
+                        least = ti.min(least, nY.dot(c.slot_p[i_s]) - dY - c.slot_r[i_s])
+                best = ti.max(best, least)
+                if least >= thr:
+                    c.pair_hint[i_b, i_p, side] = k
+                j += 1
+            out = ti.min(out, best)
     return out
 
 
@@ -170,27 +199,21 @@ def func_gap_plane(c: ti.template(), ga, Ra, Rb, ca, cb, branch: ti.template()):
 
 
 @ti.func
-def func_gap_boxes(c: ti.template(), ga, gb, Ra, Rb, ca, cb, branch: ti.template()):
+def func_gap_boxes(c: ti.template(), i_b, ga, gb, ca, cb):
     """Gap of the world-axis bounding boxes of geoms ga and gb (centres ca, cb; half widths their support
-    functions along the axes, func_plane_extent): the largest separation along an axis."""
-    ex = func_plane_extent(c, ga, Ra, ti.Vector([1.0, 0.0, 0.0]), branch) + func_plane_extent(c, gb, Rb, ti.Vector([1.0, 0.0, 0.0]), branch)
-    ey = func_plane_extent(c, ga, Ra, ti.Vector([0.0, 1.0, 0.0]), branch) + func_plane_extent(c, gb, Rb, ti.Vector([0.0, 1.0, 0.0]), branch)
-    ez = func_plane_extent(c, ga, Ra, ti.Vector([0.0, 0.0, 1.0]), branch) + func_plane_extent(c, gb, Rb, ti.Vector([0.0, 0.0, 1.0]), branch)
+    functions along the axes, func_plane_extent, in geom_ext): the largest separation along an axis."""
+    e = c.geom_ext[i_b, ga] + c.geom_ext[i_b, gb]
     d = ti.abs(ca - cb)
-    sep = ti.max(d[0] - ex, d[1] - ey, d[2] - ez)
+    sep = ti.max(d[0] - e[0], d[1] - e[1], d[2] - e[2])
     return sep
 
 
 @ti.func
-def func_gap_spheres(s: ti.template(), ga, gb, lb, i_b, ca, cb, h):
-    """Gap of the bounding spheres of geoms ga and gb (centres ca, cb), and how fast gb's rotation can
-    sweep its extent."""
-    c = s.contact
+def func_gap_spheres(c: ti.template(), ga, gb, ca, cb):
+    """Gap of the bounding spheres of geoms ga and gb (centres ca, cb)."""
     dc = ca - cb
     # norms with TINY under the root: no infinite derivative at 0 in the adjoint (0 * inf is NaN)
-    ldc = ti.sqrt(dc.dot(dc) + TINY)
-    wb = s.cvel_w[i_b, lb]
-    return ldc - c.geom_rbound[ga] - c.geom_rbound[gb], ti.min(ti.sqrt(wb.dot(wb) + TINY), 2.0 / h) * ti.min(c.geom_rbound[gb], 1e6)
+    return ti.sqrt(dc.dot(dc) + TINY) - c.geom_rbound[ga] - c.geom_rbound[gb]
 
 
 @ti.func
@@ -209,14 +232,21 @@ def func_slot_point(c: ti.template(), i_s, kind, ga, xa, Ra, zb):
 
 
 @ti.func
+def func_segseg(c: ti.template(), ga, gb, xa, za, xb, zb):
+    """(point, signed distance, normal) of a capsule pair's slot: the closest points of the two segments."""
+    hla = c.geom_size[ga][1]
+    hlb = c.geom_size[gb][1]
+    pa, pb = func_segment_closest(xa - hla * za, xa + hla * za, xb - hlb * zb, xb + hlb * zb)
+    phi_ss, n_ss = func_sdf_round(pa - pb, c.geom_size[gb][0], zb)
+    return pa, phi_ss, n_ss
+
+
+@ti.func
 def func_with_segseg(c: ti.template(), kind, ga, gb, xa, za, xb, zb, p, phi, n):
     """(point, signed distance, normal) of the slot: those of the SDF test, or for capsule pairs the
     closest points of the two segments."""
     if ti.static(c.has_segseg):
-        hla = c.geom_size[ga][1]
-        hlb = c.geom_size[gb][1]
-        pa, pb = func_segment_closest(xa - hla * za, xa + hla * za, xb - hlb * zb, xb + hlb * zb)
-        phi_ss, n_ss = func_sdf_round(pa - pb, c.geom_size[gb][0], zb)
+        pa, phi_ss, n_ss = func_segseg(c, ga, gb, xa, za, xb, zb)
         ss = kind == SLOT_SEGSEG
         return ti.select(ss, pa, p), ti.select(ss, phi_ss, phi), ti.select(ss, n_ss, n)
     else:
@@ -410,25 +440,38 @@ def func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, on, tol):
 
 
 @ti.func
+def func_box_edge_slot(c: ti.template(), i_s, ga, gb, xa, Ra, xb, Rb, sep_f, sep_e, L, i, j):
+    """(point, normal, depth) of a box pair's edge slot: the edge-edge contact of the separating-axis test."""
+    return func_box_edge_contact(xa, Ra, c.geom_size[ga], xb, Rb, c.geom_size[gb], sep_f, sep_e, L, i, j,
+                                 c.slot_aux[i_s])
+
+
+@ti.func
+def func_box_face_slot(c: ti.template(), i_s, ga, gb, xa, Ra, xb, Rb, sep_f, f, sep_e):
+    """(point, normal, depth) of a box pair's face slot: the face-face crossing of the separating-axis test."""
+    ha = c.geom_size[ga]
+    hb = c.geom_size[gb]
+    # the edge slot's tol (build_slots), computed here: a face slot's aux is its code
+    tol = BOXEDGE_TOL * ti.min(ha.min(), hb.min())
+    code = ti.cast(c.slot_aux[i_s], ti.i32)
+    return func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, sep_e <= sep_f + tol, tol)
+
+
+@ti.func
 def func_with_boxedge(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, n, depth):
     """(point, normal, depth) of the slot: those given, or for box edge slots the edge-edge contact and
     for box face slots the face-face crossing (both from one separating-axis test of the two boxes)."""
     if ti.static(c.has_boxedge):
-        ha = c.geom_size[ga]
-        hb = c.geom_size[gb]
         T = xb - xa
-        sep_f, f = func_face_best(T, Ra, ha, Rb, hb, 0)
-        sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
-        pe, ne, de = func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, sep_f, sep_e, L, i, j, c.slot_aux[i_s])
+        sep_f, f = func_face_best(T, Ra, c.geom_size[ga], Rb, c.geom_size[gb], 0)
+        sep_e, L, i, j = func_edge_best(T, Ra, c.geom_size[ga], Rb, c.geom_size[gb], 0)
+        pe, ne, de = func_box_edge_slot(c, i_s, ga, gb, xa, Ra, xb, Rb, sep_f, sep_e, L, i, j)
         be = kind == SLOT_BOXEDGE
         pos_e = ti.select(be, pe, pos)
         n_e = ti.select(be, ne, n)
         depth_e = ti.select(be, de, depth)
         if ti.static(c.has_boxface):
-            # the edge slot's tol (build_slots), computed here: a face slot's aux is its code
-            tol = BOXEDGE_TOL * ti.min(ha.min(), hb.min())
-            code = ti.cast(c.slot_aux[i_s], ti.i32)
-            pf, nf, df = func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, sep_e <= sep_f + tol, tol)
+            pf, nf, df = func_box_face_slot(c, i_s, ga, gb, xa, Ra, xb, Rb, sep_f, f, sep_e)
             bf = kind == SLOT_BOXFACE
             return ti.select(bf, pf, pos_e), ti.select(bf, nf, n_e), ti.select(bf, df, depth_e)
         else:
@@ -438,9 +481,95 @@ def func_with_boxedge(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, 
 
 
 @ti.func
+def func_box_slot(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb):
+    """(point, normal, depth) of a box pair's edge or face slot (kind, at run time), only its own (no
+    gradients: runtime branches)."""
+    T = xb - xa
+    sep_f, f = func_face_best(T, Ra, c.geom_size[ga], Rb, c.geom_size[gb], 0)
+    sep_e, L, i, j = func_edge_best(T, Ra, c.geom_size[ga], Rb, c.geom_size[gb], 0)
+    pos = ti.Vector.zero(c.dtype, 3)
+    n = ti.Vector.zero(c.dtype, 3)
+    depth = ti.cast(0.0, c.dtype)
+    if kind == SLOT_BOXEDGE:
+        pos, n, depth = func_box_edge_slot(c, i_s, ga, gb, xa, Ra, xb, Rb, sep_f, sep_e, L, i, j)
+    else:
+        if ti.static(c.has_boxface):
+            pos, n, depth = func_box_face_slot(c, i_s, ga, gb, xa, Ra, xb, Rb, sep_f, f, sep_e)
+    return pos, n, depth
+
+
+@ti.func
 def func_slot_geometry(s: ti.template(), i_b, i_s):
     """(contact point, normal from the SDF side to the point side, depth) of slot i_s; depth > 0 is
-    penetration."""
+    penetration. Without gradients only the slot's own kind and the SDF side's own type are evaluated
+    (func_slot_geometry_branched); with them every kind and type the scene has, selected (the
+    single-assignment form of the differentiated stages): the same expressions either way."""
+    if ti.static(not s.requires_grad):
+        return func_slot_geometry_branched(s, i_b, i_s)
+    else:
+        return func_slot_geometry_selected(s, i_b, i_s)
+
+
+@ti.func
+def func_slot_contact_point(c: ti.template(), gb, pt, n, ra, phi):
+    """The contact point: on the point side's surface against a static geom (where that side's velocity
+    and Jacobian belong: a speculative contact's gap can be centimetres, and a fast-turning link's
+    velocity changes across it), else midway between the two surfaces."""
+    mid = pt - n * (0.5 * (ra + phi))
+    return ti.select(c.link_dyn[c.geom_link[gb]] == 1, mid, pt - n * ra)
+
+
+@ti.func
+def func_slot_geometry_branched(s: ti.template(), i_b, i_s):
+    """func_slot_geometry with runtime branches: a box pair's edge and face slots take the separating-axis
+    test alone, the other slots the SDF of their SDF side's type alone (a box corner on the ground no longer
+    evaluates the meshes' planes and the boxes' axes of a scene that has them)."""
+    c = s.contact
+    kind = c.slot_kind[i_s]
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    xa = c.geom_xpos[i_b, ga]
+    Ra = c.geom_xR[i_b, ga]
+    xb = c.geom_xpos[i_b, gb]
+    Rb = c.geom_xR[i_b, gb]
+    pos = ti.Vector.zero(c.dtype, 3)
+    n = ti.Vector.zero(c.dtype, 3)
+    depth = ti.cast(0.0, c.dtype)
+    box_kind = False
+    if ti.static(c.has_boxedge):
+        box_kind = (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE)
+    if box_kind:
+        if ti.static(c.has_boxedge):
+            pos, n, depth = func_box_slot(c, i_s, kind, ga, gb, xa, Ra, xb, Rb)
+    else:
+        ra = c.slot_r[i_s]
+        zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
+        seg = False
+        if ti.static(c.has_segseg):
+            seg = kind == SLOT_SEGSEG
+        if seg:
+            if ti.static(c.has_segseg):
+                za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
+                pt, phi, nw = func_segseg(c, ga, gb, xa, za, xb, zb)
+                pos = func_slot_contact_point(c, gb, pt, nw, ra, phi)
+                n = nw
+                depth = ra - phi
+        else:
+            p = func_slot_point(c, i_s, kind, ga, xa, Ra, zb)
+            q = func_mtv(Rb, p - xb)
+            cl = func_mtv(Rb, xa + func_mv(Ra, c.geom_center[ga]) - xb) - c.geom_center[gb]
+            chat = cl / ti.sqrt(cl.dot(cl) + 1e-24)
+            phi, n_loc = func_sdf_branched(c, c.geom_type[gb], gb, q, chat, c.geom_beta[gb])
+            nw = func_mv(Rb, n_loc)
+            pos = func_slot_contact_point(c, gb, p, nw, ra, phi)
+            n = nw
+            depth = ra - phi
+    return pos, n, depth
+
+
+@ti.func
+def func_slot_geometry_selected(s: ti.template(), i_b, i_s):
+    """func_slot_geometry in single-assignment form: every kind's and type's geometry, selected."""
     c = s.contact
     kind = c.slot_kind[i_s]
     ga = c.slot_ga[i_s]
@@ -460,11 +589,7 @@ def func_slot_geometry(s: ti.template(), i_b, i_s):
     phi_sdf, n_loc = func_sdf_any(c, 0, c.geom_type[gb], gb, q, chat, c.geom_beta[gb])
     pt, phi, n = func_with_segseg(c, kind, ga, gb, xa, za, xb, zb, p, phi_sdf, func_mv(Rb, n_loc))
     depth = ra - phi
-    # the contact point: on the point side's surface against a static geom (where that side's velocity
-    # and Jacobian belong: a speculative contact's gap can be centimetres, and a fast-turning link's
-    # velocity changes across it), else midway between the two surfaces
-    mid = pt - n * (0.5 * (ra + phi))
-    cp = ti.select(c.link_dyn[c.geom_link[gb]] == 1, mid, pt - n * ra)
+    cp = func_slot_contact_point(c, gb, pt, n, ra, phi)
     return func_with_boxedge(c, i_s, kind, ga, gb, xa, Ra, xb, Rb, cp, n, depth)
 
 

@@ -135,6 +135,17 @@ def func_sdf_any(c: ti.template(), k: ti.template(), tb, g, q, chat, beta):
         return ti.select(tb == T, phi, phi_r), ti.select(tb == T, n, n_r)
 
 
+@ti.func
+def func_sdf_branched(c: ti.template(), tb, g, q, chat, beta):
+    """func_sdf_any with a runtime branch: only the SDF of geom g's own type tb is evaluated (no gradients)."""
+    phi = ti.cast(0.0, c.dtype)
+    n = ti.Vector.zero(c.dtype, 3)
+    for k in ti.static(range(len(c.sdf_types))):
+        if tb == ti.static(c.sdf_types[k]):
+            phi, n = func_sdf_of(c, ti.static(c.sdf_types[k]), g, q, chat, beta)
+    return phi, n
+
+
 def _div_floor() -> float:
     """Floor of a denominator that may be exactly 0 (parallel edges): 1e-30 in float64; in float32 1e-15,
     whose square (in the adjoint of a division, -num / den^2) is still a normal float32. With 1e-30 it

@@ -161,7 +161,10 @@ pairs (objects stacked or touching each other, self-collision) accumulate it per
 `mass_cross` and factor M over its envelope (func_factor_solve_dense: a skyline L D L^T, the bodies
 ordered by starting height, whose cost follows the band the contacts make, ~24 of the 100-box tower's
 606 dofs, not n^3); scenes whose contacts all involve a static geom (robots on the ground) keep the
-tree factorisation. (Dropping the coupling is not an option: stacked bodies then close the gap between them twice per step, or half of it when the blocks are
+tree factorisation, and so, without gradients, does each evaluation of a dense scene in which no listed
+slot couples two moving links (linalg.func_tree_env: mass_cross is then zero; a Panda beside a box it does
+not touch steps as the Panda alone, to the bit, its step's kernel 15.8 -> 9.1 us with the narrow phase's
+branches, tests/test_contact.py; a robot with self-collision whose links do not touch solves as without it). (Dropping the coupling is not an option: stacked bodies then close the gap between them twice per step, or half of it when the blocks are
 doubled, and with the force's clip at 0 a stack of boxes ends in a limit cycle.)
 
 Dynamics stages (each one loop over elements, see ../core.py): geom poses, broad phase, clear the

@@ -68,13 +68,25 @@ def func_bank_clear(s: ti.template(), b: ti.template(), i_b):
 
 @ti.func
 def func_bank_clear_pairs(s: ti.template(), b: ti.template(), i_b):
+    """The link pairs' sums <- 0: every pair's with gradients; without, the pairs a slot touched since the
+    last clear (lp_touch; every other pair's sums are zeros already: the fields start at zero and only
+    func_bank_add writes them, marking the pair): a robot with self-collision has ~50 pairs of moving links,
+    27 numbers each, a few of them touching."""
     c = s.contact
     for lp in range(c.n_lp):
-        b.lp_Sww[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
-        b.lp_Swv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
-        b.lp_Svv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
-        if ti.static(not s.requires_grad):
-            b.lp_touch[i_b, lp] = 0
+        if ti.static(s.requires_grad):
+            func_zero_pair(s, b, i_b, lp)
+        else:
+            if b.lp_touch[i_b, lp] == 1:
+                func_zero_pair(s, b, i_b, lp)
+                b.lp_touch[i_b, lp] = 0
+
+
+@ti.func
+def func_zero_pair(s: ti.template(), b: ti.template(), i_b, lp):
+    b.lp_Sww[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+    b.lp_Swv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+    b.lp_Svv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
 
 
 @ti.func

@@ -217,12 +217,35 @@ def func_solve_grad_dense(s: ti.template(), i_b, e):
 
 
 @ti.func
+def func_tree_env(s: ti.template(), i_b):
+    """Whether env i_b's system in this evaluation is M's tree plus the contacts' per-link blocks, with no
+    coupling between moving links: in a dense scene stepped without gradients, when none of its listed slots
+    couples two moving links (n_cross_on, slots.func_contact_slots), mass_cross is all zeros, and the
+    evaluation factors and solves as a scene without such pairs does (the tree factorisation, unrolled in a
+    specialised core), not over the dense envelope: a Panda beside a box it does not touch steps as the Panda
+    alone does, to the bit. Every factor and solve of the evaluation takes the same branch (its listed
+    slots are fixed after the slots stage). With gradients, always False (the recorded steps keep the dense
+    factor, whose adjoint reads it)."""
+    tree = True
+    if ti.static(s.contact.dense and not s.requires_grad):
+        tree = s.contact.n_cross_on[i_b] == 0
+    elif ti.static(s.contact.dense):
+        tree = False
+    return tree
+
+
+@ti.func
 def func_factor_into(s: ti.template(), i_b, Fc: ti.template(), k, x: ti.template()):
     """Factor the current system (mass_mat, and mass_cross in dense scenes) into Fc (kept for the later
     solves and the adjoints; the solves read its lower triangle only), and solve x[0] = A^-1 force
     with it."""
     c = s.contact
-    if ti.static(c.dense):
+    if ti.static(c.dense and not s.requires_grad):
+        if func_tree_env(s, i_b):
+            func_factor_to(s, i_b, Fc)
+        else:
+            func_factor_dense_to(s, i_b, Fc, k)
+    elif ti.static(c.dense):
         func_factor_dense_to(s, i_b, Fc, k)
     else:
         func_factor_to(s, i_b, Fc)
@@ -234,7 +257,12 @@ def func_factor_into(s: ti.template(), i_b, Fc: ti.template(), k, x: ti.template
 
 @ti.func
 def func_any_solve(s: ti.template(), Fc: ti.template(), k, i_b, x: ti.template(), e):
-    if ti.static(s.contact.dense):
+    if ti.static(s.contact.dense and not s.requires_grad):
+        if func_tree_env(s, i_b):
+            func_tree_solve(s, Fc, i_b, x, e)
+        else:
+            func_dense_solve(s, Fc, k, i_b, x, e)
+    elif ti.static(s.contact.dense):
         func_dense_solve(s, Fc, k, i_b, x, e)
     else:
         func_tree_solve(s, Fc, i_b, x, e)

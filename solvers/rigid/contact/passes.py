@@ -16,6 +16,7 @@ Taichi, each stage one loop per env as the dynamics stages.
 import taichi as ti
 
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
+from .linalg import func_tree_env
 from .law import func_heavy_scale, func_normal_law
 
 
@@ -366,8 +367,15 @@ def func_relinearise_listed(s: ti.template(), i_b):
     for k in range(c.n_on[i_b]):
         changed |= func_relinearise_slot(s, i_b, c.sl_list[i_b, k], c.link_w_normal, c.link_v_normal, False)
     if changed:
-        for stage in ti.static(c.relinearise_sums):
+        # (a dense scene's env without coupled slots: no link pair's sums, linalg.func_tree_env)
+        if ti.static(c.dense):
+            if not func_tree_env(s, i_b):
+                func_relinearise_clear_pairs(s, i_b)
+        for stage in ti.static(RELINEARISE_SUMS):
             stage(s, i_b)
+        if ti.static(c.dense):
+            if not func_tree_env(s, i_b):
+                func_relinearise_cross(s, i_b)
     return changed
 
 
@@ -391,7 +399,6 @@ FRICTION_PASS_CROSS = (func_friction_clear_pairs,) + FRICTION_PASS + (func_frict
 # known to change the system (the friction pass over the listed slots: func_friction_or_bound)
 RELINEARISE_SUMS = (func_relinearise_clear, func_relinearise_add_listed, func_relinearise_tree, func_relinearise_dof,
                     func_relinearise_project)
-RELINEARISE_SUMS_CROSS = (func_relinearise_clear_pairs,) + RELINEARISE_SUMS + (func_relinearise_cross,)
 
 
 # the bound rounds (after the final solve; step 5 of the package docstring): where a contact's
@@ -565,7 +572,8 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
     if phase > 0:
         func_friction_clear(s, i_b)
         if ti.static(c.dense):
-            func_friction_clear_pairs(s, i_b)
+            if not func_tree_env(s, i_b):
+                func_friction_clear_pairs(s, i_b)
         func_friction_motion(s, i_b)
         changed = 1
         if phase == 1:
@@ -588,7 +596,8 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
             func_friction_dof(s, i_b)
             func_friction_project(s, i_b)
             if ti.static(c.dense):
-                func_friction_cross(s, i_b)
+                if not func_tree_env(s, i_b):
+                    func_friction_cross(s, i_b)
     return solve
 
 

@@ -13,7 +13,7 @@ own (toggle_round), recorded with its adjoint."""
 import taichi as ti
 
 from .banks import func_bank_add, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
-from .linalg import ENV_NORMAL, func_factor_into
+from .linalg import ENV_NORMAL, func_factor_into, func_tree_env
 from .passes import (ROUND_OFF_F32, ROUND_OFF_F64, bank_clear_stage, bank_stage, func_link_motion, func_rel_motion,
                      func_relinearise_clear, func_relinearise_clear_pairs, func_relinearise_cross,
                      func_relinearise_dof, func_relinearise_project, func_relinearise_tree, func_round_slot,
@@ -35,12 +35,13 @@ def func_step_energy(s: ti.template(), i_b, x_new: ti.template(), x_old: ti.temp
         m = s.mass_mat[i_b, i, j] * (x_new[0, i_b, i] - x_old[0, i_b, i]) * (x_new[0, i_b, j] - x_old[0, i_b, j])
         acc += ti.select(i == j, m, 2.0 * m)
     if ti.static(c.dense):
-        n = s.n_dofs
-        for ij in range(n * n):
-            i = ij // n
-            j = ij % n
-            if j < i:
-                acc += 2.0 * c.mass_cross[i_b, i, j] * (x_new[0, i_b, i] - x_old[0, i_b, i]) * (x_new[0, i_b, j] - x_old[0, i_b, j])
+        if not func_tree_env(s, i_b):  # (mass_cross is not cleared then: linalg.func_tree_env)
+            n = s.n_dofs
+            for ij in range(n * n):
+                i = ij // n
+                j = ij % n
+                if j < i:
+                    acc += 2.0 * c.mass_cross[i_b, i, j] * (x_new[0, i_b, i] - x_old[0, i_b, i]) * (x_new[0, i_b, j] - x_old[0, i_b, j])
     return acc
 
 
@@ -203,14 +204,16 @@ def func_toggle_sums(s: ti.template(), i_b, r):
     c = s.contact
     func_relinearise_clear(s, i_b)
     if ti.static(c.dense):
-        func_relinearise_clear_pairs(s, i_b)
+        if not func_tree_env(s, i_b):
+            func_relinearise_clear_pairs(s, i_b)
     for k in range(c.n_on[i_b]):
         func_toggle_slot(s, i_b, c.sl_list[i_b, k], r, c.bank_relinearise)
     func_relinearise_tree(s, i_b)
     func_relinearise_dof(s, i_b)
     func_relinearise_project(s, i_b)
     if ti.static(c.dense):
-        func_relinearise_cross(s, i_b)
+        if not func_tree_env(s, i_b):
+            func_relinearise_cross(s, i_b)
 
 
 def toggle_round(r: int, n_lp: int):

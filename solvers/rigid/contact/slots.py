@@ -5,6 +5,7 @@ import taichi as ti
 
 from ..collision import TINY, func_broad_phase, func_geom_pose, func_slot_geometry
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
+from .linalg import func_tree_env
 from .law import func_heavy_scale, func_normal_law, func_rot_corr
 
 
@@ -26,6 +27,14 @@ def func_contact_clear_pairs(s: ti.template(), i_b, e, src, h):
 
 @ti.func
 def func_contact_clear_cross(s: ti.template(), i_b, e, src, h):
+    """mass_cross <- 0 (with gradients; without, func_contact_cross clears it once the slots stage has told
+    whether the evaluation couples two moving links at all, linalg.func_tree_env)."""
+    if ti.static(s.requires_grad):
+        func_clear_mass_cross(s, i_b)
+
+
+@ti.func
+def func_clear_mass_cross(s: ti.template(), i_b):
     c = s.contact
     for ij in range(s.n_dofs * s.n_dofs):
         c.mass_cross[i_b, ij // s.n_dofs, ij % s.n_dofs] = 0.0
@@ -103,7 +112,8 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
     stored by pair; the mask of an inactive pair's slots is left stale: read() masks it with
     pair_active) and lists the slots that are on (sl_list[i_b, :n_on[i_b]], in slot order) for the
     solve's passes, which then visit only those (a robot's geoms against the ground: a few of some
-    hundred slots touch; visiting every slot was an eighth of ANYmal's step)."""
+    hundred slots touch; visiting every slot was an eighth of ANYmal's step), and counts those that couple
+    two moving links (n_cross_on: linalg.func_tree_env)."""
     c = s.contact
     if ti.static(s.requires_grad):
         for i_s in range(c.n_slots):
@@ -112,6 +122,7 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
                 func_contact_slot(s, i_b, i_s, h)
     else:
         n_on = 0
+        n_cross = 0
         for i_p in range(c.n_pairs):
             if c.pair_active[i_b, i_p] == 1:
                 for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
@@ -120,7 +131,11 @@ def func_contact_slots(s: ti.template(), i_b, e, src, h):
                     if c.sl_on[i_b, i_s] == 1:
                         c.sl_list[i_b, n_on] = i_s
                         n_on += 1
+                        if ti.static(c.dense):
+                            if c.slot_lp[i_s] >= 0:
+                                n_cross += 1
         c.n_on[i_b] = n_on
+        c.n_cross_on[i_b] = n_cross
 
 
 @ti.func
@@ -140,7 +155,14 @@ def func_contact_project(s: ti.template(), i_b, e, src, h):
 
 @ti.func
 def func_contact_cross(s: ti.template(), i_b, e, src, h):
-    func_bank_cross(s, s.contact.bank_normal, i_b)
+    """The normal bank's coupling of moving link pairs onto mass_cross (without gradients, cleared here, and
+    only where a listed slot couples two moving links: else nothing reads it, linalg.func_tree_env)."""
+    if ti.static(s.requires_grad):
+        func_bank_cross(s, s.contact.bank_normal, i_b)
+    else:
+        if not func_tree_env(s, i_b):
+            func_clear_mass_cross(s, i_b)
+            func_bank_cross(s, s.contact.bank_normal, i_b)
 
 
 CONTACT_STAGES = (func_geom_pose, func_broad_phase, func_contact_clear, func_contact_slots, func_contact_tree,

@@ -3,7 +3,7 @@ linalg.py and the passes of passes.py in order; see the package docstring's step
 import taichi as ti
 
 from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
-from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense
+from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense, func_tree_env
 from .passes import (BOUND_ROUNDS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
                      func_link_motion, func_relinearise_listed)
 from .rounds import func_normal_round_listed, func_normal_rounds
@@ -53,44 +53,57 @@ def func_contact_solve(s: ti.template(), i_b, e):
     ti.static_assert(not s.requires_grad, "func_contact_solve is the fused step's, without gradients")
     if ti.static(s.unrolled and not c.dense):
         func_contact_solve_rounds(s, i_b, e)
+    elif ti.static(s.unrolled):
+        # a dense scene's env whose listed slots couple no two moving links (linalg.func_tree_env)
+        if func_tree_env(s, i_b):
+            func_contact_solve_rounds(s, i_b, e)
+        else:
+            func_contact_solve_general(s, i_b, e)
     else:
-        phase = 0
-        if c.n_on[i_b] > 0:
-            func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
-            func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
-            if func_relinearise_listed(s, i_b):
-                func_start_line(s, i_b, c.qacc_normal)
-                func_normal_rounds(s, i_b)
-            func_coulomb_listed(s, i_b)
-            func_solve_coulomb(s, i_b)
-            phase = 1
-        # the friction pass (phase 1), then the final solve, then bound rounds (phase 2) while one
-        # changes the system: one loop, so that the two passes share one copy of their sums and the
-        # final solve is compiled once
-        # then (phase 3) the final solve again while it releases a joint-limit constraint that pulls
-        # (actuation.func_limit_release; ContactSolver.factor_solve's order)
-        rounds = 0
-        limit_round = 0
-        go = 1
-        while go == 1:
-            solve = 1
-            if phase < 3:
-                solve = func_friction_or_bound(s, i_b, phase)
-            go = 0
-            if solve == 1:
-                func_final_solve(s, i_b, e)
-                if phase < 3:
-                    if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
-                        rounds += 1
-                        func_keep_for_bound(s, i_b, e)
-                        phase = 2
-                        go = 1
-            if go == 0:
-                limit_round = func_limit_rounds_next(s, i_b, e, limit_round)
-                if limit_round > 0:
-                    phase = 3
-                    go = 1
+        func_contact_solve_general(s, i_b, e)
     func_contact_report(s, i_b, e)
+
+
+@ti.func
+def func_contact_solve_general(s: ti.template(), i_b, e):
+    """func_contact_solve's steps with the factorisations of linalg.py (dense or tree: func_tree_env)."""
+    c = s.contact
+    phase = 0
+    if c.n_on[i_b] > 0:
+        func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
+        func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+        if func_relinearise_listed(s, i_b):
+            func_start_line(s, i_b, c.qacc_normal)
+            func_normal_rounds(s, i_b)
+        func_coulomb_listed(s, i_b)
+        func_solve_coulomb(s, i_b)
+        phase = 1
+    # the friction pass (phase 1), then the final solve, then bound rounds (phase 2) while one
+    # changes the system: one loop, so that the two passes share one copy of their sums and the
+    # final solve is compiled once
+    # then (phase 3) the final solve again while it releases a joint-limit constraint that pulls
+    # (actuation.func_limit_release; ContactSolver.factor_solve's order)
+    rounds = 0
+    limit_round = 0
+    go = 1
+    while go == 1:
+        solve = 1
+        if phase < 3:
+            solve = func_friction_or_bound(s, i_b, phase)
+        go = 0
+        if solve == 1:
+            func_final_solve(s, i_b, e)
+            if phase < 3:
+                if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
+                    rounds += 1
+                    func_keep_for_bound(s, i_b, e)
+                    phase = 2
+                    go = 1
+        if go == 0:
+            limit_round = func_limit_rounds_next(s, i_b, e, limit_round)
+            if limit_round > 0:
+                phase = 3
+                go = 1
 
 
 @ti.func
@@ -105,7 +118,10 @@ def func_start_line(s: ti.template(), i_b, x: ti.template()):
 def func_final_solve(s: ti.template(), i_b, e):
     """qacc[e] = A^-1 force for the system as it stands (the final solve, and each bound round's)."""
     if ti.static(s.contact.dense):
-        func_factor_solve_dense(s, i_b, e)
+        if func_tree_env(s, i_b):
+            func_factor_solve(s, i_b, e)
+        else:
+            func_factor_solve_dense(s, i_b, e)
     else:
         func_factor_solve(s, i_b, e)
 

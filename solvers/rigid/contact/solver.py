@@ -13,7 +13,7 @@ from .banks import AccBank
 from .law import MARGIN_WIDTHS
 from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
 from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
-                     RELINEARISE_PASS_CROSS, RELINEARISE_SUMS, RELINEARISE_SUMS_CROSS, bound_round, func_bound_count,
+                     RELINEARISE_PASS_CROSS, bound_round, func_bound_count,
                      func_link_motion)
 from .rounds import NORMAL_ROUNDS, func_normal_round, toggle_round
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
@@ -111,6 +111,13 @@ class ContactSolver:
         # the pair's slots: pair_s0[p] .. pair_s0[p + 1] - 1 (build_slots stores them by pair)
         self.pair_s0 = I(Pn + 1)
         self.pair_active = I((B, Pn))
+        # per pair and side, the plane that parted two meshes in their last broad-phase test (a hint:
+        # narrow.func_gap_mesh_planes starts there; no result depends on it)
+        self.pair_hint = I((B, Pn, 2))
+        # the broad phase's per-geom terms (narrow.func_broad_phase): bounding sphere centre, world box half
+        # widths, centre speed, rotation sweep
+        self.geom_bc, self.geom_ext = V3((B, G), False), V3((B, G), False)
+        self.geom_speed, self.geom_sweep = F((B, G), False), F((B, G), False)
         self.slot_pair, self.slot_kind, self.slot_ga, self.slot_gb = I(S), I(S), I(S), I(S)
         self.slot_p = V3(S, False)
         self.slot_r, self.slot_aux = F(S, False), F(S, False)
@@ -141,6 +148,9 @@ class ContactSolver:
         self.line_done = I(B)
         # without gradients: the slots that are on, in slot order (func_contact_slots), and their count
         self.sl_list, self.n_on = I((B, S)), I(B)
+        # dense scenes without gradients: how many listed slots couple two moving links (linalg.func_tree_env:
+        # none, and the evaluation's system is M's tree, solved as in a scene without such pairs)
+        self.n_cross_on = I(B)
         self.bank_normal = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_relinearise = AccBank(B, L, D, n_lp, f, g, True)
         self.bank_coulomb = AccBank(B, L, D, 0, f, g, False)
@@ -213,7 +223,6 @@ class ContactSolver:
 
         self.stages = CONTACT_STAGES
         self.relinearise_pass, self.friction_pass = RELINEARISE_PASS, FRICTION_PASS
-        self.relinearise_sums = RELINEARISE_SUMS
         # adjoints cleared before each solve's backward (read from the passes' backward onwards)
         self.scratch_grad_fields = ([self.sl_pos, self.sl_n, self.sl_u, self.sl_u_normal, self.sl_Fn, self.sl_depth,
                                      self.sl_corr, self.sl_Fn_normal, self.sl_wn_normal,
@@ -233,7 +242,6 @@ class ContactSolver:
         if self.dense:
             self.stages = CROSS_STAGES
             self.relinearise_pass, self.friction_pass = RELINEARISE_PASS_CROSS, FRICTION_PASS_CROSS
-            self.relinearise_sums = RELINEARISE_SUMS_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
         # the launches of the solve op on the gradient path (factor_solve), by name: kernel_run(s, name)
