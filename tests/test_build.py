@@ -270,6 +270,16 @@ def _boxes_and_ball_scene(n_envs, specialize):
     return scene, (ball, b1, b2)
 
 
+def _sync_from(src, same, nudged, gen):
+    """Entity src's state into `same`, and into `nudged` with its velocities changed by 1e-15 (relative,
+    random): the yardstick of rounding amplified by a stiff system."""
+    q, v = src.get_qpos(), src.get_dofs_velocity()
+    same.set_qpos(q)
+    same.set_dofs_velocity(v)
+    nudged.set_qpos(q)
+    nudged.set_dofs_velocity(v * (1.0 + 1e-15 * torch.randn(v.shape, generator=gen, **F64)))
+
+
 def _boxes_and_ball(n_envs, specialize):
     """_boxes_and_ball_scene's scene and the trajectory of every env over 50 steps."""
     scene, bodies = _boxes_and_ball_scene(n_envs, specialize)
@@ -307,11 +317,7 @@ def test_specialized_kernels_give_the_shared_kernels_results():
 
     for _ in range(50):
         for x, y, z in zip(b_shared, b_spec, b_nudged):
-            q, v = x.get_qpos(), x.get_dofs_velocity()
-            y.set_qpos(q)
-            y.set_dofs_velocity(v)
-            z.set_qpos(q)
-            z.set_dofs_velocity(v * (1.0 + 1e-15 * torch.randn(v.shape, generator=gen, **F64)))
+            _sync_from(x, y, z, gen)
         for scene in (shared, spec, nudged):
             scene.step()
         err.append(gap(b_spec))
@@ -386,11 +392,7 @@ def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_pa
             target = torch.tensor(rng.uniform(-0.5, 0.5, (3, len(dofs))), **F64)
             for r in (r_shared, r_spec, r_nudged):
                 r.control_dofs_position(target, dofs)
-        q, v = r_shared.get_qpos(), r_shared.get_dofs_velocity()
-        r_spec.set_qpos(q)
-        r_spec.set_dofs_velocity(v)
-        r_nudged.set_qpos(q)
-        r_nudged.set_dofs_velocity(v * (1.0 + 1e-15 * torch.randn(v.shape, generator=gen, **F64)))
+        _sync_from(r_shared, r_spec, r_nudged, gen)
         for scene in (shared, spec, nudged):
             scene.step()
         err.append(gap(r_spec))

@@ -25,29 +25,22 @@ def func_geom_pose(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
-def func_plane_extent(c: ti.template(), g, R, n, branch: ti.template()):
+def func_plane_extent(c: ti.template(), g, R, n):
     """How far geom g (rotation R) reaches from its centre along -n: its support function. Exact for
-    sphere, capsule, box and cylinder; the bounding radius for meshes. With `branch` (no gradients)
-    only the geom's own type is evaluated; else every type's, selected (single-assignment form)."""
+    sphere, capsule, box and cylinder; the bounding radius for meshes. Only the geom's own type is
+    evaluated (a branch: the broad phase, its one caller, has no adjoint)."""
     t = c.geom_type[g]
     sz = c.geom_size[g]
     a = func_mtv(R, n)  # n in the geom frame
     r = c.geom_rbound[g]
-    if ti.static(branch):
-        if t == GEOM_BOX:
-            r = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
-        elif t == GEOM_CYLINDER:
-            r = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
-        elif t == GEOM_CAPSULE:
-            r = sz[1] * ti.abs(a[2]) + sz[0]
-        elif t == GEOM_SPHERE:
-            r = sz[0]
-    else:
-        box = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
-        cyl = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
-        cap = sz[1] * ti.abs(a[2]) + sz[0]
-        r = ti.select(t == GEOM_BOX, box, ti.select(t == GEOM_CYLINDER, cyl, ti.select(
-            t == GEOM_CAPSULE, cap, ti.select(t == GEOM_SPHERE, sz[0], r))))
+    if t == GEOM_BOX:
+        r = sz[0] * ti.abs(a[0]) + sz[1] * ti.abs(a[1]) + sz[2] * ti.abs(a[2])
+    elif t == GEOM_CYLINDER:
+        r = sz[1] * ti.abs(a[2]) + sz[0] * ti.sqrt(ti.max(1.0 - a[2] * a[2], 0.0))
+    elif t == GEOM_CAPSULE:
+        r = sz[1] * ti.abs(a[2]) + sz[0]
+    elif t == GEOM_SPHERE:
+        r = sz[0]
     return r
 
 
@@ -81,9 +74,9 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         R = c.geom_xR[i_b, g]
         cg = c.geom_xpos[i_b, g] + func_mv(R, c.geom_center[g])
         c.geom_bc[i_b, g] = cg
-        c.geom_ext[i_b, g] = ti.Vector([func_plane_extent(c, g, R, ti.Vector([1.0, 0.0, 0.0]), True),
-                                        func_plane_extent(c, g, R, ti.Vector([0.0, 1.0, 0.0]), True),
-                                        func_plane_extent(c, g, R, ti.Vector([0.0, 0.0, 1.0]), True)])
+        c.geom_ext[i_b, g] = ti.Vector([func_plane_extent(c, g, R, ti.Vector([1.0, 0.0, 0.0])),
+                                        func_plane_extent(c, g, R, ti.Vector([0.0, 1.0, 0.0])),
+                                        func_plane_extent(c, g, R, ti.Vector([0.0, 0.0, 1.0]))])
         v = s.cvel_v[i_b, l] + s.cvel_w[i_b, l].cross(cg)
         w = s.cvel_w[i_b, l]
         c.geom_speed[i_b, g] = ti.sqrt(v.dot(v) + TINY)
@@ -101,7 +94,7 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         closing = c.geom_speed[i_b, ga] + c.geom_speed[i_b, gb] + c.geom_sweep[i_b, ga]
         gap = ti.cast(0.0, s.dtype)
         if is_plane:
-            gap = func_gap_plane(c, ga, c.geom_xR[i_b, ga], c.geom_xR[i_b, gb], ca, cb, True)
+            gap = func_gap_plane(c, ga, c.geom_xR[i_b, ga], c.geom_xR[i_b, gb], ca, cb)
         else:
             gap = ti.max(func_gap_spheres(c, ga, gb, ca, cb), func_gap_boxes(c, i_b, ga, gb, ca, cb))
             closing += c.geom_sweep[i_b, gb]
@@ -191,11 +184,11 @@ def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
 
 
 @ti.func
-def func_gap_plane(c: ti.template(), ga, Ra, Rb, ca, cb, branch: ti.template()):
+def func_gap_plane(c: ti.template(), ga, Ra, Rb, ca, cb):
     """Gap of geom ga (rotation Ra, centre ca) above the plane of rotation Rb through cb (its normal the
     plane's z axis)."""
     nb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
-    return (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb, branch)
+    return (ca - cb).dot(nb) - func_plane_extent(c, ga, Ra, nb)
 
 
 @ti.func
@@ -520,18 +513,20 @@ def func_slot_contact_point(c: ti.template(), gb, pt, n, ra, phi):
 
 
 @ti.func
+def func_slot_sides(c: ti.template(), i_b, i_s):
+    """Slot i_s's kind, its point side's geom ga and SDF side's gb, and their world poses."""
+    ga = c.slot_ga[i_s]
+    gb = c.slot_gb[i_s]
+    return c.slot_kind[i_s], ga, gb, c.geom_xpos[i_b, ga], c.geom_xR[i_b, ga], c.geom_xpos[i_b, gb], c.geom_xR[i_b, gb]
+
+
+@ti.func
 def func_slot_geometry_branched(s: ti.template(), i_b, i_s):
     """func_slot_geometry with runtime branches: a box pair's edge and face slots take the separating-axis
     test alone, the other slots the SDF of their SDF side's type alone (a box corner on the ground no longer
     evaluates the meshes' planes and the boxes' axes of a scene that has them)."""
     c = s.contact
-    kind = c.slot_kind[i_s]
-    ga = c.slot_ga[i_s]
-    gb = c.slot_gb[i_s]
-    xa = c.geom_xpos[i_b, ga]
-    Ra = c.geom_xR[i_b, ga]
-    xb = c.geom_xpos[i_b, gb]
-    Rb = c.geom_xR[i_b, gb]
+    kind, ga, gb, xa, Ra, xb, Rb = func_slot_sides(c, i_b, i_s)
     pos = ti.Vector.zero(c.dtype, 3)
     n = ti.Vector.zero(c.dtype, 3)
     depth = ti.cast(0.0, c.dtype)
@@ -571,13 +566,7 @@ def func_slot_geometry_branched(s: ti.template(), i_b, i_s):
 def func_slot_geometry_selected(s: ti.template(), i_b, i_s):
     """func_slot_geometry in single-assignment form: every kind's and type's geometry, selected."""
     c = s.contact
-    kind = c.slot_kind[i_s]
-    ga = c.slot_ga[i_s]
-    gb = c.slot_gb[i_s]
-    xa = c.geom_xpos[i_b, ga]
-    Ra = c.geom_xR[i_b, ga]
-    xb = c.geom_xpos[i_b, gb]
-    Rb = c.geom_xR[i_b, gb]
+    kind, ga, gb, xa, Ra, xb, Rb = func_slot_sides(c, i_b, i_s)
     ra = c.slot_r[i_s]
     za = ti.Vector([Ra[0, 2], Ra[1, 2], Ra[2, 2]])
     zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
