@@ -26,7 +26,7 @@ from .. import taichi_compat
 from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_free_rot_errors, func_generalized_force,
                         func_limit_release, func_limit_release_grad, func_limit_rounds_next)
 from .bias import BIAS, func_link_forces
-from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense
+from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense, func_tree_env
 from .external import AppliedWrench, func_applied_wrench
 from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INTEGRATE
@@ -394,6 +394,12 @@ class RigidCore:
                 elif ti.static(adjoint):
                     func_solve_grad(self, i_b, e)
                     func_limit_release_grad(self, i_b, e, self.solve_tmp)
+                elif ti.static(self.dense_solve and not self.requires_grad):
+                    # (without gradients mass_cross is current only where a slot couples moving links)
+                    if func_tree_env(self, i_b):
+                        func_factor_solve(self, i_b, e)
+                    else:
+                        func_factor_solve_dense(self, i_b, e)
                 elif ti.static(self.dense_solve):
                     func_factor_solve_dense(self, i_b, e)
                 else:

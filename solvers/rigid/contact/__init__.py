@@ -178,7 +178,7 @@ per-link sums, passes.py the passes between the solves, rounds.py the normal rou
 adjoints, solve.py their order, plan.py the host-side model, solver.py the fields and launches,
 report.py what the user is told.)
 """
-from .linalg import func_factor_solve_dense, func_solve_grad_dense
+from .linalg import func_factor_solve_dense, func_solve_grad_dense, func_tree_env
 from .plan import ContactPlan
 from .report import ContactPenetrationWarning
 from .slots import CONTACT_STAGES
@@ -187,4 +187,4 @@ from .solver import ContactSolver
 from ..collision import ContactBuildError
 
 __all__ = ["ContactPlan", "ContactSolver", "ContactBuildError", "ContactPenetrationWarning", "CONTACT_STAGES",
-           "func_contact_solve", "func_factor_solve_dense", "func_solve_grad_dense"]
+           "func_contact_solve", "func_factor_solve_dense", "func_solve_grad_dense", "func_tree_env"]

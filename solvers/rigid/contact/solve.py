@@ -46,7 +46,9 @@ def func_contact_solve(s: ti.template(), i_b, e):
       and the relinearise pass's sums, the second factorisation and solve and the Coulomb pass's link
       motion are skipped;
     - the bound rounds stop at the first that changes no viscosity (it added exact zeros: solving
-      again would give the same qacc), as on the gradient path (ContactSolver.factor_solve)."""
+      again would give the same qacc), as on the gradient path (ContactSolver.factor_solve);
+    - in a dense scene, an env whose listed slots couple no two moving links factors and solves M's tree
+      (linalg.func_tree_env), unrolled in a specialised core (func_contact_solve_rounds)."""
     c = s.contact
     # a scene built for gradients never runs the fused step (RigidSolver._fused: op by op, through
     # ContactSolver.factor_solve, whose sequence of launches its adjoint replays)
