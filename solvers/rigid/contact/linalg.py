@@ -235,6 +235,15 @@ def func_tree_env(s: ti.template(), i_b):
 
 
 @ti.func
+def func_if_coupled(s: ti.template(), i_b, stage: ti.template()):
+    """stage(s, i_b), a pass's link-pair sums (clear or cross terms), in a dense scene where the evaluation
+    couples moving links: not where func_tree_env says it does not (nothing reads them there)."""
+    if ti.static(s.contact.dense):
+        if not func_tree_env(s, i_b):
+            stage(s, i_b)
+
+
+@ti.func
 def func_factor_into(s: ti.template(), i_b, Fc: ti.template(), k, x: ti.template()):
     """Factor the current system (mass_mat, and mass_cross in dense scenes) into Fc (kept for the later
     solves and the adjoints; the solves read its lower triangle only), and solve x[0] = A^-1 force

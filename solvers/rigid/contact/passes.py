@@ -16,7 +16,7 @@ Taichi, each stage one loop per env as the dynamics stages.
 import taichi as ti
 
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
-from .linalg import func_tree_env
+from .linalg import func_if_coupled
 from .law import func_heavy_scale, func_normal_law
 
 
@@ -367,15 +367,10 @@ def func_relinearise_listed(s: ti.template(), i_b):
     for k in range(c.n_on[i_b]):
         changed |= func_relinearise_slot(s, i_b, c.sl_list[i_b, k], c.link_w_normal, c.link_v_normal, False)
     if changed:
-        # (a dense scene's env without coupled slots: no link pair's sums, linalg.func_tree_env)
-        if ti.static(c.dense):
-            if not func_tree_env(s, i_b):
-                func_relinearise_clear_pairs(s, i_b)
+        func_if_coupled(s, i_b, func_relinearise_clear_pairs)
         for stage in ti.static(RELINEARISE_SUMS):
             stage(s, i_b)
-        if ti.static(c.dense):
-            if not func_tree_env(s, i_b):
-                func_relinearise_cross(s, i_b)
+        func_if_coupled(s, i_b, func_relinearise_cross)
     return changed
 
 
@@ -571,9 +566,7 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
     solve = 1
     if phase > 0:
         func_friction_clear(s, i_b)
-        if ti.static(c.dense):
-            if not func_tree_env(s, i_b):
-                func_friction_clear_pairs(s, i_b)
+        func_if_coupled(s, i_b, func_friction_clear_pairs)
         func_friction_motion(s, i_b)
         changed = 1
         if phase == 1:
@@ -595,9 +588,7 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
             func_friction_tree(s, i_b)
             func_friction_dof(s, i_b)
             func_friction_project(s, i_b)
-            if ti.static(c.dense):
-                if not func_tree_env(s, i_b):
-                    func_friction_cross(s, i_b)
+            func_if_coupled(s, i_b, func_friction_cross)
     return solve
 
 

@@ -13,7 +13,7 @@ own (toggle_round), recorded with its adjoint."""
 import taichi as ti
 
 from .banks import func_bank_add, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
-from .linalg import ENV_NORMAL, func_factor_into, func_tree_env
+from .linalg import ENV_NORMAL, func_factor_into, func_if_coupled, func_tree_env
 from .passes import (ROUND_OFF_F32, ROUND_OFF_F64, bank_clear_stage, bank_stage, func_link_motion, func_rel_motion,
                      func_relinearise_clear, func_relinearise_clear_pairs, func_relinearise_cross,
                      func_relinearise_dof, func_relinearise_project, func_relinearise_tree, func_round_slot,
@@ -203,17 +203,13 @@ def func_toggle_sums(s: ti.template(), i_b, r):
     """Round r's changes onto the system, without gradients (listed slots, bank_relinearise)."""
     c = s.contact
     func_relinearise_clear(s, i_b)
-    if ti.static(c.dense):
-        if not func_tree_env(s, i_b):
-            func_relinearise_clear_pairs(s, i_b)
+    func_if_coupled(s, i_b, func_relinearise_clear_pairs)
     for k in range(c.n_on[i_b]):
         func_toggle_slot(s, i_b, c.sl_list[i_b, k], r, c.bank_relinearise)
     func_relinearise_tree(s, i_b)
     func_relinearise_dof(s, i_b)
     func_relinearise_project(s, i_b)
-    if ti.static(c.dense):
-        if not func_tree_env(s, i_b):
-            func_relinearise_cross(s, i_b)
+    func_if_coupled(s, i_b, func_relinearise_cross)
 
 
 def toggle_round(r: int, n_lp: int):
