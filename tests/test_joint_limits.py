@@ -209,3 +209,51 @@ def test_mjcf_joints_own_solref_and_solimp(tmp_path, integrator, angle):
     # each joint goes past one of its limits at some point
     assert all((ours[:, k] > lim[k, 1] + 1e-3).any() or (ours[:, k] < lim[k, 0] - 1e-3).any() for k in range(3))
     np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-8)
+
+
+def _evaluation_values(s):
+    """What an evaluation leaves for its adjoint (poses, velocities, composite inertias, M, forces, the limit
+    terms, qacc) in scene `s`'s envs."""
+    fields = (s.link_pos, s.link_quat, s.cvel_w, s.cvel_v, s.crb_J, s.mass_mat, s.bias, s.force, s.dof_lim_D,
+              s.dof_lim_f, s.dof_lim_off, s.qacc)
+    return [f.to_numpy()[..., :s.n_envs, :] if f is s.qacc else f.to_numpy()[:s.n_envs] for f in fields]
+
+
+@pytest.mark.parametrize("contacts", [False, True])
+def test_the_gradient_path_s_evaluation_in_one_loop_gives_the_stage_loops_numbers_to_the_bit(pendulum_urdf, contacts):
+    """A gradient scene's forward evaluates its dynamics in one loop over envs with the final solve and its limit
+    rounds per env (RigidCore.kernel_evaluate); its adjoint differentiates the stages as separate loops
+    (kernel_dynamics_part) with the rounds over all envs. Both forms at every step of a 3-env rollout (the envs
+    reach and leave their limits at different steps; with `contacts` boxes landing on a plane beside the
+    pendulum, whose contact stages join the loop): the same numbers to the bit."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=DT, gravity=(0.0, 0.0, -S.G), requires_grad=True))
+    if contacts:
+        scene.add_entity(gs.morphs.Plane(pos=(0.0, 0.0, -2.5)))  # the pendulum's bob reaches z = -2.05
+        for k in range(2):
+            scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(1.0 + 0.5 * k, 0.0, -2.35 + 0.25 * k),
+                                           euler=(5.0 * k, 10.0, 0.0)))
+    p = scene.add_entity(gs.morphs.URDF(file=str(pendulum_urdf), fixed=True))
+    scene.build(n_envs=3)
+    p.set_dofs_position(torch.tensor(np.tile(Q0, (3, 1))))
+    p.set_dofs_velocity(torch.tensor(np.array([V0, 0.5 * V0, -V0])))
+    s = scene._rigid.solver.step_core
+    changed = 0
+    for _ in range(40):
+        s.kernel_dynamics(0, 0, DT)
+        if s.has_contact:
+            s.contact.factor_solve(s, 0)
+        else:
+            s.kernel_mass_solve(0, False)
+            s.release_limits(0)
+        stages = _evaluation_values(s)
+        s.kernel_evaluate(0, 0, DT)
+        if s.has_contact:
+            s.contact.factor_solve(s, 0)
+        one_loop = _evaluation_values(s)
+        for a, b in zip(stages, one_loop):
+            assert np.array_equal(a, b), np.abs(a - b).max()
+        changed += int(np.any(stages[10] == 1))
+        scene.step()
+    assert changed >= 5  # limits released (dof_lim_off) at several of the steps compared
+    if contacts:
+        assert s.contact.n_slots > 0 and np.abs(stages[7]).max() > 0

@@ -402,8 +402,10 @@ class RigidSolver:
             return use
 
         def forward(target, e, src, h):
-            target.kernel_dynamics(e, src, h)
-            target.kernel_factor_solve(e)
+            with ForwardCompile():
+                target.kernel_evaluate(e, src, h)  # with the final solve when there are no contacts
+                if target.has_contact:
+                    target.contact.factor_solve(target, e)
             self._scratch = (e, src, h, target)
 
         @ti.ad.grad_replaced
