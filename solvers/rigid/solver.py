@@ -56,6 +56,30 @@ SPECIALIZE_MIN_ENVS = 512
 MERGED_STAGES = (func_free_rot_errors, func_generalized_force)
 
 
+def adjoint_groups(stages):
+    """The kernels that run the adjoint of a dynamics' stages, last first, as (k0, k1, plain): each the adjoint of
+    kernel_dynamics_part(k0, k1), stages k0..k1-1 as separate loops in one kernel, for a run of consecutive stages
+    with an adjoint (NO_ADJOINT stages are left out) and the same PLAIN_ADJOINT flag (the compile option differs);
+    a MERGED_STAGES stage stays with the stage before it. The Panda's 14 stages take 4 kernels, not 12 (one per
+    stage but the merged ones, as before 2026-12-02): the same gradients to the bit (trajectory_fingerprint.py),
+    its 1-env backward of 100 steps 42.6-44.1 -> 32.4-34.3 ms (each launch costs ~10 us of Python and Taichi),
+    1,024 envs 1357-1386 -> 1300-1312 ms, the same cold compile (a fresh process's first rollout 6.6 s against
+    6.9). (The stages in one loop body instead, one env at a time, as the forward runs them, gave wrong adjoints in
+    Taichi 1.7.4: some gradients 0.)"""
+    groups, k, n = [], 0, len(stages)
+    while k < n:
+        if stages[k] in NO_ADJOINT:
+            k += 1
+            continue
+        plain = stages[k] in PLAIN_ADJOINT
+        j = k + 1
+        while j < n and stages[j] not in NO_ADJOINT and ((stages[j] in PLAIN_ADJOINT) == plain or stages[j] in MERGED_STAGES):
+            j += 1
+        groups.append((k, j, all(f in PLAIN_ADJOINT for f in stages[k:j])))
+        k = j
+    return groups[::-1]
+
+
 def _core_field(name, doc):
     """A field of the solver's core, read as the solver's (a property: the core is the scene's for life)."""
     return property(lambda self: getattr(self.core, name), doc=doc)
@@ -362,9 +386,9 @@ class RigidSolver:
         recomputes the evaluation first when the scratch fields (poses, M, its factor) hold another
         one, then runs the adjoint of the solve (hand-written: for qacc = M^-1 f, f_bar = M^-1 qacc_bar
         and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, stage by stage in reverse
-        order: the same computation as the adjoint of one kernel of every stage, but Taichi
-        compiles an adjoint in time superlinear in its size (the Panda's 13 stages: 9 s as separate
-        kernels, 24 s as one). The generalised force shares the kernel of the stage before it (with the free
+        order, in the kernels of adjoint_groups (Taichi compiles an adjoint in time superlinear in its size:
+        the Panda's 13 stages took 9 s as separate kernels, 24 s as one; in four groups as now, as long as one
+        per stage). The generalised force shares the kernel of the stage before it (with the free
         joints' rotation errors, MERGED_STAGES): its adjoint alone left ~1e-250 (not 0) in the gradient of an env
         outside the loss
         (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient). A stage that
@@ -383,14 +407,8 @@ class RigidSolver:
         lazy = (contact is not None and not contact.dense and step_core.external is None
                 and getattr(step_core, "applied", None) is None)
 
-        def parts_of(stages):
-            bounds = [k for k, f in enumerate(stages) if f not in MERGED_STAGES or k == 0]
-            bounds.append(len(stages))
-            return [(k0, k1, all(f in PLAIN_ADJOINT for f in stages[k0:k1]))
-                    for k0, k1 in ((bounds[i], bounds[i + 1]) for i in range(len(bounds) - 2, -1, -1))
-                    if not all(f in NO_ADJOINT for f in stages[k0:k1])]
-
-        runs = {True: (step_core, parts_of(step_core.dynamics_stages)), False: (core, parts_of(core.dynamics_stages))}
+        runs = {True: (step_core, adjoint_groups(step_core.dynamics_stages)),
+                False: (core, adjoint_groups(core.dynamics_stages))}
         used = {}  # (e, src, h) -> whether its last forward ran the contact kernels
 
         def with_contact(e, src, h):
@@ -426,12 +444,12 @@ class RigidSolver:
         return evaluate
 
     def _kinematics_unit(self):
-        """kernel_kinematics(src) as one call on a tape (the getters'), its adjoint stage by stage in
-        reverse order (see _evaluation_unit). The coupler launches the core's kernel itself: its calls
+        """kernel_kinematics(src) as one call on a tape (the getters'), its adjoint the stages' as separate
+        loops in one kernel (see adjoint_groups). The coupler launches the core's kernel itself: its calls
         run inside the MPM substep's own grad_replaced adjoint, where a nested one is not recorded."""
         core = self.core
-        stages = range(len(LINK_STATE) - 1, -1, -1)
         assert DYNAMICS[: len(LINK_STATE)] == LINK_STATE and set(LINK_STATE) <= set(PLAIN_ADJOINT)
+        n = len(LINK_STATE)
 
         @ti.ad.grad_replaced
         def kinematics(src):
@@ -440,9 +458,8 @@ class RigidSolver:
 
         @ti.ad.grad_for(kinematics)
         def kinematics_grad(src):
-            with AdjointCompile(True):  # LINK_STATE is in PLAIN_ADJOINT
-                for k in stages:
-                    core.kernel_dynamics_part.grad(k, k + 1, 0, src, 0.0)
+            with AdjointCompile(True):  # LINK_STATE is in PLAIN_ADJOINT: one kernel (see adjoint_groups)
+                core.kernel_dynamics_part.grad(0, n, 0, src, 0.0)
 
         return kinematics
 
