@@ -138,6 +138,6 @@ def test_float32_contact_gradients_match_float64():
 
 @pytest.mark.slow
 def test_float32_box_on_box_gradients_match_float64():
-    """A box sliding and turning on a larger box. Before collision._div_floor, float32 gave NaN: the
+    """A box sliding and turning on a larger box. Before math3d.div_floor (then collision._div_floor), float32 gave NaN: the
     edge-edge denominator's floor 1e-30 squared underflows in the division's adjoint (0 * inf)."""
     _compare(BOXES, 5e-3)

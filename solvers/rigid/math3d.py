@@ -5,6 +5,17 @@ motion (w, v) and force (n, f), as in MuJoCo's com-based formulation.
 """
 import taichi as ti
 
+from .. import taichi_compat
+
+
+def div_floor() -> float:
+    """Floor of a denominator that may be exactly 0 (parallel edges, a slot without load): 1e-30 in float64; in
+    float32 1e-15, whose square (in the adjoint of a division, -num / den^2) is still a normal float32. With 1e-30
+    it underflows to 0 and the adjoint becomes 0 / 0 or 0 * inf = NaN, even where a select discards the branch
+    (a box sliding onto a plane in float32, gs.init's default: a NaN gradient from its first step). Read at
+    compile time: ti.static(div_floor())."""
+    return 1e-30 if taichi_compat.config().default_fp == ti.f64 else 1e-15
+
 
 @ti.func
 def func_quat_mul(a, b):

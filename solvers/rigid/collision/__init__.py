@@ -53,7 +53,7 @@ from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CA
                     SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG, ContactBuildError, GeomTable, build_geoms, build_slots,
                     candidate_pairs, geom_box_columns, geom_rotations, link_is_dynamic, sample_points)
 from .narrow import NO_ADJOINT, func_broad_phase, func_geom_pose, func_slot_geometry
-from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_of, func_segment_closest
+from .sdf import TINY, func_sdf_any, func_sdf_of, func_segment_closest
 
 __all__ = ["build_geoms", "candidate_pairs", "build_slots", "func_geom_pose", "func_broad_phase",
            "func_slot_geometry", "ContactBuildError"]

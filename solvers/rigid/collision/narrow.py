@@ -10,8 +10,8 @@ import taichi as ti
 
 from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, N_KDOP,
                     SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG)
-from ..math3d import func_mm, func_mtv, func_mv
-from .sdf import TINY, _div_floor, func_sdf_any, func_sdf_branched, func_sdf_round, func_segment_closest, func_sgn3
+from ..math3d import div_floor, func_mm, func_mtv, func_mv
+from .sdf import TINY, func_sdf_any, func_sdf_branched, func_sdf_round, func_segment_closest, func_sgn3
 
 @ti.func
 def func_geom_pose(s: ti.template(), i_b, e, src, h):
@@ -328,8 +328,8 @@ def func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, sep_f, sep_e, L, i, j, tol):
     db = func_mv(Rb, ub)
     pa, pb = func_segment_closest(ca - da, ca + da, cb - db, cb + db)
     # inside both edges: the closest points are not end points (parameters strictly inside (0, 1))
-    ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), ti.static(_div_floor()))
-    tb = (pb - (cb - db)).dot(db) / ti.max(2.0 * db.dot(db), ti.static(_div_floor()))
+    ta = (pa - (ca - da)).dot(da) / ti.max(2.0 * da.dot(da), ti.static(div_floor()))
+    tb = (pb - (cb - db)).dot(db) / ti.max(2.0 * db.dot(db), ti.static(div_floor()))
     inner = (ta > 1e-9) & (ta < 1.0 - 1e-9) & (tb > 1e-9) & (tb < 1.0 - 1e-9)
     on = (sep_e > sep_f + tol) & inner
     return 0.5 * (pa + pb), -L, ti.select(on, -sep_e, -1.0)

@@ -5,6 +5,7 @@ points of two segments.
 import taichi as ti
 
 from ... import taichi_compat
+from ..math3d import div_floor
 from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, N_KDOP
 
 # ------------------------------------------------------------------------------------------------
@@ -146,13 +147,6 @@ def func_sdf_branched(c: ti.template(), tb, g, q, chat, beta):
     return phi, n
 
 
-def _div_floor() -> float:
-    """Floor of a denominator that may be exactly 0 (parallel edges): 1e-30 in float64; in float32 1e-15,
-    whose square (in the adjoint of a division, -num / den^2) is still a normal float32. With 1e-30 it
-    underflows to 0 and the discarded branch's adjoint becomes 0 * inf = NaN."""
-    return 1e-30 if taichi_compat.config().default_fp == ti.f64 else 1e-15
-
-
 @ti.func
 def func_segment_closest(p1, q1, p2, q2):
     """Closest points of segments p1q1 and p2q2 (Ericson, Real-Time Collision Detection 5.1.9)."""
@@ -165,7 +159,7 @@ def func_segment_closest(p1, q1, p2, q2):
     c = d1.dot(r)
     b = d1.dot(d2)
     den = a * e - b * b
-    s0 = ti.select(den > 1e-12 * a * e, ti.min(ti.max((b * f - c * e) / ti.max(den, ti.static(_div_floor())), 0.0), 1.0), 0.0)
+    s0 = ti.select(den > 1e-12 * a * e, ti.min(ti.max((b * f - c * e) / ti.max(den, ti.static(div_floor())), 0.0), 1.0), 0.0)
     t0 = (b * s0 + f) / e
     s = ti.select(t0 < 0.0, ti.min(ti.max(-c / a, 0.0), 1.0), ti.select(t0 > 1.0, ti.min(ti.max((b - c) / a, 0.0), 1.0), s0))
     t = ti.min(ti.max(t0, 0.0), 1.0)

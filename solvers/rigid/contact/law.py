@@ -3,6 +3,7 @@ at the end of the step, and the rotational correction of the predicted depth. Pu
 slot's numbers; the friction law is applied where its inputs are known (passes.py)."""
 import taichi as ti
 
+from ..math3d import div_floor
 from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE, SLOT_BOXFACE
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
@@ -77,7 +78,7 @@ def func_heavy_scale(s: ti.template(), i_b, i_s, n):
     own = own_a + own_b
     heavy = own * HEAVY_MASS < 1.0
     # own > 0 on the heavy side; the other side's value is never used (nor its adjoint: 0)
-    scale = ti.select(heavy, 1.0 / (ti.max(own, 1e-30) * HEAVY_MASS), 1.0)
+    scale = ti.select(heavy, 1.0 / (ti.max(own, ti.static(div_floor())) * HEAVY_MASS), 1.0)
     return heavy, scale, w_a + w_b
 
 
@@ -105,7 +106,7 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
         # 4e4 N s/m gave a 0.3 kg foot 1e-5 s, which no practical step resolves: the quadruped drop did
         # not converge as dt shrank, issue #24)
         k = c.k * scale
-        d = ti.max((2.0 * c.zeta) * ti.sqrt(k / ti.max(inv, 1e-30)), STEP_DAMPING * h * k)
+        d = ti.max((2.0 * c.zeta) * ti.sqrt(k / ti.max(inv, ti.static(div_floor()))), STEP_DAMPING * h * k)
         return func_spring_damper(c.delta, k, d, h, sp, spp, sg, zc, depth, depth_end)
     else:
         # the heavy law spelled out with its own k and c, not as scale * fn: LLVM's fast math folds

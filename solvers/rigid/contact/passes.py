@@ -15,6 +15,7 @@ Taichi, each stage one loop per env as the dynamics stages.
 """
 import taichi as ti
 
+from ..math3d import div_floor
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
 from .linalg import func_if_coupled
 from .law import func_heavy_scale, func_normal_law
@@ -412,7 +413,7 @@ def func_bound_eta(eta, speed, bound, sec):
     bound / speed) from (1 + 2 BOUND_TOL) bound on; linear between (continuous, so that the round is, and
     a contact near the tolerance cannot make it jump). A contact within Coulomb's bound keeps its
     viscosity, however far from the smoothed law (a sticking contact's viscous creep below eps)."""
-    w = ti.min(ti.max((eta * speed - (1.0 + BOUND_TOL) * bound) / ti.max(BOUND_TOL * bound, 1e-30), 0.0), 1.0)
+    w = ti.min(ti.max((eta * speed - (1.0 + BOUND_TOL) * bound) / ti.max(BOUND_TOL * bound, ti.static(div_floor())), 0.0), 1.0)
     return eta + w * (sec - eta)
 
 
