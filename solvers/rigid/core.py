@@ -346,10 +346,7 @@ class RigidCore:
         which is where the gradient path's rounds over all envs, release_limits, leave it too)."""
         r = 0
         while r >= 0:
-            if ti.static(self.dense_solve):
-                func_factor_solve_dense(self, i_b, e)
-            else:
-                func_factor_solve(self, i_b, e)
+            func_factor_solve(self, i_b, e)  # (the dense factorisation is a contact scene's: contact.factor_solve)
             r = func_limit_rounds_next(self, i_b, e, r)
 
     # The adjoints' stages run as separate top-level loops over envs (see kinematics.KINEMATICS).
