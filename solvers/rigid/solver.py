@@ -5,10 +5,12 @@ pool (pool.py, core.py). A step is a schedule of ops per substep (schedule.py: d
 at a slot, integrate, copy-back). Without gradients it runs as one fused kernel (in a scene built for
 gradients, op by op: see _fused). With gradients each
 substep runs op by op (`substep(i)`) so that the scene can record it on a `ti.ad.Tape`
-(genesis_lite/simulator.py): an evaluation (dynamics + factor-solve) is one `ti.ad.grad_replaced` call
-whose adjoint, registered with `ti.ad.grad_for`, recomputes the evaluation's scratch when a later one
+(genesis_lite/simulator.py): an evaluation (dynamics + factor-solve) is one `ti.ad.grad_replaced` call,
+whose forward runs each env's stages in turn in one loop over the envs (core.kernel_evaluate) and whose
+adjoint, registered with `ti.ad.grad_for`, recomputes the evaluation's scratch when a later one
 has overwritten it, runs the hand-written adjoint of the factor-solve and then Taichi's adjoint of the
-dynamics kernel; integration kernels are recorded as they are.
+dynamics' stages as separate loops (kernel_dynamics_part, in the kernels of adjoint_groups: the same
+numbers); integration kernels are recorded as they are.
 
 A scene with collision pairs (or with external wrenches, external.py) runs its dynamics on a SceneCore
 (core.py) that adds those stages to the core's. The contact solver's fields are sized by a contact
