@@ -329,7 +329,7 @@ class RigidCore:
         stage), then without contacts the final solve and its limit rounds (func_final_solve; with
         contacts the contact solver's launches follow, contact.factor_solve). The numbers are those of
         kernel_dynamics (the stages as separate loops, whose adjoints the backward runs) to the bit
-        (tests/test_build.py), at 1,024 envs in 1.5 ms where those loops took 3.2-4.7 (the Panda)."""
+        (tests/test_joint_limits.py), at 1,024 envs in 1.5 ms where those loops took 3.2-4.7 (the Panda)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):

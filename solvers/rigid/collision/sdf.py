@@ -4,7 +4,6 @@ points of two segments.
 """
 import taichi as ti
 
-from ... import taichi_compat
 from ..math3d import div_floor
 from .geoms import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_PLANE, GEOM_SPHERE, N_KDOP
 
