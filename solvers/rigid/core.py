@@ -25,7 +25,7 @@ import taichi as ti
 from .. import taichi_compat
 from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_free_rot_errors, func_generalized_force,
                         func_limit_release, func_limit_release_grad, func_limit_rounds_next)
-from .bias import BIAS, func_link_forces
+from .bias import BIAS, func_free_gyro
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense, func_tree_env
 from .external import AppliedWrench, func_applied_wrench
 from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
@@ -38,7 +38,7 @@ from .schedule import OP_DYN, OP_SOLVE, SPAN_BITS, SPAN_MASK
 SERIAL_MAX_ENVS = 16
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_free_rot_errors, func_generalized_force)
 # stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (taichi_compat.compile_options.AdjointCompile)
-PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:2]
+PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:3]
 # smallest element capacity: the robots of one size class (Panda, UR5, arms up to 16 links/dofs/qs)
 # share a core
 MIN_ELEMS = 16
@@ -128,9 +128,6 @@ class RigidCore:
         self.cap_envs, self.cap_elems = B, N
         self.n_slots, self.n_evals = S, E
         self.scene_cfg = [0] * (N_CFG_I + N_CFG_F)
-        V3 = lambda shape: ti.Vector.field(3, f, shape=shape, needs_grad=g)  # noqa: E731
-        V4 = lambda shape: ti.Vector.field(4, f, shape=shape, needs_grad=g)  # noqa: E731
-        M3 = lambda shape: ti.Matrix.field(3, 3, f, shape=shape, needs_grad=g)  # noqa: E731
         F = lambda shape, grad=g: ti.field(f, shape=shape, needs_grad=grad)  # noqa: E731
         I = lambda shape: ti.field(ti.i32, shape=shape)  # noqa: E731, E741
         self.cfg_i, self.cfg_f = I(N_CFG_I), F(N_CFG_F, False)
@@ -545,7 +542,7 @@ class SceneCore(RigidCore):
         extra = [x for x in (contact, external) if x is not None]
         stages = DYNAMICS
         if applied is not None:
-            k = DYNAMICS.index(func_link_forces) + 1
+            k = DYNAMICS.index(func_free_gyro) + 1  # after the link forces (and their gyroscopic moments)
             stages = DYNAMICS[:k] + (func_applied_wrench,) + DYNAMICS[k:]
         self.dynamics_stages = stages + sum((tuple(x.stages) for x in extra), ())
         self.dense_solve = bool(contact is not None and contact.dense)

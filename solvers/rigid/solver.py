@@ -62,7 +62,7 @@ def adjoint_groups(stages):
     """The kernels that run the adjoint of a dynamics' stages, last first, as (k0, k1, plain): each the adjoint of
     kernel_dynamics_part(k0, k1), stages k0..k1-1 as separate loops in one kernel, for a run of consecutive stages
     with an adjoint (NO_ADJOINT stages are left out) and the same PLAIN_ADJOINT flag (the compile option differs);
-    a MERGED_STAGES stage stays with the stage before it. The Panda's 14 stages take 4 kernels, not 12 (one per
+    a MERGED_STAGES stage stays with the stage before it. The Panda's 15 stages take 4 kernels, not 13 (one per
     stage but the merged ones, as before 2026-12-02): the same gradients to the bit (trajectory_fingerprint.py),
     its 1-env backward of 100 steps 42.6-44.1 -> 32.4-34.3 ms (each launch costs ~10 us of Python and Taichi),
     1,024 envs 1357-1386 -> 1300-1312 ms, the same cold compile (a fresh process's first rollout 6.6 s against
