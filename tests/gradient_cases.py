@@ -856,11 +856,13 @@ def _table() -> List[Case]:
     add("slide_spin", ("box.dofs_velocity", "box.friction", "box.links_mass"), BOX_OUT)
     add("slide_spin_approach", ("box.dofs_velocity", "box.friction"), BOX_OUT, V(precision="32"))
     add("slide_spin_approach", ("box.dofs_velocity", "box.friction"), BOX_OUT)
-    add("slide_spin", ("box.dofs_velocity",), BOX_OUT, V(precision="32"),
-        xfail="float32 and float64 part at the landing (0.26 mm after its 5th step, 1.1 mm after 8): the bound "
-            "rounds of friction run out (8 of 8 in float64 at steps 6 and 8) and float32's round-off stops them "
-            "elsewhere (6 and 8 rounds, and 7 where float64 takes 1), so float32 follows another trajectory; "
-            "its gradients differ by up to 74 % from float64's, which match finite differences to 1e-8")
+    # slow: a float32 process of its own compiling the landing's class (87 s of the default suite's 37 min in a
+    # fresh-cache run, 2026-12-02) for a known gap; slide_spin_approach's float32 case above runs by default
+    slow("slide_spin", ("box.dofs_velocity",), BOX_OUT, V(precision="32"),
+         xfail="float32 and float64 part at the landing (0.26 mm after its 5th step, 1.1 mm after 8): the bound "
+             "rounds of friction run out (8 of 8 in float64 at steps 6 and 8) and float32's round-off stops them "
+             "elsewhere (6 and 8 rounds, and 7 where float64 takes 1), so float32 follows another trajectory; "
+             "its gradients differ by up to 74 % from float64's, which match finite differences to 1e-8")
     # ------------------------------------------------------------------ a 400 t box landing (mass-scaled contact)
     add("heavy_land", SLIDE + ("box.pos", "box.quat"), BOX_OUT)
     slow("heavy_land", SLIDE, BOX_OUT, V(n_envs=3))
