@@ -89,16 +89,20 @@ def func_set_zero(x: ti.template(), I: ti.template()):
 class ZeroPlan:
     """Per-env fields grouped by the shape of their per-env part, so that one loop zeroes a whole group
     (one loop per field makes a kernel several times larger, and its size is what loading it costs).
-    env0: core fields [B, ...]; env1: core fields [slot, B, ...]; other: fields of the scene's own
-    (contact) solver, [B, ...]. For the core's fields a dimension equal to the element capacity runs to
-    the scene's element count (a run-time bound); every other dimension runs to its full size."""
+    env0: core fields [B, ...]; env1: core fields [slot, B, ...]; other / other1: fields of the scene's
+    own (contact) solver, [B, ...] / [1, B, ...]. For the core's fields a dimension equal to the element
+    capacity runs to the scene's element count (a run-time bound); every other dimension runs to its full
+    size."""
 
-    def __init__(self, env0, env1, cap, other=()):
+    def __init__(self, env0, env1, cap, other=(), other1=()):
         self.cap = cap
         groups = {}
-        for axis, fields, core in ((0, env0, True), (1, env1, True), (0, other, False)):
+        for axis, fields, core in ((0, env0, True), (1, env1, True), (0, other, False), (1, other1, False)):
             for x in fields:
                 rest = tuple(d if not core or d != cap else -1 for k, d in enumerate(x.shape) if k != axis)
+                if len(rest) > 2:  # func_zero_group loops over at most two dimensions besides the env's
+                    raise ValueError(f"ZeroPlan: a field of shape {x.shape} has more than two dimensions besides "
+                                     f"its env axis ({axis}); func_zero_group zeroes at most two")
                 groups.setdefault((axis, rest), []).append(x)
         self.groups = [(axis, rest, tuple(fields)) for (axis, rest), fields in groups.items()]
 
