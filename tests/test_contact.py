@@ -519,6 +519,26 @@ def test_contact_fields_are_placed_env_major():
     assert len({_top_node(f) for f in slots}) == 1
 
 
+def test_env_axis_is_one_rule_for_placement_and_zeroing():
+    """FieldTree places a field env-major, and ZeroPlan zeroes it env by env, by the same rule
+    (layout.env_axis): the env axis is the first of length B, or the second after a leading 1. A field
+    with neither cannot be zeroed env by env: by_env_axis, which sorts them for ZeroPlan, refuses it by
+    its shape rather than zero the wrong cells."""
+    from types import SimpleNamespace
+
+    from solvers.rigid.layout import ZeroPlan, by_env_axis, env_axis
+    assert env_axis((5, 7, 3), 5) == 0 and env_axis(5, 5) == 0
+    assert env_axis((1, 5, 7), 5) == 1
+    assert env_axis((2, 5, 7), 5) is None and env_axis((7, 5), 5) is None and env_axis((5, 3), None) is None
+    assert env_axis((1, 1, 4), 1) == 0  # one env: the first axis
+    f = [SimpleNamespace(shape=s) for s in ((5, 3), (5,), (1, 5, 3), (5, 3))]
+    plan = ZeroPlan((), (), 0, *by_env_axis(f, 5))
+    assert sorted((axis, rest, len(xs)) for axis, rest, xs in plan.groups) == [(0, (), 1), (0, (3,), 2),
+                                                                               (1, (1, 3), 1)]
+    with pytest.raises(ValueError, match=r"\(2, 5, 3\).*no env axis"):
+        by_env_axis(f + [SimpleNamespace(shape=(2, 5, 3))], 5)
+
+
 def _mixed_contact_rollout(requires_grad, n_steps=60):
     """Three envs: a stack landing (candidate contacts, contacts dropped by pass 1), a box sliding and
     spinning on the ground, and everything starting in the air (no slot on for the first steps)."""

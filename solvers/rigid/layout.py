@@ -29,6 +29,34 @@ def place_env_major(parent, B, groups):
             envs[axis].place(*xs)
 
 
+def env_axis(shape, B):
+    """The env axis of a per-env field of `shape`: 0 for (B, ...), 1 for (1, B, ...) (a leading axis of 1,
+    the slot of a bank with one), None for a field that is not per env (or when B is None). The one rule
+    by which FieldTree places its fields and ZeroPlan finds the env axis of a solver's own."""
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    if B is None:
+        return None
+    if shape[0] == B:
+        return 0
+    if len(shape) >= 2 and shape[0] == 1 and shape[1] == B:
+        return 1
+    return None
+
+
+def by_env_axis(fields, B):
+    """fields (a FieldTree's, or their adjoints) sorted by env_axis into ([env, ...], [1, env, ...]), the
+    way ZeroPlan takes them; ValueError for a field without an env axis of length B (it cannot be zeroed
+    env by env)."""
+    out = ([], [])
+    for x in fields:
+        axis = env_axis(x.shape, B)
+        if axis is None:
+            raise ValueError(f"a field of shape {x.shape} has no env axis of length B = {B} (first, or second "
+                             f"after a leading 1); it cannot be zeroed env by env")
+        out[axis].append(x)
+    return out
+
+
 class FieldTree:
     """Fields placed in an SNode tree of their own. Taichi caps the SNodes of one tree (1024; every
     component of a vector or matrix field and of its adjoint is one), and a scene's contact fields with
@@ -47,13 +75,11 @@ class FieldTree:
 
     def _place(self, x, shape):
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
-        B = self.B
-        if B is not None and shape[0] == B:
-            self.groups.setdefault((0, shape[1:]), []).append(x)
-        elif B is not None and len(shape) >= 2 and shape[0] == 1 and shape[1] == B:
-            self.groups.setdefault((1, (1,) + shape[2:]), []).append(x)
-        else:
+        axis = env_axis(shape, self.B)
+        if axis is None:
             self.fb.dense(ti.axes(*range(len(shape))), shape).place(x)
+        else:
+            self.groups.setdefault((axis, tuple(d for k, d in enumerate(shape) if k != axis)), []).append(x)
         return x
 
     def F(self, shape, grad=None):
@@ -90,9 +116,9 @@ class ZeroPlan:
     """Per-env fields grouped by the shape of their per-env part, so that one loop zeroes a whole group
     (one loop per field makes a kernel several times larger, and its size is what loading it costs).
     env0: core fields [B, ...]; env1: core fields [slot, B, ...]; other / other1: fields of the scene's
-    own (contact) solver, [B, ...] / [1, B, ...]. For the core's fields a dimension equal to the element
-    capacity runs to the scene's element count (a run-time bound); every other dimension runs to its full
-    size."""
+    own solvers (contact, forces), [env, ...] / [1, env, ...] (by_env_axis sorts a FieldTree's). For the
+    core's fields a dimension equal to the element capacity runs to the scene's element count (a run-time
+    bound); every other dimension runs to its full size."""
 
     def __init__(self, env0, env1, cap, other=(), other1=()):
         self.cap = cap

@@ -8,7 +8,7 @@ import taichi as ti
 from ... import taichi_compat
 from ..collision import N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns, geom_rotations
 from ..kinematics import LINK_STATE
-from ..layout import FieldTree, ZeroPlan, func_zero_plan
+from ..layout import FieldTree, ZeroPlan, by_env_axis, func_zero_plan
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
 from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
@@ -239,11 +239,7 @@ class ContactSolver:
         # zeroed in one loop over the envs, a group of fields per shape of the rest (a loop per field made
         # the kernel one task per field: 238 in a scene of boxes, 26 s of its 200 s cold compile; 3 s now,
         # the gradients the same to the bit, the launch 2.8 against 3.1 ms; measured 2026-12-02)
-        self.scratch_grad_plan = ZeroPlan(
-            (), (), 0, [x.grad for x in self.scratch_grad_fields if x.shape[0] == B],
-            [x.grad for x in self.scratch_grad_fields if x.shape[0] != B and x.shape[:2] == (1, B)])
-        assert sum(len(fs) for _, _, fs in self.scratch_grad_plan.groups) == len(self.scratch_grad_fields), \
-            "a contact scratch field without an env axis of length B (first, or second after a leading 1)"
+        self.scratch_grad_plan = ZeroPlan((), (), 0, *by_env_axis([x.grad for x in self.scratch_grad_fields], B))
         # the adjoints the scene zeroes before each backward (fields [env, ...]); the scratch ones above
         # are zeroed before every solve's adjoint instead
         self.grad_fields = ([self.geom_mu, self.geom_xpos, self.geom_xR] + self.bank_normal.grad_fields) if g else []
