@@ -541,23 +541,33 @@ def test_env_axis_is_one_rule_for_placement_and_zeroing():
 
 def _mixed_contact_rollout(requires_grad, n_steps=60):
     """Three envs: a stack landing (candidate contacts, contacts dropped by pass 1), a box sliding and
-    spinning on the ground, and everything starting in the air (no slot on for the first steps)."""
+    spinning on the ground, and everything starting in the air (no slot on for the first steps); and in
+    each two planks crossed at right angles, the upper one landing on the lower one, which touch only
+    where the edges of one's face cross the other's rim (the box pairs' face slots; with gradients, the
+    choices of their separating-axis test come from collision.func_box_sat)."""
     scene = _scene(requires_grad=requires_grad)
     scene.add_entity(gs.morphs.Plane())
     lower = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.102)))
     upper = scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.03, 0, 0.26), quat=(0.995, 0.0, 0.0, 0.1)))
     slider = scene.add_entity(gs.morphs.Box(size=(0.2, 0.1, 0.1), pos=(0.8, 0, 0.05), quat=(0.999, 0.02, 0.03, 0.01)))
+    plank = scene.add_entity(gs.morphs.Box(size=(1.0, 0.1, 0.05), pos=(3.0, 0.0, 0.025)))
+    crossed = scene.add_entity(gs.morphs.Box(size=(1.0, 0.1, 0.05), pos=(3.25, 0.003, 0.0755),
+                                             quat=(0.7071, 0.0014, -0.0007, 0.7071)))
     scene.build(n_envs=3)
     lift = _t([[0, 0, 0], [0, 0, 0], [0, 0, 0.3]])
     for b in (lower, upper, slider):
         b.set_pos(b.get_pos() + lift)
     slider.set_dofs_velocity(_t([[0, 0, 0, 0, 0, 0], [2.0, 0.5, 0, 0, 0, 3.0], [1.0, 0, 0, 0, 0, 0]]))
+    crossed.set_dofs_velocity(_t([[0.1, -0.05, -0.2, 0, 0, 0.3], [0, 0, -0.2, 0, 0, 0], [-0.1, 0.05, -0.1, 0, 0, -0.3]]))
+    bodies = (lower, upper, slider, plank, crossed)
     qs = []
     for _ in range(n_steps):
         scene.step()
-        qs.append(np.concatenate([_np(b.get_qpos()) for b in (lower, upper, slider)], axis=-1))
+        qs.append(np.concatenate([_np(b.get_qpos()) for b in bodies], axis=-1))
     c = lower.get_contacts()
-    return np.array(qs), _np(c["force_a"]), _np(c["valid_mask"])
+    p = crossed.get_contacts()
+    return (np.array(qs), np.concatenate([_np(c["force_a"]), _np(p["force_a"])], axis=1),
+            np.concatenate([_np(c["valid_mask"]), _np(p["valid_mask"])], axis=1))
 
 
 def test_fused_step_without_gradients_matches_the_gradient_schedule():
@@ -569,6 +579,8 @@ def test_fused_step_without_gradients_matches_the_gradient_schedule():
     q1, f1, m1 = _mixed_contact_rollout(True)
     assert m0[0].any() and m0[1].any() and (m0 == m1).all()
     assert np.abs(q0[:, 2] - q0[0, 2]).max() > 0.2  # env 2 fell and landed
+    # the crossed plank rests on the lower one in every env (7 qpos a body: the fifth body's z is column 30)
+    assert (q0[-1, :, 30] > 0.07).all() and (q0[-1, :, 30] < 0.08).all()
     np.testing.assert_allclose(q0, q1, rtol=0, atol=1e-10)
     np.testing.assert_allclose(f0, f1, rtol=0, atol=1e-7 * max(np.abs(f1).max(), 1.0))
 

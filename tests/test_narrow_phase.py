@@ -1,7 +1,8 @@
 """The narrow phase's two forms give one geometry (solvers/rigid/collision/narrow.py). Without gradients
 func_slot_geometry takes runtime branches (func_slot_geometry_branched: only the slot's own kind and its SDF
 side's own type are evaluated); with them, the single-assignment form the differentiated stages need
-(func_slot_geometry_selected: every kind and type the scene has, selected). A scene with every slot kind and
+(func_slot_geometry_selected: every kind and type the scene has, selected, a box pair's slots at the choices of
+their separating-axis test that func_box_sat_slot keeps as integers). A scene with every slot kind and
 SDF type (box corners, edges and faces, capsule segment pairs, cylinder rims, points against planes, boxes,
 capsules, cylinders and meshes; spheres as points), its bodies and a Panda's joints posed at random in 4 envs: both forms,
 slot by slot, give the same point, normal and depth to round-off. Default options, float64."""
@@ -11,7 +12,7 @@ import taichi as ti
 import genesis_lite as gs
 from solvers.rigid.collision.geoms import (GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE,
                                            SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG)
-from solvers.rigid.collision.narrow import func_slot_geometry_branched, func_slot_geometry_selected
+from solvers.rigid.collision.narrow import func_box_sat_slot, func_slot_geometry_branched, func_slot_geometry_selected
 
 from conftest import robot_urdf
 
@@ -51,6 +52,9 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
     def both(s: ti.template()):
         for i_b, i_s in ti.ndrange(N_ENVS, s.contact.n_slots):
             p1, n1, d1 = func_slot_geometry_branched(s, i_b, i_s)
+            kind = s.contact.slot_kind[i_s]
+            if (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE):  # (the gradient path's stage: active pairs only)
+                func_box_sat_slot(s.contact, i_b, i_s)
             p2, n2, d2 = func_slot_geometry_selected(s, i_b, i_s)
             for j in ti.static(range(3)):
                 out[i_b, i_s, 0, j] = p1[j]
