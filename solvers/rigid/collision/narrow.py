@@ -447,20 +447,38 @@ def func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, on, tol):
 
 
 @ti.func
-def func_box_edge_slot(c: ti.template(), i_s, ga, gb, xa, Ra, xb, Rb, sep_f, sep_e, L, i, j):
-    """(point, normal, depth) of a box pair's edge slot: the edge-edge contact of the separating-axis test."""
-    return func_box_edge_contact(xa, Ra, c.geom_size[ga], xb, Rb, c.geom_size[gb], sep_e > sep_f + c.slot_aux[i_s],
-                                 sep_e, L, i, j)
+def func_box_choices(c: ti.template(), i_s, kind, xa, Ra, ha, xb, Rb, hb):
+    """The separating-axis test of box slot i_s (an edge or face slot of boxes a and b): the best face axis f
+    (func_face_best), the best edge pair's separation sep_e, unit axis L from a to b and edge axes a_i, b_j
+    (func_edge_best), and the slot's verdict: for an edge slot whether its edge axis beats every face axis
+    by the slot's tol (its aux), for a face slot whether none does (func_face_tol). The one test of both
+    paths: the fused step's geometry takes it at once (func_box_slot), the gradient path keeps its choices
+    as integers (func_box_sat_slot) and differentiates the chosen edge axis alone (func_with_boxedge)."""
+    T = xb - xa
+    sep_f, f = func_face_best(T, Ra, ha, Rb, hb, 0)
+    sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
+    verdict = ti.select(kind == SLOT_BOXEDGE, sep_e > sep_f + c.slot_aux[i_s], sep_e <= sep_f + func_face_tol(ha, hb))
+    return f, sep_e, L, i, j, verdict
 
 
 @ti.func
-def func_box_face_slot(c: ti.template(), i_s, ga, gb, xa, Ra, xb, Rb, sep_f, f, sep_e):
-    """(point, normal, depth) of a box pair's face slot: the face-face crossing of the separating-axis test."""
-    ha = c.geom_size[ga]
-    hb = c.geom_size[gb]
-    tol = func_face_tol(ha, hb)
-    code = ti.cast(c.slot_aux[i_s], ti.i32)
-    return func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, sep_e <= sep_f + tol, tol)
+def func_box_pack(f, i, j, verdict):
+    """func_box_choices' integers as one, sl_box's: f + 8 (3 i + j) + 128 verdict (func_box_unpack)."""
+    return f + 8 * (3 * i + j) + ti.select(verdict, 128, 0)
+
+
+@ti.func
+def func_box_unpack(code):
+    """(f, i, j, verdict) of func_box_pack's integer."""
+    e = (code // 8) % 16
+    return code % 8, e // 3, e % 3, code >= 128
+
+
+@ti.func
+def func_box_face_slot(c: ti.template(), i_s, xa, Ra, ha, xb, Rb, hb, f, verdict):
+    """(point, normal, depth) of box face slot i_s (its aux is its code) at the test's face axis f and verdict."""
+    return func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, ti.cast(c.slot_aux[i_s], ti.i32), verdict,
+                                 func_face_tol(ha, hb))
 
 
 @ti.func
@@ -476,11 +494,7 @@ def func_with_boxedge(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, 
     that func_box_sat made (sl_box): only the chosen edge axis is differentiated here, not the maximum over
     the 15 axes (the same numbers: a select passes on the value it takes)."""
     if ti.static(c.has_boxedge):
-        code = c.sl_box[i_b, i_s]
-        f = code % 8
-        i = (code // 8) % 16 // 3
-        j = (code // 8) % 16 % 3
-        verdict = code >= 128
+        f, i, j, verdict = func_box_unpack(c.sl_box[i_b, i_s])
         ha = c.geom_size[ga]
         hb = c.geom_size[gb]
         sep_e, L = func_edge_axis(xb - xa, func_col_at(Ra, i), func_col_at(Rb, j), Ra, ha, Rb, hb)
@@ -490,8 +504,7 @@ def func_with_boxedge(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, 
         n_e = ti.select(be, ne, n)
         depth_e = ti.select(be, de, depth)
         if ti.static(c.has_boxface):
-            pf, nf, df = func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, ti.cast(c.slot_aux[i_s], ti.i32), verdict,
-                                               func_face_tol(ha, hb))
+            pf, nf, df = func_box_face_slot(c, i_s, xa, Ra, ha, xb, Rb, hb, f, verdict)
             bf = kind == SLOT_BOXFACE
             return ti.select(bf, pf, pos_e), ti.select(bf, nf, n_e), ti.select(bf, df, depth_e)
         else:
@@ -504,17 +517,17 @@ def func_with_boxedge(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, 
 def func_box_slot(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb):
     """(point, normal, depth) of a box pair's edge or face slot (kind, at run time), only its own (no
     gradients: runtime branches)."""
-    T = xb - xa
-    sep_f, f = func_face_best(T, Ra, c.geom_size[ga], Rb, c.geom_size[gb], 0)
-    sep_e, L, i, j = func_edge_best(T, Ra, c.geom_size[ga], Rb, c.geom_size[gb], 0)
+    ha = c.geom_size[ga]
+    hb = c.geom_size[gb]
+    f, sep_e, L, i, j, verdict = func_box_choices(c, i_s, kind, xa, Ra, ha, xb, Rb, hb)
     pos = ti.Vector.zero(c.dtype, 3)
     n = ti.Vector.zero(c.dtype, 3)
     depth = ti.cast(0.0, c.dtype)
     if kind == SLOT_BOXEDGE:
-        pos, n, depth = func_box_edge_slot(c, i_s, ga, gb, xa, Ra, xb, Rb, sep_f, sep_e, L, i, j)
+        pos, n, depth = func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, verdict, sep_e, L, i, j)
     else:
         if ti.static(c.has_boxface):
-            pos, n, depth = func_box_face_slot(c, i_s, ga, gb, xa, Ra, xb, Rb, sep_f, f, sep_e)
+            pos, n, depth = func_box_face_slot(c, i_s, xa, Ra, ha, xb, Rb, hb, f, verdict)
     return pos, n, depth
 
 
@@ -627,18 +640,12 @@ def func_box_sat(s: ti.template(), i_b, e, src, h):
 
 @ti.func
 def func_box_sat_slot(c: ti.template(), i_b, i_s):
-    """The choices of the separating-axis test of box slot i_s (an edge or face slot), as one integer
-    sl_box[env, slot] = f + 8 (3 i + j) + 128 verdict: the best face axis f, the best edge pair (a_i, b_j),
-    and the slot's verdict: for an edge slot whether the edge axis beats every face axis by the slot's tol,
-    for a face slot whether none does. The choices the scene without gradients makes (func_box_slot)."""
+    """The choices of the separating-axis test of box slot i_s (func_box_choices: the best face axis, the
+    best edge pair, the slot's verdict) as one integer, sl_box[env, slot] (func_box_pack): the choices the
+    scene without gradients makes (func_box_slot)."""
     kind, ga, gb, xa, Ra, xb, Rb = func_slot_sides(c, i_b, i_s)
-    ha = c.geom_size[ga]
-    hb = c.geom_size[gb]
-    T = xb - xa
-    sep_f, f = func_face_best(T, Ra, ha, Rb, hb, 0)
-    sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
-    verdict = ti.select(kind == SLOT_BOXEDGE, sep_e > sep_f + c.slot_aux[i_s], sep_e <= sep_f + func_face_tol(ha, hb))
-    c.sl_box[i_b, i_s] = f + 8 * (3 * i + j) + ti.select(verdict, 128, 0)
+    f, _sep_e, _L, i, j, verdict = func_box_choices(c, i_s, kind, xa, Ra, c.geom_size[ga], xb, Rb, c.geom_size[gb])
+    c.sl_box[i_b, i_s] = func_box_pack(f, i, j, verdict)
 
 
 # stages that write no float: their adjoint is empty, and the gradient path's backward does not run it
