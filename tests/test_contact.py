@@ -543,8 +543,8 @@ def _mixed_contact_rollout(requires_grad, n_steps=60):
     """Three envs: a stack landing (candidate contacts, contacts dropped by pass 1), a box sliding and
     spinning on the ground, and everything starting in the air (no slot on for the first steps); and in
     each two planks crossed at right angles, the upper one landing on the lower one, which touch only
-    where the edges of one's face cross the other's rim (the box pairs' face slots; with gradients, the
-    choices of their separating-axis test come from collision.func_box_sat)."""
+    where the edges of one's face cross the other's rim (the box pairs' face slots, at the choices of their
+    pair's separating-axis test: collision.func_box_pair_test, in the broad phase)."""
     scene = _scene(requires_grad=requires_grad)
     scene.add_entity(gs.morphs.Plane())
     lower = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.102)))

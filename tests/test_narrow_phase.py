@@ -1,8 +1,9 @@
 """The narrow phase's two forms give one geometry (solvers/rigid/collision/narrow.py). Without gradients
 func_slot_geometry takes runtime branches (func_slot_geometry_branched: only the slot's own kind and its SDF
 side's own type are evaluated); with them, the single-assignment form the differentiated stages need
-(func_slot_geometry_selected: every kind and type the scene has, selected, a box pair's slots at the choices of
-their separating-axis test that func_box_sat_slot keeps as integers). A scene with every slot kind and
+(func_slot_geometry_selected: every kind and type the scene has, selected). A box pair's edge and face slots take
+the choices of their pair's separating-axis test (func_box_pair_test, which the broad phase runs for the active
+pairs; here for every box pair) in both. A scene with every slot kind and
 SDF type (box corners, edges and faces, capsule segment pairs, cylinder rims, points against planes, boxes,
 capsules, cylinders and meshes; spheres as points), its bodies and a Panda's joints posed at random in 4 envs: both forms,
 slot by slot, give the same point, normal and depth to round-off. Default options, float64."""
@@ -12,7 +13,7 @@ import taichi as ti
 import genesis_lite as gs
 from solvers.rigid.collision.geoms import (GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE,
                                            SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG)
-from solvers.rigid.collision.narrow import func_box_sat_slot, func_slot_geometry_branched, func_slot_geometry_selected
+from solvers.rigid.collision.narrow import func_box_pair_test, func_slot_geometry_branched, func_slot_geometry_selected
 
 from conftest import robot_urdf
 
@@ -50,11 +51,14 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
 
     @ti.kernel
     def both(s: ti.template()):
-        for i_b, i_s in ti.ndrange(N_ENVS, s.contact.n_slots):
+        c = s.contact
+        for i_b, i_p in ti.ndrange(N_ENVS, c.n_pairs):
+            ga = c.pair_ga[i_p]
+            gb = c.pair_gb[i_p]
+            if (c.geom_type[ga] == GEOM_BOX) & (c.geom_type[gb] == GEOM_BOX):
+                c.pair_box[i_b, i_p] = func_box_pair_test(c, i_b, ga, gb)
+        for i_b, i_s in ti.ndrange(N_ENVS, c.n_slots):
             p1, n1, d1 = func_slot_geometry_branched(s, i_b, i_s)
-            kind = s.contact.slot_kind[i_s]
-            if (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE):  # (the gradient path's stage: active pairs only)
-                func_box_sat_slot(s.contact, i_b, i_s)
             p2, n2, d2 = func_slot_geometry_selected(s, i_b, i_s)
             for j in ti.static(range(3)):
                 out[i_b, i_s, 0, j] = p1[j]

@@ -52,8 +52,8 @@ from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CA
                     GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE,
                     SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG, ContactBuildError, GeomTable, build_geoms, build_slots,
                     candidate_pairs, geom_box_columns, geom_rotations, link_is_dynamic, sample_points)
-from .narrow import NO_ADJOINT, func_box_sat, func_broad_phase, func_geom_pose, func_slot_geometry
+from .narrow import NO_ADJOINT, func_broad_phase, func_geom_pose, func_slot_geometry
 from .sdf import TINY, func_sdf_any, func_sdf_of, func_segment_closest
 
-__all__ = ["build_geoms", "candidate_pairs", "build_slots", "func_geom_pose", "func_broad_phase", "func_box_sat",
+__all__ = ["build_geoms", "candidate_pairs", "build_slots", "func_geom_pose", "func_broad_phase",
            "func_slot_geometry", "ContactBuildError"]

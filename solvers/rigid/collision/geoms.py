@@ -498,8 +498,9 @@ def build_slots(geoms: GeomTable, pairs):
         else:
             jobs = [(a, b, False), (b, a, False)]
             if ta == GEOM_BOX and tb == GEOM_BOX:
-                tol = BOXEDGE_TOL * float(min(geoms.size[a].min(), geoms.size[b].min()))
-                slots.append((i_p, SLOT_BOXEDGE, a, b, np.zeros(3), 0.0, tol))
+                # (the pair's separating-axis test decides which of its edge and face slots hold the contact:
+                # narrow.func_box_pair_test)
+                slots.append((i_p, SLOT_BOXEDGE, a, b, np.zeros(3), 0.0, 0.0))
                 # face on face: which box holds the reference face is decided at run time; (a, b) only
                 # fixes the convention of the slot's normal (from b towards a) and force (on a)
                 for code in range(N_BOXFACE):

@@ -109,6 +109,9 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
                         if gap - h * closing < c.margin and c.geom_type[ga] == GEOM_MESH and c.geom_type[gb] == GEOM_MESH:
                             gap = ti.max(gap, func_gap_mesh_planes(c, i_b, i_p, ga, gb, Ra, Rb, c.margin + h * closing))
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
+        if ti.static(c.has_boxedge):  # a box pair's separating-axis test, once for its slots
+            if (c.pair_active[i_b, i_p] == 1) & (c.geom_type[ga] == GEOM_BOX) & (c.geom_type[gb] == GEOM_BOX):
+                c.pair_box[i_b, i_p] = func_box_pair_test(c, i_b, ga, gb)
 
 
 @ti.func
@@ -447,31 +450,57 @@ def func_box_face_contact(xa, Ra, ha, xb, Rb, hb, f, code, on, tol):
 
 
 @ti.func
-def func_box_choices(c: ti.template(), i_s, kind, xa, Ra, ha, xb, Rb, hb):
-    """The separating-axis test of box slot i_s (an edge or face slot of boxes a and b): the best face axis f
-    (func_face_best), the best edge pair's separation sep_e, unit axis L from a to b and edge axes a_i, b_j
-    (func_edge_best), and the slot's verdict: for an edge slot whether its edge axis beats every face axis
-    by the slot's tol (its aux), for a face slot whether none does (func_face_tol). The one test of both
-    paths: the fused step's geometry takes it at once (func_box_slot), the gradient path keeps its choices
-    as integers (func_box_sat_slot) and differentiates the chosen edge axis alone (func_with_boxedge)."""
+def func_box_pair_test(c: ti.template(), i_b, ga, gb):
+    """The separating-axis test of box pair (ga, gb), once for all its edge and face slots (the broad phase
+    runs it for each active box pair; its choices go to pair_box): the best face axis f (func_face_best:
+    0..2 box a's, 3..5 box b's), the best edge pair (a_i, b_j) (func_edge_best), and whether that edge axis
+    beats every face axis by the pair's tol (func_face_tol): then the edge slot has the contact, else the
+    face slots. The slots' geometry, without gradients and with, evaluates the chosen edge axis alone
+    (func_box_edge_slot), so the gradient path's adjoint holds no maximum over 15 axes: the adjoint of the
+    slots stage of six boxes on a plane compiled in 15.6-16.7 s with it, 5.6-5.8 s without (cold, two
+    alternated pairs, 2026-12-02). Until then each of a pair's 9 edge and face slots ran the test itself
+    (in a stage of its own on the gradient path): Genesis's 100-box tower (benchmarks/tower_bounce.py) took
+    6.30-6.40 s for steps 25-1,000, now 6.00-6.10 s (three alternated pairs, warm caches)."""
+    xa = c.geom_xpos[i_b, ga]
+    xb = c.geom_xpos[i_b, gb]
+    Ra = c.geom_xR[i_b, ga]
+    Rb = c.geom_xR[i_b, gb]
+    ha = c.geom_size[ga]
+    hb = c.geom_size[gb]
     T = xb - xa
     sep_f, f = func_face_best(T, Ra, ha, Rb, hb, 0)
-    sep_e, L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
-    verdict = ti.select(kind == SLOT_BOXEDGE, sep_e > sep_f + c.slot_aux[i_s], sep_e <= sep_f + func_face_tol(ha, hb))
-    return f, sep_e, L, i, j, verdict
+    sep_e, _L, i, j = func_edge_best(T, Ra, ha, Rb, hb, 0)
+    return func_box_pack(f, i, j, sep_e > sep_f + func_face_tol(ha, hb))
 
 
 @ti.func
-def func_box_pack(f, i, j, verdict):
-    """func_box_choices' integers as one, sl_box's: f + 8 (3 i + j) + 128 verdict (func_box_unpack)."""
-    return f + 8 * (3 * i + j) + ti.select(verdict, 128, 0)
+def func_box_pack(f, i, j, edge_wins):
+    """func_box_pair_test's choices as one integer, pair_box's: f + 8 (3 i + j) + 128 edge_wins
+    (func_box_unpack)."""
+    return f + 8 * (3 * i + j) + ti.select(edge_wins, 128, 0)
 
 
 @ti.func
 def func_box_unpack(code):
-    """(f, i, j, verdict) of func_box_pack's integer."""
+    """(f, i, j, edge_wins) of func_box_pack's integer."""
     e = (code // 8) % 16
     return code % 8, e // 3, e % 3, code >= 128
+
+
+@ti.func
+def func_box_choices(c: ti.template(), i_b, i_s, kind):
+    """Box slot i_s's share of its pair's test (pair_box): the face axis f, the edge pair (i, j), and the
+    slot's verdict: for the edge slot whether the edge axis wins, for a face slot whether it does not."""
+    f, i, j, edge_wins = func_box_unpack(c.pair_box[i_b, c.slot_pair[i_s]])
+    return f, i, j, edge_wins == (kind == SLOT_BOXEDGE)
+
+
+@ti.func
+def func_box_edge_slot(xa, Ra, ha, xb, Rb, hb, i, j, verdict):
+    """(point, normal, depth) of a box pair's edge slot at the test's edge pair (i, j): that axis's separation
+    and direction (func_edge_axis), then the edge-edge contact."""
+    sep_e, L = func_edge_axis(xb - xa, func_col_at(Ra, i), func_col_at(Rb, j), Ra, ha, Rb, hb)
+    return func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, verdict, sep_e, L, i, j)
 
 
 @ti.func
@@ -483,22 +512,20 @@ def func_box_face_slot(c: ti.template(), i_s, xa, Ra, ha, xb, Rb, hb, f, verdict
 
 @ti.func
 def func_face_tol(ha, hb):
-    """A face slot's tol: the edge slot's (build_slots), computed here (a face slot's aux is its code)."""
+    """A box pair's tol: 2 % of the two boxes' smallest half size (func_box_pair_test)."""
     return BOXEDGE_TOL * ti.min(ha.min(), hb.min())
 
 
 @ti.func
 def func_with_boxedge(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, n, depth):
     """(point, normal, depth) of the slot: those given, or for box edge slots the edge-edge contact and
-    for box face slots the face-face crossing, at the choices of the separating-axis test of the two boxes
-    that func_box_sat made (sl_box): only the chosen edge axis is differentiated here, not the maximum over
-    the 15 axes (the same numbers: a select passes on the value it takes)."""
+    for box face slots the face-face crossing, at the choices of their pair's separating-axis test
+    (func_box_pair_test): only the chosen edge axis is differentiated."""
     if ti.static(c.has_boxedge):
-        f, i, j, verdict = func_box_unpack(c.sl_box[i_b, i_s])
+        f, i, j, verdict = func_box_choices(c, i_b, i_s, kind)
         ha = c.geom_size[ga]
         hb = c.geom_size[gb]
-        sep_e, L = func_edge_axis(xb - xa, func_col_at(Ra, i), func_col_at(Rb, j), Ra, ha, Rb, hb)
-        pe, ne, de = func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, verdict, sep_e, L, i, j)
+        pe, ne, de = func_box_edge_slot(xa, Ra, ha, xb, Rb, hb, i, j, verdict)
         be = kind == SLOT_BOXEDGE
         pos_e = ti.select(be, pe, pos)
         n_e = ti.select(be, ne, n)
@@ -514,17 +541,17 @@ def func_with_boxedge(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, 
 
 
 @ti.func
-def func_box_slot(c: ti.template(), i_s, kind, ga, gb, xa, Ra, xb, Rb):
+def func_box_slot(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb):
     """(point, normal, depth) of a box pair's edge or face slot (kind, at run time), only its own (no
     gradients: runtime branches)."""
     ha = c.geom_size[ga]
     hb = c.geom_size[gb]
-    f, sep_e, L, i, j, verdict = func_box_choices(c, i_s, kind, xa, Ra, ha, xb, Rb, hb)
+    f, i, j, verdict = func_box_choices(c, i_b, i_s, kind)
     pos = ti.Vector.zero(c.dtype, 3)
     n = ti.Vector.zero(c.dtype, 3)
     depth = ti.cast(0.0, c.dtype)
     if kind == SLOT_BOXEDGE:
-        pos, n, depth = func_box_edge_contact(xa, Ra, ha, xb, Rb, hb, verdict, sep_e, L, i, j)
+        pos, n, depth = func_box_edge_slot(xa, Ra, ha, xb, Rb, hb, i, j, verdict)
     else:
         if ti.static(c.has_boxface):
             pos, n, depth = func_box_face_slot(c, i_s, xa, Ra, ha, xb, Rb, hb, f, verdict)
@@ -575,7 +602,7 @@ def func_slot_geometry_branched(s: ti.template(), i_b, i_s):
         box_kind = (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE)
     if box_kind:
         if ti.static(c.has_boxedge):
-            pos, n, depth = func_box_slot(c, i_s, kind, ga, gb, xa, Ra, xb, Rb)
+            pos, n, depth = func_box_slot(c, i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb)
     else:
         ra = c.slot_r[i_s]
         zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])
@@ -622,31 +649,5 @@ def func_slot_geometry_selected(s: ti.template(), i_b, i_s):
     return func_with_boxedge(c, i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, cp, n, depth)
 
 
-@ti.func
-def func_box_sat(s: ti.template(), i_b, e, src, h):
-    """The gradient path's separating-axis test of every box edge and face slot of an active pair
-    (func_box_sat_slot; 0 for the other slots). func_with_boxedge then differentiates the chosen edge axis
-    alone: with the maximum over the 15 axes in the differentiated stage, the adjoint of the slots stage of
-    six boxes on a plane compiled in 15.6-16.7 s, now 5.6-5.8 s (cold, two alternated pairs, 2026-12-02). It
-    writes no float (NO_ADJOINT): the backward's replay of the evaluation runs it again."""
-    c = s.contact
-    for i_s in range(c.n_slots):
-        kind = c.slot_kind[i_s]
-        if ((kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE)) & (c.pair_active[i_b, c.slot_pair[i_s]] == 1):
-            func_box_sat_slot(c, i_b, i_s)
-        else:
-            c.sl_box[i_b, i_s] = 0
-
-
-@ti.func
-def func_box_sat_slot(c: ti.template(), i_b, i_s):
-    """The choices of the separating-axis test of box slot i_s (func_box_choices: the best face axis, the
-    best edge pair, the slot's verdict) as one integer, sl_box[env, slot] (func_box_pack): the choices the
-    scene without gradients makes (func_box_slot)."""
-    kind, ga, gb, xa, Ra, xb, Rb = func_slot_sides(c, i_b, i_s)
-    f, _sep_e, _L, i, j, verdict = func_box_choices(c, i_s, kind, xa, Ra, c.geom_size[ga], xb, Rb, c.geom_size[gb])
-    c.sl_box[i_b, i_s] = func_box_pack(f, i, j, verdict)
-
-
 # stages that write no float: their adjoint is empty, and the gradient path's backward does not run it
-NO_ADJOINT = (func_broad_phase, func_box_sat)
+NO_ADJOINT = (func_broad_phase,)

@@ -61,7 +61,7 @@ class ContactPlan:
         self.has_rim = any(x[1] == SLOT_CYL_RIM for x in slots)
         self.has_segseg = any(x[1] == SLOT_SEGSEG for x in slots)
         self.has_boxedge = any(x[1] == SLOT_BOXEDGE for x in slots)
-        # (box-box pairs have both; the face slots need the edge slots' separating-axis test)
+        # (box-box pairs have both; the broad phase runs their pair's separating-axis test)
         self.has_boxface = any(x[1] == SLOT_BOXFACE for x in slots)
         self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)

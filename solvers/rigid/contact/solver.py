@@ -6,7 +6,7 @@ import numpy as np
 import taichi as ti
 
 from ... import taichi_compat
-from ..collision import N_KDOP, func_box_sat, func_broad_phase, func_geom_pose, geom_box_columns, geom_rotations
+from ..collision import N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns, geom_rotations
 from ..kinematics import LINK_STATE
 from ..layout import FieldTree, ZeroPlan, by_env_axis, func_zero_plan
 from .banks import AccBank
@@ -114,6 +114,9 @@ class ContactSolver:
         # per pair and side, the plane that parted two meshes in their last broad-phase test (a hint:
         # narrow.func_gap_mesh_planes starts there; no result depends on it)
         self.pair_hint = I((B, Pn, 2))
+        # a box pair's separating-axis test (collision.func_box_pair_test: the broad phase's, for the active box
+        # pairs; their edge and face slots read it)
+        self.pair_box = I((B, Pn) if self.has_boxedge else 1)
         # the broad phase's per-geom terms (narrow.func_broad_phase): bounding sphere centre, world box half
         # widths, centre speed, rotation sweep
         self.geom_bc, self.geom_ext = V3((B, G), False), V3((B, G), False)
@@ -139,9 +142,6 @@ class ContactSolver:
         # it (the relinearise pass kept it); sl_u_normal, sl_load: the velocity and the normal force of
         # the normal solve (Coulomb's load); sl_in_final: still in after the friction pass
         self.sl_in_normal, self.sl_cand = I((B, S)), I((B, S))
-        # the separating-axis choices of box pairs' edge and face slots that the gradient path's geometry takes
-        # (collision.func_box_sat)
-        self.sl_box = I((B, S) if self.has_boxedge else 1)
         # the normal rounds (rounds.func_normal_round): each slot's law at the rounds' current start and
         # its change over a round's step; the rounds in which the slot changed sides (bit r) and came in
         # (bit r of sl_togin); the start (a dof vector); whether an env's rounds are over (gradient path)
@@ -251,9 +251,6 @@ class ContactSolver:
             self.relinearise_pass, self.friction_pass = RELINEARISE_PASS_CROSS, FRICTION_PASS_CROSS
             if g:
                 self.grad_fields += [self.mass_cross]
-        if g and self.has_boxedge:  # the separating-axis choices, after the broad phase (no adjoint: see the stage)
-            k = self.stages.index(func_broad_phase) + 1
-            self.stages = self.stages[:k] + (func_box_sat,) + self.stages[k:]
         # the launches of the solve op on the gradient path (factor_solve), by name: kernel_run(s, name)
         self.steps = {"solve_candidates": (func_solve_candidates,), "relinearise_pass": self.relinearise_pass,
                       "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
