@@ -12,7 +12,7 @@ forward only (ContactSolver.kernel_normal_round) and each round's change of the 
 own (toggle_round), recorded with its adjoint."""
 import taichi as ti
 
-from .banks import func_bank_add, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
+from .banks import func_bank_add, func_bank_cross, func_bank_dof, func_bank_dof_vectors, func_bank_project, func_bank_tree
 from .linalg import ENV_NORMAL, func_factor_into, func_if_coupled, func_tree_env
 from .passes import (ROUND_OFF_F32, ROUND_OFF_F64, bank_clear_stage, bank_stage, func_link_motion, func_rel_motion,
                      func_relinearise_clear, func_relinearise_clear_pairs, func_relinearise_cross,
@@ -212,18 +212,30 @@ def func_toggle_sums(s: ti.template(), i_b, r):
     func_if_coupled(s, i_b, func_relinearise_cross)
 
 
-def toggle_round(r: int, n_lp: int):
-    """The stages of normal round r's change on the gradient path (ContactSolver.steps["toggle<r>"]): the
-    marked slots' laws onto the round's own bank, its sums onto the system."""
+def toggle_round(n_lp: int):
+    """The stages of a normal round's change on the gradient path (ContactSolver.steps["toggle"]), for the
+    round in round_now[0]: the marked slots' laws onto bank_toggle, its sums onto the system. One kernel
+    for every round (a kernel a round compiled up to 8 times the same code); the rounds share the bank, so
+    the backward rebuilds round r's bank (toggle_rebuild) before its adjoint."""
+    sums = tuple(bank_stage(op, "toggle") for op in (func_bank_tree, func_bank_dof, func_bank_project))
+    if n_lp > 0:
+        sums += (bank_stage(func_bank_cross, "toggle"),)
+    return toggle_rebuild()[:2] + sums
+
+
+def toggle_rebuild():
+    """The stages that write bank_toggle alone (ContactSolver.steps["toggle_rebuild"]): cleared, the marked
+    slots' laws of round round_now[0], summed up the tree, the dofs' spatial vectors (not their forces). The
+    adjoint of the round's sums reads the bank's forward values (which links it touched, the sums that
+    multiply the dofs' motion), and the later rounds have overwritten them."""
 
     @ti.func
     def func_toggle_slots(s: ti.template(), i_b):
         c = s.contact
+        r = c.round_now[0]
         for i_s in range(c.n_slots):
             if c.sl_on[i_b, i_s] == 1:
-                func_toggle_slot(s, i_b, i_s, r, c.bank_toggle[r])
+                func_toggle_slot(s, i_b, i_s, r, c.bank_toggle)
 
-    sums = tuple(bank_stage(op, f"toggle{r}") for op in (func_bank_tree, func_bank_dof, func_bank_project))
-    if n_lp > 0:
-        sums += (bank_stage(func_bank_cross, f"toggle{r}"),)
-    return (bank_clear_stage(f"toggle{r}"), func_toggle_slots) + sums
+    return (bank_clear_stage("toggle"), func_toggle_slots, bank_stage(func_bank_tree, "toggle"),
+            bank_stage(func_bank_dof_vectors, "toggle"))

@@ -15,7 +15,7 @@ from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, fun
 from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
                      RELINEARISE_PASS_CROSS, bound_round, func_bound_count,
                      func_link_motion)
-from .rounds import NORMAL_ROUNDS, func_normal_round, toggle_round
+from .rounds import NORMAL_ROUNDS, func_normal_round, toggle_rebuild, toggle_round
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import (MAX_DEEP_WARNINGS, ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report,
                      geom_half_thickness)
@@ -191,11 +191,14 @@ class ContactSolver:
         self.bank_bound = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(K)]
         self.rounds = 0  # the bound rounds the last factor_solve recorded
         self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
-        # the normal rounds' changes on the gradient path (rounds.toggle_round), one bank a round
-        KN = NORMAL_ROUNDS if g else 0
-        self.bank_toggle = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(KN)]
+        # the normal rounds' changes on the gradient path (rounds.toggle_round): one bank for every round, the
+        # round in round_now[0]
+        self.max_normal_rounds = NORMAL_ROUNDS if g else 0
+        self.bank_toggle = AccBank(B, L, D, n_lp, f, g, True) if g else None
+        self.round_now = I(1)
         self.normal_rounds = 0  # the normal rounds the last factor_solve recorded
-        self.banks.update({f"toggle{r}": b for r, b in enumerate(self.bank_toggle)})
+        if g:
+            self.banks["toggle"] = self.bank_toggle
         self.link_w_report, self.link_v_report = V3((B, L), False), V3((B, L), False)
         self.solve_tmp = F((1, B, D), False)
         # placeholders where the scene has no pairs of moving links (kernel_load's arguments)
@@ -236,7 +239,7 @@ class ContactSolver:
                                     + self.bank_relinearise.grad_fields + self.bank_coulomb.grad_fields
                                     + self.bank_friction.grad_fields + [self.sl_eta] + self.bnd_x + self.bnd_w
                                     + self.bnd_v + self.bnd_eta + [x for b in self.bank_bound for x in b.grad_fields]
-                                    + [x for b in self.bank_toggle for x in b.grad_fields]
+                                    + self.bank_toggle.grad_fields
                                     + ([self.sl_load_c] if self.load_shift > 0.0 else [])
                                     ) if g else []
         # zeroed in one loop over the envs, a group of fields per shape of the rest (a loop per field made
@@ -256,7 +259,10 @@ class ContactSolver:
                       "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
                       "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
         self.steps.update({f"bound{r}": bound_round(r, n_lp) for r in range(K)})
-        self.steps.update({f"toggle{r}": toggle_round(r, n_lp) for r in range(KN)})
+        if g:
+            self.steps.update({"toggle": toggle_round(n_lp), "toggle_rebuild": toggle_rebuild()})
+            # the bank's adjoints, zeroed between two rounds' adjoints
+            self.toggle_grad_plan = ZeroPlan((), (), 0, *by_env_axis([x.grad for x in self.bank_toggle.grad_fields], B))
 
     def fits(self, plan: ContactPlan) -> bool:
         """Whether a scene's plan can run on this solver's fields and kernels."""
@@ -421,8 +427,9 @@ class ContactSolver:
         # the normal rounds, while one changes an env's system (as the fused step's, which stops each env
         # at its first round that changes nothing: an env done here is left alone by the later rounds)
         self.normal_rounds = 0
-        while self.normal_rounds < len(self.bank_toggle) and self.kernel_normal_round(s, self.normal_rounds) > 0:
-            self.kernel_run(s, f"toggle{self.normal_rounds}")
+        while self.normal_rounds < self.max_normal_rounds and self.kernel_normal_round(s, self.normal_rounds) > 0:
+            self.round_now[0] = self.normal_rounds
+            self.kernel_run(s, "toggle")
             self.kernel_run(s, "solve_normal")
             self.normal_rounds += 1
         for which in ("coulomb_pass", "solve_coulomb", "friction_pass"):
@@ -440,7 +447,7 @@ class ContactSolver:
     def solve_grad(self, s, e: int):
         """Adjoint of factor_solve, with its forward values in the fields (its last run's rounds)."""
         if self.scratch_grad_fields:
-            self.kernel_clear_scratch_grads(s)
+            self.kernel_clear_grads(s, self.scratch_grad_plan)
         s.kernel_mass_solve(e, True)
         for r in reversed(range(self.rounds)):
             self.kernel_run.grad(s, f"bound{r}")
@@ -452,7 +459,11 @@ class ContactSolver:
         # the rounds' solves before the last feed only their choices of slots (no gradient); the system
         # the last one solved is the relinearise pass's plus every round's change
         for r in reversed(range(self.normal_rounds)):
-            self.kernel_run.grad(s, f"toggle{r}")
+            self.round_now[0] = r
+            if r < self.normal_rounds - 1:  # the shared bank holds the last round's values and round r + 1's adjoints
+                self.kernel_run(s, "toggle_rebuild")
+                self.kernel_clear_grads(s, self.toggle_grad_plan)
+            self.kernel_run.grad(s, "toggle")
         self.kernel_run.grad(s, "relinearise_pass")
         self.kernel_adjoint_solve(s, 0)
 
@@ -564,12 +575,14 @@ class ContactSolver:
                     func_solve_adjoint(s, self.bnd_fac[r], ENV_BOUND + r, i_b, self.bnd_x[r], self.bnd_x[r].grad, 0, s.force.grad)
 
     @ti.kernel
-    def kernel_clear_scratch_grads(self, s: ti.template()):
-        """Zero the scratch fields' adjoints, every env of the capacity (as constants: no NaN survives)."""
+    def kernel_clear_grads(self, s: ti.template(), plan: ti.template()):
+        """Zero the adjoints of a plan's fields (scratch_grad_plan: the scratch fields', before each solve's
+        backward; toggle_grad_plan: bank_toggle's, between two normal rounds' adjoints), every env of the
+        capacity (as constants: no NaN survives)."""
         if ti.static(s.serial):
             ti.loop_config(serialize=True)
         for i_b in range(s.cap_envs):
-            func_zero_plan(self.scratch_grad_plan, i_b, 0)
+            func_zero_plan(plan, i_b, 0)
 
     def watch(self, step: int, evals_per_step: int, h: float):
         """After a step without gradients (scene step number `step`) when `clock.due()` says so: warn
