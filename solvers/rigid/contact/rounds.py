@@ -212,30 +212,30 @@ def func_toggle_sums(s: ti.template(), i_b, r):
     func_if_coupled(s, i_b, func_relinearise_cross)
 
 
+@ti.func
+def func_toggle_slots(s: ti.template(), i_b):
+    """The laws of the slots marked for normal round round_now[0] onto bank_toggle (gradient path)."""
+    c = s.contact
+    r = c.round_now[0]
+    for i_s in range(c.n_slots):
+        if c.sl_on[i_b, i_s] == 1:
+            func_toggle_slot(s, i_b, i_s, r, c.bank_toggle)
+
+
 def toggle_round(n_lp: int):
     """The stages of a normal round's change on the gradient path (ContactSolver.steps["toggle"]), for the
     round in round_now[0]: the marked slots' laws onto bank_toggle, its sums onto the system. One kernel
     for every round (a kernel a round compiled up to 8 times the same code); the rounds share the bank, so
-    the backward rebuilds round r's bank (toggle_rebuild) before its adjoint."""
+    the backward rebuilds round r's bank (TOGGLE_REBUILD) before its adjoint."""
     sums = tuple(bank_stage(op, "toggle") for op in (func_bank_tree, func_bank_dof, func_bank_project))
     if n_lp > 0:
         sums += (bank_stage(func_bank_cross, "toggle"),)
-    return toggle_rebuild()[:2] + sums
+    return (bank_clear_stage("toggle"), func_toggle_slots) + sums
 
 
-def toggle_rebuild():
-    """The stages that write bank_toggle alone (ContactSolver.steps["toggle_rebuild"]): cleared, the marked
-    slots' laws of round round_now[0], summed up the tree, the dofs' spatial vectors (not their forces). The
-    adjoint of the round's sums reads the bank's forward values (which links it touched, the sums that
-    multiply the dofs' motion), and the later rounds have overwritten them."""
-
-    @ti.func
-    def func_toggle_slots(s: ti.template(), i_b):
-        c = s.contact
-        r = c.round_now[0]
-        for i_s in range(c.n_slots):
-            if c.sl_on[i_b, i_s] == 1:
-                func_toggle_slot(s, i_b, i_s, r, c.bank_toggle)
-
-    return (bank_clear_stage("toggle"), func_toggle_slots, bank_stage(func_bank_tree, "toggle"),
-            bank_stage(func_bank_dof_vectors, "toggle"))
+# The stages that write bank_toggle alone (ContactSolver.steps["toggle_rebuild"]): cleared, the marked slots'
+# laws of round round_now[0], summed up the tree, the dofs' spatial vectors (not their forces). The adjoint of a
+# round's sums reads the bank's forward values (which links it touched, the sums that multiply the dofs'
+# motion), and the later rounds have overwritten them.
+TOGGLE_REBUILD = (bank_clear_stage("toggle"), func_toggle_slots, bank_stage(func_bank_tree, "toggle"),
+                  bank_stage(func_bank_dof_vectors, "toggle"))

@@ -15,7 +15,7 @@ from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, fun
 from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
                      RELINEARISE_PASS_CROSS, bound_round, func_bound_count,
                      func_link_motion)
-from .rounds import NORMAL_ROUNDS, func_normal_round, toggle_rebuild, toggle_round
+from .rounds import NORMAL_ROUNDS, TOGGLE_REBUILD, func_normal_round, toggle_round
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import (MAX_DEEP_WARNINGS, ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report,
                      geom_half_thickness)
@@ -193,7 +193,6 @@ class ContactSolver:
         self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
         # the normal rounds' changes on the gradient path (rounds.toggle_round): one bank for every round, the
         # round in round_now[0]
-        self.max_normal_rounds = NORMAL_ROUNDS if g else 0
         self.bank_toggle = AccBank(B, L, D, n_lp, f, g, True) if g else None
         self.round_now = I(1)
         self.normal_rounds = 0  # the normal rounds the last factor_solve recorded
@@ -260,7 +259,7 @@ class ContactSolver:
                       "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
         self.steps.update({f"bound{r}": bound_round(r, n_lp) for r in range(K)})
         if g:
-            self.steps.update({"toggle": toggle_round(n_lp), "toggle_rebuild": toggle_rebuild()})
+            self.steps.update({"toggle": toggle_round(n_lp), "toggle_rebuild": TOGGLE_REBUILD})
             # the bank's adjoints, zeroed between two rounds' adjoints
             self.toggle_grad_plan = ZeroPlan((), (), 0, *by_env_axis([x.grad for x in self.bank_toggle.grad_fields], B))
 
@@ -427,7 +426,7 @@ class ContactSolver:
         # the normal rounds, while one changes an env's system (as the fused step's, which stops each env
         # at its first round that changes nothing: an env done here is left alone by the later rounds)
         self.normal_rounds = 0
-        while self.normal_rounds < self.max_normal_rounds and self.kernel_normal_round(s, self.normal_rounds) > 0:
+        while self.normal_rounds < NORMAL_ROUNDS and self.kernel_normal_round(s, self.normal_rounds) > 0:
             self.round_now[0] = self.normal_rounds
             self.kernel_run(s, "toggle")
             self.kernel_run(s, "solve_normal")
