@@ -290,6 +290,9 @@ def _boxes_and_ball(n_envs, specialize):
     return scene, torch.stack(out)
 
 
+@pytest.mark.slow  # an option (specialize_kernels=True) whose own compile is ~2 minutes, for the default
+# suite's margin under 15 minutes; by default test_joint_limits steps a specialised core with and
+# without a plane against the shared kernels
 def test_specialized_kernels_give_the_shared_kernels_results():
     """RigidOptions(specialize_kernels=True) compiles the contact sizes in as constants (fields of
     exact sizes, not pooled by class) and keeps gs.init's optimisation for the fused step: the same

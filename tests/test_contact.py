@@ -849,6 +849,8 @@ def _quadruped_random_targets(urdf_path, n_steps):
     assert lowest > -0.02  # link origins (joint axes) never sink into the ground
 
 
+@pytest.mark.slow  # a stress run, for the default suite's margin under 15 minutes; by default the quadruped
+# stands and converges (test_quadruped_standing_converges_as_dt_shrinks)
 def test_stress_quadruped_random_pd_targets_10000_steps(urdf_path):
     _quadruped_random_targets(urdf_path, 10000)  # ~8 s
 

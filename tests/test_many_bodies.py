@@ -83,27 +83,30 @@ def test_the_broad_phase_boxes_change_no_number():
     Panda with self-collision on, folding its hand onto its forearm, in two fresh processes: with the
     broad phase as it is, and with its bounding-box tests (world axes, then oriented boxes) and its test of
     two meshes' planes against each other's points replaced by ones that never separate a pair (bounding
-    spheres alone). The trajectories are the same to the bit, with far fewer pair activations."""
+    spheres alone). The trajectories are the same to the bit, with far fewer pair activations. The pile is
+    seed 8's, one that blew up before the normal rounds (test_thrown_piles_stay_bounded): it stays bounded."""
     out = {}
     for mode in ("boxes", "spheres"):
-        done = subprocess.run([sys.executable, str(WORKERS / "broad_phase_pile.py"), mode, "14", "arm"],
+        done = subprocess.run([sys.executable, str(WORKERS / "broad_phase_pile.py"), mode, "8", "arm"],
                               capture_output=True, text=True, timeout=900)
         assert done.returncode == 0, (mode, done.stderr[-3000:])
         pile, arm = (json.loads(x) for x in done.stdout.strip().splitlines()[-2:])
         out[mode] = {"pile": pile, "arm": arm}
     boxes, spheres = out["boxes"], out["spheres"]
     assert boxes["pile"]["sha"] == spheres["pile"]["sha"], out
-    # 1,720 against 3,987 (2026-11-29, with the oriented boxes; 2,866 against 3,979 with the world-axis boxes
-    # alone on 2026-11-28; the count follows the pile's course)
+    # seed 8: 1,552 against 3,815 (2026-12-03); seed 14: 1,720 against 3,987 (2026-11-29, with the oriented
+    # boxes; 2,866 against 3,979 with the world-axis boxes alone on 2026-11-28; the count follows the pile's course)
     assert boxes["pile"]["active"] < 0.8 * spheres["pile"]["active"], out
     assert boxes["pile"]["z_min"] > 0.0, out  # nothing went through the ground
-    assert boxes["pile"]["v_max"] < 10.0, out  # nothing blew up (falls of up to 3 m: 7.7 m/s)
+    assert boxes["pile"]["v_max"] < 8.0, out  # nothing blew up (falls of up to 3 m: 7.7 m/s; 7.34 measured)
     # the arm: 395 against 1,516 (2026-11-29), while its own meshes touch (fingers, link 5)
     assert boxes["arm"]["sha"] == spheres["arm"]["sha"], out
     assert boxes["arm"]["active"] < 0.5 * spheres["arm"]["active"], out
     assert boxes["arm"]["own_contacts"] > 0, out
 
 
+@pytest.mark.slow  # four seeds of the pile (~40 s), for the default suite's margin under 15 minutes; by
+# default test_the_broad_phase_boxes_change_no_number throws seed 8's pile and bounds its speed and depth
 def test_thrown_piles_stay_bounded():
     """The broad-phase pile (tests/workers/broad_phase_pile.py: 14 planks, upright 1 m cylinders, boxes
     and spheres thrown at each other and the ground at up to 2 m/s and 6 rad/s) with four seeds that
