@@ -125,7 +125,9 @@ the first solve (a Newton step), and it acts if the law pushes there. Contacts a
 their first linearisation (linearising them again too left a 30-link chain on the ground swinging). The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse; the gradient path
-keeps each bound round's starting solution and factor for its adjoint).
+keeps each bound round's starting solution and factor for its adjoint; the normal and the bound rounds each run
+one kernel whatever the round, the round read at run time, and their backward rebuilds a round's shared
+forward values before its adjoint).
 
 Friction's load (RigidOptions.friction_load). The frictionless solve's normal forces f2 miss the load that
 friction itself moves between a body's contacts (a box sliding on a face presses its leading edge; a

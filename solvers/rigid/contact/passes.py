@@ -10,13 +10,14 @@ Taichi, each stage one loop per env as the dynamics stages.
   friction     after the Coulomb response: friction as a viscosity, and the contacts whose normal-solve
                force pulled leave (step 4); its changes go to bank_friction
   bound        after the final solve, while a contact's friction exceeds Coulomb's law at its slip:
-               the law's secant there (step 5); its changes go to bank_bound[r] (round r, gradient
-               path) or bank_friction (without gradients)
+               the law's secant there (step 5); its changes go to bank_bound (gradient path, one bank
+               for every round) or bank_friction (without gradients)
 """
 import taichi as ti
 
 from ..math3d import div_floor
-from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
+from .banks import (func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof,
+                    func_bank_dof_vectors, func_bank_project, func_bank_tree)
 from .linalg import func_if_coupled
 from .law import func_heavy_scale, func_normal_law
 
@@ -417,11 +418,6 @@ def func_bound_eta(eta, speed, bound, sec):
     return eta + w * (sec - eta)
 
 
-def _distinct(a, b) -> bool:
-    """Whether two template arguments are different objects (Taichi's scope has no `is`)."""
-    return a is not b
-
-
 @ti.func
 def func_u_at(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.template()):
     """Slot i_s's relative velocity at the end of the step for the link motion (lw, lv) of a solve: what a
@@ -505,22 +501,19 @@ def func_release_slot(s: ti.template(), i_b, i_s, u3):
 
 
 @ti.func
-def func_bound_slot(s: ti.template(), i_b, i_s, u3, src: ti.template(), dst: ti.template(), bank: ti.template(),
-                    in_src: ti.template(), in_dst: ti.template(), rel: ti.template()):
-    """A bound round for slot i_s at its relative velocity u3 after the last solve (func_u_at), by
-    func_release_slot's choice (rel): a slot in the final system at the round's start (in_src) keeps its
-    normal law, its viscosity src -> dst (func_bound_eta), or is released (rel 1: law and friction out of
-    the system, in_dst 0); a slot released earlier comes back (rel 2: law and the friction pass's
-    viscosity). The change added onto `bank` and recorded in sl_eta_now and sl_in_now. Returns 1 if the
-    system changed."""
+def func_bound_slot(s: ti.template(), i_b, i_s, u3, eta, inside, rel, bank: ti.template()):
+    """A bound round for slot i_s at its relative velocity u3 after the last solve (func_u_at), of viscosity
+    eta, in the final system at the round's start where `inside`, by func_release_slot's choice `rel`: a slot
+    inside keeps its normal law, its viscosity eta -> eta2 (func_bound_eta), or is released (rel 1: law
+    and friction out of the system); a slot released earlier comes back (rel 2: law and the friction
+    pass's viscosity). The change added onto `bank` and recorded in sl_eta_now and sl_in_now. Returns
+    eta2, 1 if the slot is in the system after the round (else 0), and 1 if the system changed."""
     c = s.contact
     # single-assignment (DESIGN: a local overwritten in a loop lives on Taichi's autodiff stack)
-    back = rel[i_b, i_s] == 2
-    inside = in_src[i_b, i_s] == 1
-    release = inside & (rel[i_b, i_s] == 1)
+    back = rel == 2
+    release = inside & (rel == 1)
     n = c.sl_n[i_b, i_s]
     u0 = c.sl_u[i_b, i_s]
-    eta = src[i_b, i_s]
     u3t = func_tangential(s, i_b, i_s, u3)
     # a law brought back: the friction pass's viscosity or, where lower, the law's secant at the slip there
     # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
@@ -539,10 +532,7 @@ def func_bound_slot(s: ti.template(), i_b, i_s, u3, src: ti.template(), dst: ti.
                       c.eval_h[i_b] * de * (ti.Matrix.identity(s.dtype, 3) - nn) + law * c.sl_wn_normal[i_b, i_s] * nn)
         c.sl_eta_now[i_b, i_s] = eta2
         c.sl_in_now[i_b, i_s] = ti.select(stays, 1, 0)
-    if ti.static(_distinct(dst, src)):
-        dst[i_b, i_s] = eta2
-    in_dst[i_b, i_s] = ti.select(stays, 1, 0)
-    return ti.select(back | release | (inside & (eta2 < eta)), 1, 0)
+    return eta2, ti.select(stays, 1, 0), ti.select(back | release | (inside & (eta2 < eta)), 1, 0)
 
 
 @ti.func
@@ -582,8 +572,9 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
                 if c.sl_in_final[i_b, i_s] == 1:
                     u3 = func_u_at(s, i_b, i_s, c.link_w_coulomb, c.link_v_coulomb)
                     c.sl_rel[i_b, i_s] = func_release_slot(s, i_b, i_s, u3)
-                    changed |= func_bound_slot(s, i_b, i_s, u3, c.sl_eta_now, c.sl_eta_now, c.bank_friction,
-                                               c.sl_in_now, c.sl_in_now, c.sl_rel)
+                    _eta2, _stays, ch = func_bound_slot(s, i_b, i_s, u3, c.sl_eta_now[i_b, i_s],
+                                                        c.sl_in_now[i_b, i_s] == 1, c.sl_rel[i_b, i_s], c.bank_friction)
+                    changed |= ch
         solve = changed
         if changed == 1:
             func_friction_tree(s, i_b)
@@ -594,59 +585,87 @@ def func_friction_or_bound(s: ti.template(), i_b, phase):
 
 
 @ti.func
-def func_bound_count(s: ti.template(), i_b, e, rel: ti.template()):
+def func_bound_count(s: ti.template(), i_b, e, r):
     """How many of env i_b's slots a bound round at qacc[e] would change (the gradient path's check
-    before it records a round), its releases and returns decided into rel (func_release_slot); it writes
-    only those, sl_back and the scratch link motion link_w_report / link_v_report."""
+    before it records round r), its releases and returns decided into bnd_rel[i_b, r] (func_release_slot);
+    it writes only those, sl_back and the scratch link motion link_w_report / link_v_report."""
     c = s.contact
     func_link_motion(s, s.qacc, e, i_b, c.link_w_report, c.link_v_report)
     n = 0
     for k in range(func_round_span(s, i_b)):
         i_s, on = func_round_slot(s, i_b, k)
-        r = 0
+        rel = 0
         if on & (c.sl_in_final[i_b, i_s] == 1):
             u3 = func_u_at(s, i_b, i_s, c.link_w_report, c.link_v_report)
-            r = func_release_slot(s, i_b, i_s, u3)
+            rel = func_release_slot(s, i_b, i_s, u3)
             # (a slot in the system now is in the final one: only those are released and brought back)
-            if (r == 0) & (c.sl_in_now[i_b, i_s] == 1):
+            if (rel == 0) & (c.sl_in_now[i_b, i_s] == 1):
                 eta = c.sl_eta_now[i_b, i_s]
                 bound = func_coulomb_bound(s, i_b, i_s, u3)
                 n += ti.select(func_bound_next(s, bound, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
-        rel[i_b, i_s] = r
-        n += ti.select(r > 0, 1, 0)
+        c.bnd_rel[i_b, r, i_s] = rel
+        n += ti.select(rel > 0, 1, 0)
     return n
 
 
-def _round_source(c, r: int):
-    """The viscosities and the slots in the system bound round r starts from: the friction pass's, or
-    round r - 1's."""
-    return (c.sl_eta, c.sl_in_final) if r == 0 else (c.bnd_eta[r - 1], c.bnd_in[r - 1])
+# The bound rounds on the gradient path share one kernel and one bank (as the normal rounds: rounds.py), the
+# round read at run time from round_now[0]. Round r's starting solution is in bnd_x (the shared field its
+# stages read; every round's kept in bnd_xs [env, round] for the backward), its viscosities and set go to
+# bnd_eta / bnd_in [env, r + 1] (index 0 unused: round 0 starts from the friction pass's sl_eta and
+# sl_in_final), its choices are in bnd_rel [env, r].
+@ti.func
+def func_bound_motion(s: ti.template(), i_b):
+    """The link motion of the round's starting solution (bnd_x) into bnd_w / bnd_v."""
+    c = s.contact
+    func_link_motion(s, c.bnd_x, 0, i_b, c.bnd_w, c.bnd_v)
 
 
-def bound_round(r: int, n_lp: int):
-    """The stages of bound round r on the gradient path (ContactSolver.steps["bound<r>"]): the link motion
-    of the solution that round r - 1 (or the friction system) gave, kept in bnd_x[r]; per slot in the
-    final system the viscosity from the last round's (sl_eta for r = 0) to bnd_eta[r]; the changes'
-    sums onto the system from the round's own bank."""
+@ti.func
+def func_bound_slots(s: ti.template(), i_b):
+    """Bound round round_now[0] for every slot in the system at its start (func_bound_slot), onto
+    bank_bound."""
+    c = s.contact
+    for i_s in range(c.n_slots):
+        # read in the loop, one assignment each (DESIGN's autodiff-stack rule)
+        r = c.round_now[0]
+        if c.sl_on[i_b, i_s] == 1:
+            eta = ti.select(r == 0, c.sl_eta[i_b, i_s], c.bnd_eta[i_b, r, i_s])
+            inside = ti.select(r == 0, c.sl_in_final[i_b, i_s], c.bnd_in[i_b, r, i_s]) == 1
+            eta2, stays, _changed = func_bound_slot(s, i_b, i_s, func_u_at(s, i_b, i_s, c.bnd_w, c.bnd_v), eta, inside,
+                                                    c.bnd_rel[i_b, r, i_s], c.bank_bound)
+            c.bnd_eta[i_b, r + 1, i_s] = eta2
+            c.bnd_in[i_b, r + 1, i_s] = stays
 
-    @ti.func
-    def func_round_motion(s: ti.template(), i_b):
-        c = s.contact
-        func_link_motion(s, c.bnd_x[r], 0, i_b, c.bnd_w[r], c.bnd_v[r])
 
-    @ti.func
-    def func_round_slots(s: ti.template(), i_b):
-        c = s.contact
-        src, in_src = ti.static(_round_source(c, r))
-        for i_s in range(c.n_slots):
-            if c.sl_on[i_b, i_s] == 1:
-                func_bound_slot(s, i_b, i_s, func_u_at(s, i_b, i_s, c.bnd_w[r], c.bnd_v[r]), src, c.bnd_eta[r],
-                                c.bank_bound[r], in_src, c.bnd_in[r], c.bnd_rel[r])
+@ti.func
+def func_bound_restore(s: ti.template(), i_b):
+    """bnd_x <- round round_now[0]'s starting solution, kept in bnd_xs (forward only: the rebuild)."""
+    c = s.contact
+    r = c.round_now[0]
+    for i in range(s.n_dofs):
+        c.bnd_x[0, i_b, i] = c.bnd_xs[i_b, r, i]
 
+
+def bound_round(n_lp: int):
+    """The stages of a bound round on the gradient path (ContactSolver.steps["bound"]), for the round in
+    round_now[0]: the link motion of the solution that the last round (or the friction system) gave, per
+    slot in the final system the viscosity from the last round's to the round's, the changes' sums onto the
+    system from bank_bound. One kernel for every round (a kernel a round compiled up to 8 times the same
+    code); the rounds share bnd_x, the link motion and the bank, so the backward rebuilds round r's
+    (BOUND_REBUILD) before its adjoint."""
     # each sum one stage (one top-level loop over envs), as in the passes: with tree, dof and project in
     # one stage, Taichi's adjoint of the round was wrong (a gradient off by a factor 37, against finite
     # differences)
-    sums = tuple(bank_stage(op, f"bound{r}") for op in (func_bank_tree, func_bank_dof, func_bank_project))
+    sums = tuple(bank_stage(op, "bound") for op in (func_bank_tree, func_bank_dof, func_bank_project))
     if n_lp > 0:
-        sums += (bank_stage(func_bank_cross, f"bound{r}"),)
-    return (bank_clear_stage(f"bound{r}"), func_round_motion, func_round_slots) + sums
+        sums += (bank_stage(func_bank_cross, "bound"),)
+    return (bank_clear_stage("bound"), func_bound_motion, func_bound_slots) + sums
+
+
+# What round round_now[0]'s adjoint reads of the forward values that the later rounds overwrote
+# (ContactSolver.steps["bound_rebuild"]): its starting solution (the adjoint of its solve), its link motion
+# (the slots' laws), and bank_bound as toggle_rebuild rebuilds bank_toggle (rounds.TOGGLE_REBUILD). Its
+# slots stage writes the round's viscosities and set again (the same numbers) and sl_eta_now / sl_in_now
+# (the report's, read in the forward only).
+BOUND_REBUILD = (func_bound_restore, bank_clear_stage("bound"), func_bound_motion, func_bound_slots,
+                 bank_stage(func_bank_tree, "bound"), bank_stage(func_bank_dof_vectors, "bound"))

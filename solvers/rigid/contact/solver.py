@@ -12,9 +12,8 @@ from ..layout import FieldTree, ZeroPlan, by_env_axis, func_zero_plan
 from .banks import AccBank
 from .law import MARGIN_WIDTHS
 from .linalg import ENV_BOUND, ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, N_ENV, func_solve_adjoint
-from .passes import (BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS, RELINEARISE_PASS,
-                     RELINEARISE_PASS_CROSS, bound_round, func_bound_count,
-                     func_link_motion)
+from .passes import (BOUND_REBUILD, BOUND_ROUNDS, COULOMB_PASS, FRICTION_PASS, FRICTION_PASS_CROSS,
+                     RELINEARISE_PASS, RELINEARISE_PASS_CROSS, bound_round, func_bound_count, func_link_motion)
 from .rounds import NORMAL_ROUNDS, TOGGLE_REBUILD, func_normal_round, toggle_round
 from .plan import C_CROSS, C_GEOMS, C_LP, C_PAIRS, C_SLOTS, N_CCFG_I, ContactPlan
 from .report import (MAX_DEEP_WARNINGS, ContactPenetrationWarning, _user_stacklevel, deep_contact_message, func_contact_report,
@@ -179,18 +178,21 @@ class ContactSolver:
         # that pushes again: passes.func_release_slot); sl_rel: a round's changes (without gradients)
         self.sl_in_now, self.sl_rel = I((B, S)), I((B, S))
         self.sl_back = I((B, S))  # brought back once this step (it is not again)
-        # the bound rounds on the gradient path (passes.bound_round): round r's starting solution, the
-        # factor it was solved with, its link motion, its viscosities and its bank (without gradients the
-        # rounds reuse the report's link motion and bank_friction)
+        # the bound rounds on the gradient path (passes.bound_round, one kernel for every round, the round in
+        # round_now[0]): the round's starting solution (bnd_x; every round's kept in bnd_xs, and the factor
+        # it was solved with in bnd_fac, for the backward), its link motion, its bank (shared by the rounds);
+        # round r's viscosities and set at [env, r + 1] of bnd_eta / bnd_in, its choices at [env, r] of
+        # bnd_rel (without gradients the rounds reuse the report's link motion and bank_friction)
         K = BOUND_ROUNDS if g else 0
-        self.bnd_x = [F((1, B, D)) for _ in range(K)]
-        self.bnd_fac = [F((B, D, D), False) for _ in range(K)]
-        self.bnd_w, self.bnd_v = [V3((B, L)) for _ in range(K)], [V3((B, L)) for _ in range(K)]
-        self.bnd_eta = [F((B, S)) for _ in range(K)]
-        self.bnd_in, self.bnd_rel = [I((B, S)) for _ in range(K)], [I((B, S)) for _ in range(K)]
-        self.bank_bound = [AccBank(B, L, D, n_lp, f, g, True) for _ in range(K)]
+        self.bound_rounds = K
+        if g:
+            self.bnd_x, self.bnd_xs = F((1, B, D)), F((B, K, D), False)
+            self.bnd_fac, self.bnd_fac_now = F((B, K, D, D), False), F((B, D, D), False)
+            self.bnd_w, self.bnd_v = V3((B, L)), V3((B, L))
+            self.bnd_eta, self.bnd_in, self.bnd_rel = F((B, K + 1, S)), I((B, K + 1, S)), I((B, K, S))
+            self.bank_bound = AccBank(B, L, D, n_lp, f, g, True)
+            self.banks["bound"] = self.bank_bound
         self.rounds = 0  # the bound rounds the last factor_solve recorded
-        self.banks.update({f"bound{r}": b for r, b in enumerate(self.bank_bound)})
         # the normal rounds' changes on the gradient path (rounds.toggle_round): one bank for every round, the
         # round in round_now[0]
         self.bank_toggle = AccBank(B, L, D, n_lp, f, g, True) if g else None
@@ -236,8 +238,9 @@ class ContactSolver:
                                      self.link_v_candidates, self.link_w_normal, self.link_v_normal,
                                      self.link_w_coulomb, self.link_v_coulomb]
                                     + self.bank_relinearise.grad_fields + self.bank_coulomb.grad_fields
-                                    + self.bank_friction.grad_fields + [self.sl_eta] + self.bnd_x + self.bnd_w
-                                    + self.bnd_v + self.bnd_eta + [x for b in self.bank_bound for x in b.grad_fields]
+                                    + self.bank_friction.grad_fields + [self.sl_eta, self.bnd_x, self.bnd_w,
+                                                                        self.bnd_v, self.bnd_eta]
+                                    + self.bank_bound.grad_fields
                                     + self.bank_toggle.grad_fields
                                     + ([self.sl_load_c] if self.load_shift > 0.0 else [])
                                     ) if g else []
@@ -257,11 +260,13 @@ class ContactSolver:
         self.steps = {"solve_candidates": (func_solve_candidates,), "relinearise_pass": self.relinearise_pass,
                       "solve_normal": (func_solve_normal,), "coulomb_pass": COULOMB_PASS,
                       "solve_coulomb": (func_solve_coulomb,), "friction_pass": self.friction_pass}
-        self.steps.update({f"bound{r}": bound_round(r, n_lp) for r in range(K)})
         if g:
-            self.steps.update({"toggle": toggle_round(n_lp), "toggle_rebuild": TOGGLE_REBUILD})
-            # the bank's adjoints, zeroed between two rounds' adjoints
+            self.steps.update({"toggle": toggle_round(n_lp), "toggle_rebuild": TOGGLE_REBUILD,
+                               "bound": bound_round(n_lp), "bound_rebuild": BOUND_REBUILD})
+            # the shared fields' adjoints, zeroed between two rounds' adjoints
             self.toggle_grad_plan = ZeroPlan((), (), 0, *by_env_axis([x.grad for x in self.bank_toggle.grad_fields], B))
+            self.bound_grad_plan = ZeroPlan((), (), 0, *by_env_axis(
+                [x.grad for x in [self.bnd_x, self.bnd_w, self.bnd_v] + self.bank_bound.grad_fields], B))
 
     def fits(self, plan: ContactPlan) -> bool:
         """Whether a scene's plan can run on this solver's fields and kernels."""
@@ -435,9 +440,10 @@ class ContactSolver:
             self.kernel_run(s, which)
         s.kernel_mass_solve(e, False)
         self.rounds = 0
-        while self.rounds < len(self.bnd_x) and self.kernel_bound_count(s, e, self.rounds) > 0:
+        while self.rounds < self.bound_rounds and self.kernel_bound_count(s, e, self.rounds) > 0:
             self.kernel_bound_keep(s, e, self.rounds)
-            self.kernel_run(s, f"bound{self.rounds}")
+            self.round_now[0] = self.rounds
+            self.kernel_run(s, "bound")
             s.kernel_mass_solve(e, False)
             self.rounds += 1
         s.release_limits(e)
@@ -449,8 +455,12 @@ class ContactSolver:
             self.kernel_clear_grads(s, self.scratch_grad_plan)
         s.kernel_mass_solve(e, True)
         for r in reversed(range(self.rounds)):
-            self.kernel_run.grad(s, f"bound{r}")
-            self.kernel_adjoint_solve(s, 3 + r)
+            self.round_now[0] = r
+            if r < self.rounds - 1:  # the shared fields hold the last round's values and round r + 1's adjoints
+                self.kernel_run(s, "bound_rebuild")
+                self.kernel_clear_grads(s, self.bound_grad_plan)
+            self.kernel_run.grad(s, "bound")
+            self.kernel_adjoint_bound_solve(s, r)
         self.kernel_run.grad(s, "friction_pass")
         self.kernel_adjoint_solve(s, 2)
         self.kernel_run.grad(s, "coulomb_pass")
@@ -488,30 +498,31 @@ class ContactSolver:
         return n
 
     @ti.kernel
-    def kernel_bound_count(self, s: ti.template(), e: ti.i32, r: ti.template()) -> ti.i32:
+    def kernel_bound_count(self, s: ti.template(), e: ti.i32, r: ti.i32) -> ti.i32:
         """How many slots, over the envs, a bound round at qacc[e] would change (passes.func_bound_count),
-        round r's releases and returns decided into bnd_rel[r]."""
+        round r's releases and returns decided into bnd_rel[env, r]."""
         n = 0
         if ti.static(s.serial):
             ti.loop_config(serialize=True)
         for i_b in range(s.cap_envs):
             if i_b < s.n_envs:
-                n += func_bound_count(s, i_b, e, self.bnd_rel[r])
+                n += func_bound_count(s, i_b, e, r)
         return n
 
     @ti.kernel
-    def kernel_bound_keep(self, s: ti.template(), e: ti.i32, r: ti.template()):
+    def kernel_bound_keep(self, s: ti.template(), e: ti.i32, r: ti.i32):
         """Round r's inputs, before its pass changes the system and the next solve overwrites them: the
-        solution qacc[e] (bnd_x[r]), its factor (bnd_fac[r]) and, in dense scenes, that factor's
-        envelope (ENV_BOUND + r)."""
+        solution qacc[e] (bnd_x, and bnd_xs[env, r] for the backward), its factor (bnd_fac[env, r]) and, in
+        dense scenes, that factor's envelope (ENV_BOUND + r)."""
         if ti.static(s.serial):
             ti.loop_config(serialize=True)
         for i_b in range(s.cap_envs):
             if i_b < s.n_envs:
                 for i in range(s.n_dofs):
-                    self.bnd_x[r][0, i_b, i] = s.qacc[e, i_b, i]
+                    self.bnd_x[0, i_b, i] = s.qacc[e, i_b, i]
+                    self.bnd_xs[i_b, r, i] = s.qacc[e, i_b, i]
                     for j in range(i + 1):
-                        self.bnd_fac[r][i_b, i, j] = s.mass_fac[i_b, i, j]
+                        self.bnd_fac[i_b, r, i, j] = s.mass_fac[i_b, i, j]
                     if ti.static(self.dense):
                         self.env_first[i_b, ENV_BOUND + r, i] = self.env_first[i_b, ENV_FINAL, i]
                         self.env_last[i_b, ENV_BOUND + r, i] = self.env_last[i_b, ENV_FINAL, i]
@@ -557,8 +568,8 @@ class ContactSolver:
     @ti.kernel
     def kernel_adjoint_solve(self, s: ti.template(), which: ti.template()):
         """Adjoint of one of the solves before the final one: 0 the first (qacc_candidates = A1^-1 force), 1 the
-        second (qacc_normal = A2^-1 force), 2 the Coulomb response (dqacc_coulomb = A2^-1 force_coulomb),
-        3 + r the solve before bound round r (bnd_x[r] = A^-1 force, its factor kept in bnd_fac[r])."""
+        second (qacc_normal = A2^-1 force), 2 the Coulomb response (dqacc_coulomb = A2^-1 force_coulomb)
+        (the bound rounds': kernel_adjoint_bound_solve)."""
         if ti.static(s.serial):
             ti.loop_config(serialize=True)
         for i_b in range(s.cap_envs):
@@ -567,11 +578,21 @@ class ContactSolver:
                     func_solve_adjoint(s, self.factor_candidates, ENV_CANDIDATES, i_b, self.qacc_candidates, self.qacc_candidates.grad, 0, s.force.grad)
                 elif ti.static(which == 1):
                     func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.qacc_normal, self.qacc_normal.grad, 0, s.force.grad)
-                elif ti.static(which == 2):
-                    func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.dqacc_coulomb, self.dqacc_coulomb.grad, 0, self.force_coulomb.grad)
                 else:
-                    r = ti.static(which - 3)
-                    func_solve_adjoint(s, self.bnd_fac[r], ENV_BOUND + r, i_b, self.bnd_x[r], self.bnd_x[r].grad, 0, s.force.grad)
+                    func_solve_adjoint(s, self.factor_normal, ENV_NORMAL, i_b, self.dqacc_coulomb, self.dqacc_coulomb.grad, 0, self.force_coulomb.grad)
+
+    @ti.kernel
+    def kernel_adjoint_bound_solve(self, s: ti.template(), r: ti.i32):
+        """Adjoint of the solve before bound round r (bnd_x = A^-1 force: round r's when this runs), its factor
+        kept in bnd_fac[env, r] and copied to bnd_fac_now (the solves take a factor [env, i, j])."""
+        if ti.static(s.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(s.cap_envs):
+            if i_b < s.n_envs:
+                for i in range(s.n_dofs):
+                    for j in range(i + 1):
+                        self.bnd_fac_now[i_b, i, j] = self.bnd_fac[i_b, r, i, j]
+                func_solve_adjoint(s, self.bnd_fac_now, ENV_BOUND + r, i_b, self.bnd_x, self.bnd_x.grad, 0, s.force.grad)
 
     @ti.kernel
     def kernel_clear_grads(self, s: ti.template(), plan: ti.template()):
