@@ -455,11 +455,7 @@ class ContactSolver:
             self.kernel_clear_grads(s, self.scratch_grad_plan)
         s.kernel_mass_solve(e, True)
         for r in reversed(range(self.rounds)):
-            self.round_now[0] = r
-            if r < self.rounds - 1:  # the shared fields hold the last round's values and round r + 1's adjoints
-                self.kernel_run(s, "bound_rebuild")
-                self.kernel_clear_grads(s, self.bound_grad_plan)
-            self.kernel_run.grad(s, "bound")
+            self._round_grad(s, "bound", r, self.rounds, self.bound_grad_plan)
             self.kernel_adjoint_bound_solve(s, r)
         self.kernel_run.grad(s, "friction_pass")
         self.kernel_adjoint_solve(s, 2)
@@ -468,13 +464,20 @@ class ContactSolver:
         # the rounds' solves before the last feed only their choices of slots (no gradient); the system
         # the last one solved is the relinearise pass's plus every round's change
         for r in reversed(range(self.normal_rounds)):
-            self.round_now[0] = r
-            if r < self.normal_rounds - 1:  # the shared bank holds the last round's values and round r + 1's adjoints
-                self.kernel_run(s, "toggle_rebuild")
-                self.kernel_clear_grads(s, self.toggle_grad_plan)
-            self.kernel_run.grad(s, "toggle")
+            self._round_grad(s, "toggle", r, self.normal_rounds, self.toggle_grad_plan)
         self.kernel_run.grad(s, "relinearise_pass")
         self.kernel_adjoint_solve(s, 0)
+
+    def _round_grad(self, s, step: str, r: int, n: int, plan):
+        """The adjoint of round r of the n rounds of `step` ("toggle" or "bound": one kernel for every round,
+        the round in round_now[0]) that the last factor_solve recorded. The rounds share fields: before any
+        round but the last, they hold the last round's forward values and round r + 1's adjoints, so round
+        r's are rebuilt (steps[step + "_rebuild"]) and the shared adjoints zeroed (plan) first."""
+        self.round_now[0] = r
+        if r < n - 1:
+            self.kernel_run(s, step + "_rebuild")
+            self.kernel_clear_grads(s, plan)
+        self.kernel_run.grad(s, step)
 
     @ti.kernel
     def kernel_normal_round(self, s: ti.template(), r: ti.i32) -> ti.i32:
