@@ -118,6 +118,8 @@ def _pair(dt, plane_z, z=0.2):
     return scene, a, b, com_b, gap
 
 
+@pytest.mark.slow  # an unaligned body is an option (align=False); its scene class is compiled for this
+# test alone (~80 s). The default run checks aligned bodies' poses against Genesis's above
 def test_aligned_and_unaligned_bodies_move_alike():
     """An aligned wedge (the default) and an unaligned one are the same body: thrown spinning, their centres
     of mass and principal frames part only by the integrator's error, which halves with the step (the

@@ -1002,7 +1002,8 @@ def _morph(kind, pos, quat=(1.0, 0.0, 0.0, 0.0)):
     return gs.morphs.Capsule(radius=0.1, height=0.2, pos=pos, quat=quat)
 
 
-@pytest.mark.parametrize("kind,onto", [("box", "plane"), ("box", "same"),
+# box onto box: its own scene class (~37 s of compiling), under -m slow with the other kinds
+@pytest.mark.parametrize("kind,onto", [("box", "plane"), pytest.param("box", "same", marks=pytest.mark.slow),
                                        pytest.param("sphere", "plane", marks=pytest.mark.slow),
                                        pytest.param("sphere", "same", marks=pytest.mark.slow),
                                        pytest.param("capsule", "plane", marks=pytest.mark.slow),
@@ -1188,6 +1189,8 @@ def _tilt(b):
     return float(np.arccos(np.clip(_rot(_np(b.get_quat()))[2, 2], -1.0, 1.0)))
 
 
+@pytest.mark.slow  # its three-plank class compiled for it alone (~40 s); by default the box-face slots
+# hold the crossed plank of test_fused_step_without_gradients_matches_the_gradient_schedule and test_narrow_phase
 def test_plank_across_two_planks_rests():
     """A plank (1.0 x 0.1 x 0.05 m) dropped 3 mm across two others lying on the ground 0.8 m apart, at right
     angles and 0.3 m from their middles: it rests on the two 0.1 x 0.1 m squares where it overlaps them, flat,
@@ -1312,6 +1315,8 @@ def test_grad_through_a_sliding_landing():
     assert all(float(g.norm()) > 1e-3 for g in rep.autograd)
 
 
+@pytest.mark.slow  # a non-default damper (contact_damping_ratio) at 1 ms (~37 s of compiling); the
+# default damper's landing gradients are in the gradient matrix (slide_land, heavy_land) and test_contact_damper
 def test_grad_through_a_landing_with_mass_relative_damping():
     """The mass-relative contact damper (contact_damping_ratio = 1) is critical per pair, 2 sqrt(k m_eff),
     where that exceeds its floor 4 k h: at dt = 1 ms for this 6 kg box. Its landing, sliding and turning
@@ -1376,6 +1381,8 @@ def test_unsupported_pair_is_an_error():
     assert candidate_pairs(geoms, flat, False, False) == [(1, 0)]
 
 
+@pytest.mark.slow  # ~38 s of compiling for its mesh classes; by default mesh against mesh runs in
+# test_grad_through_mesh_against_mesh_contact (gradients and motion) and test_narrow_phase
 def test_meshes_collide_with_meshes(mesh_files):
     """Convex meshes against convex meshes (each hull's points against the other's k-DOP, both ways), on a
     fixed mesh slab: a mesh cube slides v^2 / (2 mu g) and stops, an icosphere rests on its lowest vertex,

@@ -108,6 +108,7 @@ def test_importing_genesis_lite_first_makes_torch_s_openmp_threads_sleep():
     assert out.stdout.split()[-1] == "ACTIVE", out.stderr[-2000:]
 
 
+@pytest.mark.slow  # four fresh processes building a scene of many envs (~15 s); a warning, not a number
 def test_a_many_env_scene_warns_when_torch_was_imported_first():
     """torch imported before genesis_lite has read OMP_WAIT_POLICY already (unset: its threads spin), which
     slows scenes of many envs: their build warns once (ImportOrderWarning), naming the remedy. Not when

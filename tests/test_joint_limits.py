@@ -221,7 +221,8 @@ def _evaluation_values(s):
     return out
 
 
-@pytest.mark.parametrize("contacts", [False, True])
+# with contacts: the contact stages' gradient kernels compiled for this test alone (~25 s); under -m slow
+@pytest.mark.parametrize("contacts", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_the_gradient_path_s_evaluation_in_one_loop_gives_the_stage_loops_numbers_to_the_bit(pendulum_urdf, contacts):
     """A gradient scene's forward evaluates its dynamics in one loop over envs with the final solve and its limit
     rounds per env (RigidCore.kernel_evaluate); its adjoint differentiates the stages as separate loops

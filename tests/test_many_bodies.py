@@ -60,6 +60,8 @@ def _row(order):
     return _rollout(specs, order, 10, kick=[2.0, 0.1, 0.0, 0.0, 0.0, 0.3])
 
 
+@pytest.mark.slow  # two scene classes compiled for this test alone (~80 s); the envelope order is an
+# internal choice that every many-body test of the default run goes through
 def test_the_order_bodies_are_added_in_does_not_change_their_motion():
     """The coupled contact system is factorised over its envelope, bodies ordered by starting height
     (contact/plan.py: _dense_order; at one height, in the scene's order). The log cabin added course
@@ -78,6 +80,8 @@ def test_the_order_bodies_are_added_in_does_not_change_their_motion():
     np.testing.assert_allclose(row_shuffled, row, rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow  # two fresh processes, each compiling a pile and a self-colliding Panda (~160 s,
+# nearly all compiling); by default test_contact's arm-over-a-plane and untouched-box tests check that skipped work changes no bit
 def test_the_broad_phase_boxes_change_no_number():
     """A pile of long planks, cylinders, boxes and spheres thrown onto each other, and example-robot-data's
     Panda with self-collision on, folding its hand onto its forearm, in two fresh processes: with the
