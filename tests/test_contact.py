@@ -1316,7 +1316,8 @@ def test_grad_through_a_sliding_landing():
 
 
 @pytest.mark.slow  # a non-default damper (contact_damping_ratio) at 1 ms (~37 s of compiling); the
-# default damper's landing gradients are in the gradient matrix (slide_land, heavy_land) and test_contact_damper
+# same damper's landing gradient runs by default on an articulated link (test_contact_damper), the default
+# damper's in the gradient matrix (slide_land, heavy_land)
 def test_grad_through_a_landing_with_mass_relative_damping():
     """The mass-relative contact damper (contact_damping_ratio = 1) is critical per pair, 2 sqrt(k m_eff),
     where that exceeds its floor 4 k h: at dt = 1 ms for this 6 kg box. Its landing, sliding and turning
@@ -1382,7 +1383,7 @@ def test_unsupported_pair_is_an_error():
 
 
 @pytest.mark.slow  # ~38 s of compiling for its mesh classes; by default mesh against mesh runs in
-# test_grad_through_mesh_against_mesh_contact (gradients and motion) and test_narrow_phase
+# test_grad_through_mesh_against_mesh_contact (a mesh box landing on a mesh slab: gradients and motion)
 def test_meshes_collide_with_meshes(mesh_files):
     """Convex meshes against convex meshes (each hull's points against the other's k-DOP, both ways), on a
     fixed mesh slab: a mesh cube slides v^2 / (2 mu g) and stops, an icosphere rests on its lowest vertex,

@@ -81,7 +81,8 @@ def test_the_order_bodies_are_added_in_does_not_change_their_motion():
 
 
 @pytest.mark.slow  # two fresh processes, each compiling a pile and a self-colliding Panda (~160 s,
-# nearly all compiling); by default test_contact's arm-over-a-plane and untouched-box tests check that skipped work changes no bit
+# nearly all compiling). The broad phase's box tests are checked against bounding spheres only here; by default
+# test_contact's arm-over-a-plane and untouched-box tests check other skipped work
 def test_the_broad_phase_boxes_change_no_number():
     """A pile of long planks, cylinders, boxes and spheres thrown onto each other, and example-robot-data's
     Panda with self-collision on, folding its hand onto its forearm, in two fresh processes: with the

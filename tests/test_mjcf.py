@@ -329,8 +329,7 @@ GANTRY = """<mujoco model="gantry">
 """
 
 
-# box_z = -0.21: a second scene class (~18 s of compiling), under -m slow
-@pytest.mark.parametrize("box_z", [0.0, pytest.param(-0.21, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("box_z", [0.0, -0.21])
 def test_self_collision_follows_genesis_s_rules(tmp_path, box_z):
     """A box on a vertical slide hangs from a carriage on a horizontal slide over a table, all one tree:
     the box and the table are not adjacent (the carriage's joint is between them), the carriage and the
