@@ -1,8 +1,9 @@
 """Genesis's own example scripts, run on genesis_lite and on real Genesis: how many run, how their answers compare.
 
-Takes 27 scripts from `examples/` of a Genesis checkout (a git tag of a mirror, or a work tree), makes a
-transformed copy of each with ONLY the edits listed below, runs it in a fresh process on each side, and
-records exit status, wall time, the last error line and the `GS_RESULT <name> <value>` lines.
+Takes 27 scripts (28 runs: water_wheel also with its --solver mpm) from `examples/` of a Genesis checkout (a git
+tag of a mirror, or a work tree), makes a transformed copy of each with ONLY the edits listed below, runs it in a
+fresh process on each side, and records exit status, wall time, the last error line and the `GS_RESULT <name>
+<value>` lines.
 
 The edits, each a regular expression applied to the script's text (see `IMPORT_EDITS`, `VIEWER_EDITS`,
 `BACKEND_EDITS` and each script's `loops` in `SCRIPTS`):
@@ -159,7 +160,8 @@ robot = env.robot
 
 # ----------------------------------------------------------------------------------------------- the scripts
 # path: under examples/; loops: the loop/env caps (each must match); probes: (name, expression) over the
-# script's variables (main's locals for scripts with a main()); args: command-line arguments (none used).
+# script's variables (main's locals for scripts with a main()); argv: the script's command-line arguments (an
+# option of Genesis's own script, as its user would pass it).
 FRANKA_Q = ("franka_q", "franka.get_dofs_position()")
 FRANKA_Q0 = ("franka_q_env0", "franka.get_dofs_position()[0]")
 SCRIPTS = {
@@ -214,6 +216,9 @@ SCRIPTS = {
                        probes=[("z_sand", "_gsr_pz(_gsr_emitter_entity(emitter))")]),
     "water_wheel": dict(path="coupling/water_wheel.py", loops=[cap_assign("horizon", 500, 50)],
                         probes=[("z_liquid", "_gsr_pz(_gsr_emitter_entity(emitter))")]),
+    # the same script with its MPM liquid (its --solver option; the default above is SPH, out of our scope)
+    "water_wheel_mpm": dict(path="coupling/water_wheel.py", loops=[cap_assign("horizon", 500, 50)],
+                            probes=[("z_liquid", "_gsr_pz(_gsr_emitter_entity(emitter))")], argv=["--solver", "mpm"]),
     "grasp_soft_cube": dict(path="coupling/grasp_soft_cube.py", loops=[cap_range(100, 50), cap_range(300, 150)],
                             probes=[("cube_particles_z", "_gsr_pz(cube)")]),
     "rigid_mpm_attachment": dict(path="coupling/rigid_mpm_attachment.py", loops=[cap_assign("n_steps", 500, 100)],
@@ -290,7 +295,8 @@ def category(err: str) -> str:
     return err.split(":", 1)[0] if err else ""
 
 
-def run_one(name: str, side: str, python: str, script: Path, timeout: float, env_extra: dict, unset=()) -> dict:
+def run_one(name: str, side: str, python: str, script: Path, timeout: float, env_extra: dict, unset=(),
+            argv=()) -> dict:
     env = dict(os.environ)
     for k in unset:
         env.pop(k, None)
@@ -299,7 +305,7 @@ def run_one(name: str, side: str, python: str, script: Path, timeout: float, env
     t0 = time.perf_counter()
     try:
         with open(log_out, "w") as fo, open(log_err, "w") as fe:
-            p = subprocess.run([python, str(script.name)], cwd=script.parent, env=env, stdout=fo, stderr=fe,
+            p = subprocess.run([python, str(script.name), *argv], cwd=script.parent, env=env, stdout=fo, stderr=fe,
                                timeout=timeout, stdin=subprocess.DEVNULL)
         rc, timed_out = p.returncode, False
     except subprocess.TimeoutExpired:
@@ -533,9 +539,11 @@ def main():
                     env["GS_ASSETS_DIR"] = gassets
                 if args.ours_pythonpath:
                     env["PYTHONPATH"] = args.ours_pythonpath
-                r = run_one(name, side, args.ours_python, script, args.timeout_ours, env, unset=("GS_NUM_THREADS",))
+                r = run_one(name, side, args.ours_python, script, args.timeout_ours, env, unset=("GS_NUM_THREADS",),
+                            argv=SCRIPTS[name].get("argv", ()))
             else:
-                r = run_one(name, side, gpy, script, args.timeout_genesis, {"MPLBACKEND": "Agg"})
+                r = run_one(name, side, gpy, script, args.timeout_genesis, {"MPLBACKEND": "Agg"},
+                            argv=SCRIPTS[name].get("argv", ()))
             data.setdefault(side, {})[name] = r
             res_path.write_text(json.dumps(data, indent=1))
             write_table(data, out / "table.md", meta)
