@@ -295,8 +295,7 @@ def category(err: str) -> str:
     return err.split(":", 1)[0] if err else ""
 
 
-def run_one(name: str, side: str, python: str, script: Path, timeout: float, env_extra: dict, unset=(),
-            argv=()) -> dict:
+def run_one(name: str, side: str, python: str, script: Path, timeout: float, env_extra: dict, unset=()) -> dict:
     env = dict(os.environ)
     for k in unset:
         env.pop(k, None)
@@ -305,8 +304,8 @@ def run_one(name: str, side: str, python: str, script: Path, timeout: float, env
     t0 = time.perf_counter()
     try:
         with open(log_out, "w") as fo, open(log_err, "w") as fe:
-            p = subprocess.run([python, str(script.name), *argv], cwd=script.parent, env=env, stdout=fo, stderr=fe,
-                               timeout=timeout, stdin=subprocess.DEVNULL)
+            p = subprocess.run([python, str(script.name), *SCRIPTS[name].get("argv", ())], cwd=script.parent, env=env,
+                               stdout=fo, stderr=fe, timeout=timeout, stdin=subprocess.DEVNULL)
         rc, timed_out = p.returncode, False
     except subprocess.TimeoutExpired:
         rc, timed_out = None, True
@@ -539,11 +538,9 @@ def main():
                     env["GS_ASSETS_DIR"] = gassets
                 if args.ours_pythonpath:
                     env["PYTHONPATH"] = args.ours_pythonpath
-                r = run_one(name, side, args.ours_python, script, args.timeout_ours, env, unset=("GS_NUM_THREADS",),
-                            argv=SCRIPTS[name].get("argv", ()))
+                r = run_one(name, side, args.ours_python, script, args.timeout_ours, env, unset=("GS_NUM_THREADS",))
             else:
-                r = run_one(name, side, gpy, script, args.timeout_genesis, {"MPLBACKEND": "Agg"},
-                            argv=SCRIPTS[name].get("argv", ()))
+                r = run_one(name, side, gpy, script, args.timeout_genesis, {"MPLBACKEND": "Agg"})
             data.setdefault(side, {})[name] = r
             res_path.write_text(json.dumps(data, indent=1))
             write_table(data, out / "table.md", meta)
