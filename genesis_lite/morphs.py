@@ -91,13 +91,17 @@ class URDF(FileMorph):
     """A robot from a URDF file. Links attached by fixed joints are merged into their parent (their mass,
     inertia and shapes added to it), except with merge_fixed_links=False (none merged) or for the links
     named in `links_to_keep` (Genesis's: e.g. a hand or a camera mount whose pose a script reads). A kept
-    link moves with its parent; it has no dofs. `convexify` is Genesis's switch; a robot's meshes collide
-    as their convex hulls either way (Genesis does not decompose robot meshes by default either)."""
+    link moves with its parent; it has no dofs. `convexify` is Genesis's switch: by default a link's meshes
+    collide as their convex hulls (Genesis does not decompose robot meshes by default either); with
+    convexify=False (Genesis: collide the raw mesh) a non-convex collision mesh is split into convex parts
+    by CoACD, as gs.morphs.Mesh does (parts are how genesis_lite collides a non-convex surface: the paddles
+    of Genesis's water wheel, not the drum of their hull); coacd_options go to coacd.run_coacd."""
 
     merge_fixed_links: bool = True
     requires_jac_and_IK: bool = False
     links_to_keep: Sequence[str] = ()
     convexify: bool = True
+    coacd_options: Optional[dict] = None
     default_armature: Optional[float] = 0.1
 
     def _check(self):
@@ -106,6 +110,9 @@ class URDF(FileMorph):
         if isinstance(self.links_to_keep, str):
             raise ValueError(f"gs.morphs.URDF(links_to_keep={self.links_to_keep!r}): give a list of link names")
         self.links_to_keep = tuple(str(n) for n in self.links_to_keep)
+        if self.coacd_options is not None and not isinstance(self.coacd_options, dict):
+            raise ValueError(f"gs.morphs.URDF(coacd_options={self.coacd_options!r}): give a dict of coacd.run_coacd "
+                             "keyword arguments")
 
 
 @dataclass

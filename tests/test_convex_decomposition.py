@@ -70,3 +70,52 @@ def test_decomposition_off_collides_as_the_hull_and_says_so_every_time():
         path.unlink(missing_ok=True)
     with pytest.raises(ValueError, match="decompose_nonconvex"):
         gs.morphs.Mesh(file=str(TANK), decompose_nonconvex="yes")
+
+
+def _tank_urdf(tmp_path, inertial=True):
+    """A one-link URDF whose collision shape is the tank's mesh (Genesis's water wheel is such a file: a
+    paddled wheel, one non-convex mesh, loaded with convexify=False)."""
+    inert = ('<inertial><mass value="10"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial>'
+             if inertial else "")
+    path = tmp_path / "tank.urdf"
+    path.write_text(f'<robot name="tank"><link name="tank">{inert}<collision><geometry>'
+                    f'<mesh filename="{TANK}"/></geometry></collision></link></robot>')
+    return path
+
+
+def test_urdf_convexify_false_splits_a_nonconvex_mesh_as_genesis_keeps_it_whole(tmp_path):
+    path = _tank_urdf(tmp_path, inertial=False)
+    rho = 500.0
+    hull = load_morph(gs.morphs.URDF(file=str(path), fixed=True), gs.materials.Rigid(rho=rho), name="tank")
+    assert len(hull.links[0].geoms) == 1  # a robot's mesh collides as its hull by default, as in Genesis
+    parts = load_morph(gs.morphs.URDF(file=str(path), fixed=True, convexify=False, coacd_options=FAST),
+                       gs.materials.Rigid(rho=rho), name="tank")
+    geoms = parts.links[0].geoms
+    assert len(geoms) >= 5
+    vol = sum(trimesh.Trimesh(g.vertices, g.faces).convex_hull.volume for g in geoms)
+    assert abs(vol - 0.03) < 0.002, vol  # the tank's own volume; its hull's is 0.048
+    # no <inertial>: the link is filled at the material's density, the closed mesh's own volume (0.03 m^3)
+    # either way (the parts: their hulls' volumes, as the Mesh morph's open surfaces)
+    assert hull.links[0].mass == pytest.approx(rho * 0.03, rel=1e-6)
+    assert parts.links[0].mass == pytest.approx(rho * vol, rel=1e-6)
+    with pytest.raises(ValueError, match="coacd_options"):
+        gs.morphs.URDF(file=str(path), convexify=False, coacd_options=0.05)
+
+
+def test_ball_falls_into_a_urdf_tank_with_convexify_false(tmp_path):
+    path = _tank_urdf(tmp_path)
+    r = 0.04
+    heights = {}
+    for convexify in (True, False):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3))
+        scene.add_entity(gs.morphs.URDF(file=str(path), fixed=True, pos=(0.0, 0.0, 0.15), convexify=convexify,
+                                        coacd_options=FAST))
+        ball = scene.add_entity(gs.morphs.Sphere(radius=r, pos=(0.01, -0.02, 0.45)))
+        scene.build()
+        for _ in range(400):
+            scene.step()
+        heights[convexify] = ball.get_pos()[2].item()
+        assert ball.get_vel().norm().item() < 1e-2
+    # hull: on its top face, 0.30 m above the outer bottom (0.15 - 0.15 + 0.30 + r); parts: on the inner floor
+    assert abs(heights[True] - (0.30 + r)) < 5e-3, heights
+    assert abs(heights[False] - (0.10 + r)) < 5e-3, heights

@@ -317,9 +317,12 @@ def load_mesh(morph, material, name) -> EntityModel:
     return model
 
 
-def _convex_parts(morph, mesh, hull, what, notes):
+def convex_parts(morph, mesh, hull, what, notes):
     """None (collide as the hull: the mesh is convex, or decomposition is off) or the convex hulls of
-    CoACD's parts of `mesh` (a processed trimesh), per gs.morphs.Mesh's decomposition options."""
+    CoACD's parts of `mesh` (a processed trimesh), per the morph's decomposition options: gs.morphs.Mesh's
+    (decompose_nonconvex, decompose_error_threshold, convexify, coacd_options), or a URDF's, which has
+    convexify and coacd_options only (its threshold is infinite: a robot's meshes are split only with
+    convexify=False, as Genesis keeps them whole unless told)."""
     import trimesh
 
     if mesh.is_watertight and hull.volume > 0:
@@ -332,20 +335,22 @@ def _convex_parts(morph, mesh, hull, what, notes):
         pts = np.vstack([mesh.vertices, trimesh.sample.sample_surface(mesh, 2000, seed=0)[0]])
         d = np.abs(trimesh.proximity.signed_distance(hull, pts)).max()
         error = float(d) / max(0.5 * float(np.ptp(hull.vertices, axis=0).min()), 1e-12)
-    decompose = morph.decompose_nonconvex
+    threshold = getattr(morph, "decompose_error_threshold", float("inf"))
+    decompose = getattr(morph, "decompose_nonconvex", None)
     if decompose is None:
-        decompose = (not morph.convexify) or error > morph.decompose_error_threshold
+        decompose = (not morph.convexify) or error > threshold
     if not decompose or error <= 1e-9:
-        if error > morph.decompose_error_threshold:
+        if error > threshold:
             notes.append(f"{what}: the mesh is not convex (its convex hull is {100 * error:.0f} % off it) and "
                          "collides as its convex hull because decompose_nonconvex=False; leave it None or True to "
                          "split it into convex parts")
         return None
+    off = "decompose_nonconvex=False" if hasattr(morph, "decompose_nonconvex") else "convexify=True"
     try:
         import coacd
     except ImportError as e:
         raise ImportError(f"{what}: the mesh is not convex ({100 * error:.0f} % off its hull) and splitting it into "
-                          "convex parts needs CoACD: pip install coacd (or pass decompose_nonconvex=False to collide "
+                          f"convex parts needs CoACD: pip install coacd (or pass {off} to collide "
                           "as the convex hull)") from e
     coacd.set_log_level("error")
     opts = {"threshold": 0.05, "seed": 0}
@@ -354,7 +359,7 @@ def _convex_parts(morph, mesh, hull, what, notes):
                                        np.asarray(mesh.faces, dtype=np.int64)), **opts)
     out = [convex_hull(np.asarray(pv, dtype=np.float64), what) for pv, _ in parts if len(pv) >= 4]
     if not out:
-        raise ValueError(f"{what}: CoACD returned no convex parts; pass decompose_nonconvex=False to collide as the "
+        raise ValueError(f"{what}: CoACD returned no convex parts; pass {off} to collide as the "
                          "convex hull")
     return out
 
@@ -372,7 +377,7 @@ def _load_mesh(morph, material, name) -> EntityModel:
 
     mesh = trimesh.Trimesh(vertices=V, faces=F, process=True)
     notes = []
-    parts = _convex_parts(morph, mesh, hull, what, notes)
+    parts = convex_parts(morph, mesh, hull, what, notes)
     geoms = []
     for ph in [hull] if parts is None else parts:
         g = GeomDesc(type="mesh", vertices=np.array(ph.vertices, dtype=np.float64),

@@ -29,6 +29,8 @@ from . import cache as model_cache
 from .primitives import (
     ROOT_JOINT_NAME,
     combine_inertias,
+    convex_hull,
+    convex_parts,
     geom_mass_properties,
     load_mesh_file,
     mat_to_quat,
@@ -199,8 +201,9 @@ def _origin(T, s) -> np.ndarray:
     return out
 
 
-def _collision_geoms(path, link, s, capsules) -> List[GeomDesc]:
-    """Collision shapes of a URDF link, in the link frame, scaled."""
+def _collision_geoms(path, link, s, capsules, morph) -> List[GeomDesc]:
+    """Collision shapes of a URDF link, in the link frame, scaled. A non-convex mesh collides as its convex
+    hull, or with morph.convexify=False as its CoACD parts (primitives.convex_parts)."""
     geoms = []
     for idx, col in enumerate(link.collisions):
         T = _origin(col.origin, s)
@@ -233,7 +236,19 @@ def _collision_geoms(path, link, s, capsules) -> List[GeomDesc]:
             V, F = load_mesh_file(file, f"URDF '{path}', link '{link.name}' (mesh '{g.mesh.filename}')")
             mscale = 1.0 if g.mesh.scale is None else np.asarray(g.mesh.scale, dtype=float)
             V, F = scale_mesh(V, F, mscale * s)
-            geoms.append(GeomDesc("mesh", pos, quat, (), vertices=V, faces=F, hull=mesh_hull(V)))
+            parts = None
+            if not getattr(morph, "convexify", True):
+                import trimesh
+
+                what = f"URDF '{path}', {where} (mesh '{g.mesh.filename}')"
+                notes = []
+                parts = convex_parts(morph, trimesh.Trimesh(vertices=V, faces=F, process=True), convex_hull(V, what),
+                                     what, notes)
+                for msg in notes:
+                    warnings.warn(msg, stacklevel=4)
+            for V, F in [(V, F)] if parts is None else [(np.array(p.vertices, dtype=np.float64),
+                                                         np.array(p.faces, dtype=np.int64)) for p in parts]:
+                geoms.append(GeomDesc("mesh", pos, quat, (), vertices=V, faces=F, hull=mesh_hull(V)))
         else:
             raise _err(path, f"{where}: empty <geometry>")
     return geoms
@@ -427,7 +442,7 @@ def _load_urdf(morph, material, name) -> EntityModel:
             parts.append([])
             di, T = len(descs) - 1, np.eye(4)
         link = links[ln]
-        geoms = _collision_geoms(path, link, s, capsules)
+        geoms = _collision_geoms(path, link, s, capsules, morph)
         m, c, I = _link_inertia(path, link, s, geoms, rho)
         R = T[:3, :3]
         parts[di].append((m, R @ c + T[:3, 3], R @ I @ R.T))
