@@ -240,6 +240,27 @@ def build_plank_stack(v):
     return Built(scene, {"lo": lo, "hi": hi}, T=8, fd_h=CONTACT_POSE_H, f32_tol=F32_TOL_CONTACT,
                  defaults={"hi.dofs_velocity": np.array([0.1, -0.05, -0.2, 0.0, 0.0, 0.3])})
 
+def build_raft(v):
+    """Mesh against mesh, edge on edge (the hull-edge slots, collision/narrow.func_hull_pair_test): two fixed
+    mesh planks (assets/meshes/plank.obj) turned 45 degrees about their lengths, ridge up, and across them at
+    ~70 degrees a free body of two more (assets/mjcf/raft.xml), tilted a little, 0.5 mm above them, falling at
+    0.2 m/s and sliding and turning: they touch only where ridges cross (no corner of either lies
+    inside the other), first at one crossing, then at the others."""
+    scene = _scene(v, dt=5e-3)
+    ridge = 0.04 * np.sqrt(2.0)
+    q = (np.cos(np.pi / 8), np.sin(np.pi / 8), 0.0, 0.0)
+    for y in (-0.15, 0.15):
+        scene.add_entity(gs.morphs.Mesh(file=str(REPO / "assets" / "meshes" / "plank.obj"), pos=(0.0, y, 0.2),
+                                        quat=q, fixed=True), material=gs.materials.Rigid(friction=0.4))
+    raft = scene.add_entity(gs.morphs.MJCF(file=str(REPO / "assets" / "mjcf" / "raft.xml"),
+                                           pos=(0.01, -0.02, 0.2 + 2 * ridge + 5e-4), quat=_unit([0.82, 0.004, -0.003, 0.57])),
+                            material=gs.materials.Rigid(friction=0.6))
+    scene.build(n_envs=v.n_envs)
+    # (friction moves the loss by ~1e-4 per unit: its differences at 1e-4 are round-off's, at 1e-3 they converge)
+    return Built(scene, {"raft": raft}, T=8, fd_h={**CONTACT_POSE_H, "friction": 1e-3}, f32_tol=F32_TOL_CONTACT,
+                 defaults={"raft.dofs_velocity": np.array([0.3, -0.2, -0.2, 0.05, -0.1, 0.3])})
+
+
 def build_arm(v, plane=False):
     """assets/urdf/skew_arm.urdf fixed 1 m up: offset centres of mass, rotated non-diagonal inertia, skewed
     joint axes, collision shapes (collision on) with nothing to touch; plane=True adds a ground plane it
@@ -481,6 +502,7 @@ SCENES: Dict[str, Callable[[Variation], Built]] = {
     "heavy_land": build_heavy_land,
     "stack": build_stack,
     "plank_stack": build_plank_stack,
+    "raft": build_raft,
     "arm": build_arm,
     "arm_plane": lambda v: build_arm(v, plane=True),
     "arm_limit": build_arm_limit,
@@ -879,6 +901,9 @@ def _table() -> List[Case]:
     # cache warm, nearly all of it loading the box-box contact class (2 s after a stack case); cold ~110-165 s
     PLANKS = ("hi.pos", "hi.quat", "hi.dofs_velocity", "lo.links_mass", "hi.friction")
     slow("plank_stack", PLANKS, STACK_OUT)
+    # ------------------------------------------------------------------ mesh on mesh, ridges crossed (hull-edge slots)
+    add("raft", ("raft.pos", "raft.quat", "raft.dofs_velocity", "raft.links_mass", "raft.friction"),
+        ("raft.pos", "raft.quat", "raft.vel", "raft.ang"))
     # ------------------------------------------------------------------ quadruped standing on the ground
     slow("go2", ("go2.dofs_position", "go2.ctrl_position", "go2.dofs_kp"), ("go2.pos", "go2.quat", "go2.links_pos"))
     slow("go2", ("go2.qpos", "go2.dofs_kv", "go2.dofs_velocity"), ("go2.vel", "go2.ang", "go2.dofs_velocity"))

@@ -4,6 +4,8 @@ hull_planes) hold the hull and fit it, and a body resting on a slanted face of a
 The fit is measured here independently of the code's choices: qhull (scipy) gives the hull's faces, the
 corners of the planes' intersection are computed with scipy's HalfspaceIntersection, and the distance
 of a corner outside the hull is its largest distance beyond a face plane."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -78,3 +80,84 @@ def test_a_box_rests_on_the_slanted_face_of_a_mesh(tmp_path, deg):
     height = float((p - foot) @ n)  # the centre's distance from the slope's plane
     assert abs(height - a) < 5e-4, (height, a)
     assert np.abs(box.get_vel().numpy()).max() < 1e-3 and np.abs(box.get_ang().numpy()).max() < 1e-2
+
+
+def test_the_volume_s_corners_and_edges_close_it(robots_dir):
+    """collision.polytope_hull's corners and edges (what the hull-edge slots test), for every collision mesh of
+    example-robot-data's Panda and a tilted box: its corners are the planes' intersection's (scipy's
+    HalfspaceIntersection, within 1e-4 of the size: qhull merges corners a fraction of a micrometre apart),
+    each edge's two ends lie on the planes of both its faces, and corners, edges and faces close a convex
+    polyhedron (Euler: V - E + F = 2)."""
+    from solvers.rigid.collision.geoms import polytope_hull
+
+    R = trimesh.transformations.euler_matrix(0.3, -0.5, 0.9)[:3, :3]
+    clouds = [trimesh.creation.box(extents=(0.3, 0.2, 0.1)).vertices @ R.T]
+    files = sorted((robots_dir / "panda_description" / "meshes" / "collision").glob("*.stl"))
+    assert len(files) >= 9
+    clouds += [np.asarray(trimesh.load(f, force="mesh").convex_hull.vertices, dtype=float) for f in files]
+    for H in clouds:
+        kn, kd = hull_planes(H)
+        planes, C, E = polytope_hull(kn, kd)
+        X = HalfspaceIntersection(np.c_[kn, -kd], H.mean(0)).intersections
+        size = float(np.ptp(X, 0).max())
+        gap = np.linalg.norm(C[:, None] - X[None], axis=2)
+        assert gap.min(1).max() < 1e-4 * size and gap.min(0).max() < 1e-4 * size
+        faces = set()
+        for p0, p1, n1, n2 in E:
+            assert n1 @ n2 < 1.0 - 1e-9
+            for n in (n1, n2):
+                k = int(np.argmax(kn @ n))
+                assert kn[k] @ n > 1.0 - 1e-9
+                assert abs(p0 @ kn[k] - kd[k]) < 1e-9 * size and abs(p1 @ kn[k] - kd[k]) < 1e-9 * size
+                faces.add(k)  # (argmax: the first of equal planes; hull_planes repeats one in unused entries)
+        assert len(C) - len(E) + len(faces) == 2, (len(C), len(E), len(faces))
+
+
+PLANK = str(Path(__file__).resolve().parents[1] / "assets" / "meshes" / "plank.obj")  # 0.6 x 0.08 x 0.08 m
+RIDGE = 0.04 * np.sqrt(2.0)  # a plank turned 45 degrees about its length: its ridge's height over its centre
+
+
+def _quat(yaw_deg):
+    """A plank's turn: 45 degrees about its length (x; a ridge up and one down), then yaw_deg about z."""
+    half = np.radians(yaw_deg) / 2
+    w1, x1, y1, z1 = np.cos(half), 0.0, 0.0, np.sin(half)
+    w2, x2, y2, z2 = np.cos(np.pi / 8), np.sin(np.pi / 8), 0.0, 0.0
+    return (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
+
+
+def _raft(tmp_path, mesh, z, yaw_deg):
+    """One free body of two such planks side by side (MJCF), their lengths at yaw_deg, 0.3 m apart."""
+    geom = ('type="mesh" mesh="plank"' if mesh else 'type="box" size="0.3 0.04 0.04"') + ' quat="{} {} {} {}"'
+    q = _quat(yaw_deg)
+    side = 0.15 * np.array([np.sin(np.radians(yaw_deg)), -np.cos(np.radians(yaw_deg))])
+    geoms = "".join(f'<geom {geom.format(*q)} pos="{sx * side[0]} {sx * side[1]} 0"/>' for sx in (-1, 1))
+    xml = (f'<mujoco><asset><mesh name="plank" file="{PLANK}"/></asset><worldbody>'
+           f'<body name="raft" pos="0 0 {z}"><freejoint/>{geoms}</body></worldbody></mujoco>')
+    path = tmp_path / f"raft_{int(mesh)}.xml"
+    path.write_text(xml)
+    return gs.morphs.MJCF(file=str(path))
+
+
+@pytest.mark.parametrize("lower, upper", [("mesh", "mesh"), ("box", "mesh"), ("mesh", "box")])
+def test_crossed_ridges_rest_on_each_other(tmp_path, lower, upper):
+    """Planks (0.6 x 0.08 x 0.08 m) turned 45 degrees about their lengths, ridge up and ridge down: two fixed
+    ones side by side, and across them at 70 degrees a free body of two more (MJCF), dropped 2 mm onto them.
+    They touch only where ridges (edges) cross, four points, and no corner of either lies inside the other.
+    The free body comes to rest two ridge heights (0.0566 m each) over the fixed planks' centres, within
+    0.5 mm, and still. Before the hull-edge slots (collision.narrow.func_hull_pair_test) a mesh met a mesh or a
+    box only at its hull points and the other's planes: a mesh plank dropped so fell through (-4 m after
+    1 s, measured 2026-12-03)."""
+    z0 = 0.2
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.005))
+    for y in (-0.15, 0.15):
+        morph = gs.morphs.Mesh if lower == "mesh" else (lambda **k: gs.morphs.Box(size=(0.6, 0.08, 0.08), **k))
+        kw = dict(file=PLANK) if lower == "mesh" else {}
+        scene.add_entity(morph(pos=(0.0, y, z0), quat=_quat(0.0), fixed=True, **kw))
+    top = scene.add_entity(_raft(tmp_path, upper == "mesh", z0 + 2 * RIDGE + 2e-3, 70.0))
+    scene.build()
+    for _ in range(200):
+        scene.step()
+    z = float(top.get_pos()[2])
+    assert abs(z - (z0 + 2 * RIDGE)) < 5e-4, z - (z0 + 2 * RIDGE)
+    assert float(top.get_vel().abs().max()) < 1e-3 and float(top.get_ang().abs().max()) < 1e-2

@@ -3,7 +3,8 @@ func_slot_geometry takes runtime branches (func_slot_geometry_branched: only the
 side's own type are evaluated); with them, the single-assignment form the differentiated stages need
 (func_slot_geometry_selected: every kind and type the scene has, selected). A box pair's edge and face slots take
 the choices of their pair's separating-axis test (func_box_pair_test, which the broad phase runs for the active
-pairs; here for every box pair) in both. A scene with every slot kind and
+pairs; here for every box pair) in both, and so do the hull-edge slots of a mesh against a box
+(func_hull_pair_test). A scene with every slot kind and
 SDF type (box corners, edges and faces, capsule segment pairs, cylinder rims, points against planes, boxes,
 capsules, cylinders and meshes; spheres as points), its bodies and a Panda's joints posed at random in 4 envs: both forms,
 slot by slot, give the same point, normal and depth to round-off. Default options, float64."""
@@ -12,8 +13,10 @@ import taichi as ti
 
 import genesis_lite as gs
 from solvers.rigid.collision.geoms import (GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE,
-                                           SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG)
-from solvers.rigid.collision.narrow import func_box_pair_test, func_slot_geometry_branched, func_slot_geometry_selected
+                                           SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_POINT,
+                                           SLOT_SEGSEG)
+from solvers.rigid.collision.narrow import (func_box_pair_test, func_hull_pair_test, func_is_hull_pair,
+                                            func_slot_geometry_branched, func_slot_geometry_selected)
 
 from conftest import robot_urdf
 
@@ -42,7 +45,7 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
     n_slots = int(c.plan.n_slots)
     kinds = c.slot_kind.to_numpy()[:n_slots]
     sdf_types = c.plan.geoms.type[c.plan.np_slot_gb]
-    for kind in (SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE):
+    for kind in (SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE):
         assert (kinds == kind).any(), kind
     # (a sphere is a slot's point side against every other type: no slot takes its SDF here)
     for t in (GEOM_PLANE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH):
@@ -57,6 +60,8 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
             gb = c.pair_gb[i_p]
             if (c.geom_type[ga] == GEOM_BOX) & (c.geom_type[gb] == GEOM_BOX):
                 c.pair_box[i_b, i_p] = func_box_pair_test(c, i_b, ga, gb)
+            if func_is_hull_pair(c, ga, gb):
+                c.pair_hull[i_b, i_p] = func_hull_pair_test(c, i_b, ga, gb)
         for i_b, i_s in ti.ndrange(N_ENVS, c.n_slots):
             p1, n1, d1 = func_slot_geometry_branched(s, i_b, i_s)
             p2, n2, d2 = func_slot_geometry_selected(s, i_b, i_s)
@@ -85,5 +90,5 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
     assert worst < 1e-12, worst
     # (the poses put slots of every kind near contact, not only far apart)
     depths = np.concatenate(depths, axis=0)
-    for kind in (SLOT_POINT, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE):
+    for kind in (SLOT_POINT, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE):
         assert (np.abs(depths[:, kinds == kind]) < 0.05).any(), kind

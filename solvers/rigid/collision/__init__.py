@@ -22,6 +22,11 @@ function (SDF) of the other (the "SDF side"):
   other primitive pairs,      corners + edge midpoints (box), rim and cap   the other geom
   mesh x primitive,           samples (cylinder), axis samples (capsule),
   mesh x mesh                 hull vertices (mesh), in both directions
+  mesh x mesh, mesh x box     plus the closest points of the edge pair      the other volume's
+                              whose axis separates the two convex volumes   edge
+                              best, where it beats every face axis (edge
+                              on edge: geoms.polytope_hull's edges,
+                              narrow.func_hull_pair_test)
 
 SDFs are exact for plane, sphere, capsule, box and cylinder; a mesh is its convex hull, whose SDF is
 that of the intersection of 26 of the hull's own face planes (geoms.hull_planes: the bounding box, then
@@ -30,10 +35,12 @@ faces, within 0.2-4.6 % of the mesh's size for example-robot-data's Panda, where
 directions, used before 2026-11-29, reached 8-18 % and put a finger's collision volume 7.9 mm past its
 hull). Inside a box, cylinder or mesh the nearest face is ambiguous where faces meet (two stacked
 identical boxes touch corner on corner), so the face is chosen by penetration plus a bias towards the
-face that looks at the other geom's centre. Two meshes touch where a hull vertex of one enters the
-other's planes: a vertex-free contact (two hulls crossed edge on edge, with no vertex of either inside
-the other) is missed, as it was for crossed box planks before their face slots, and a rounded hull
-rests on the other's planes, up to their gap to its hull.
+face that looks at the other geom's centre. Two meshes (or a mesh and a box) touch where a hull vertex of
+one enters the other's planes, and where two edges of their volumes cross edge on edge with no vertex of
+either inside the other (the hull-edge slot; before 2026-12-03 such ridges passed through each other:
+tests/test_mesh_hull.py). Still missed: an edge of one lying across a face of the other, both ends outside
+it, with the face axis the best (the box pairs' face slots have it; meshes have no such slot), and a
+rounded hull rests on the other's planes, up to their gap to its hull.
 
 Which pairs are candidates: geoms of different kinematic trees (other entities, and an entity's other
 trees: an MJCF's free bodies, its worldbody's floor); geoms of one tree only with `enable_self_collision`,
@@ -49,9 +56,10 @@ Modules: geoms.py (host side: geoms, candidate pairs, slots), sdf.py (the SDFs),
 stages: geom poses, broad phase, slot geometry).
 """
 from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CAPSULE, GEOM_CODE, GEOM_CYLINDER,
-                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE,
-                    SLOT_CYL_RIM, SLOT_POINT, SLOT_SEGSEG, ContactBuildError, GeomTable, build_geoms, build_slots,
-                    candidate_pairs, geom_box_columns, geom_rotations, link_is_dynamic, sample_points)
+                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_HULL_CORNERS, N_HULL_EDGES, N_KDOP,
+                    SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_POINT, SLOT_SEGSEG, ContactBuildError,
+                    GeomTable, build_geoms, build_slots, candidate_pairs, geom_box_columns, geom_hull, geom_rotations,
+                    link_is_dynamic, sample_points)
 from .narrow import NO_ADJOINT, func_broad_phase, func_geom_pose, func_slot_geometry
 from .sdf import TINY, func_sdf_any, func_sdf_of, func_segment_closest
 

@@ -20,6 +20,9 @@ GEOM_CODE = {"plane": GEOM_PLANE, "sphere": GEOM_SPHERE, "box": GEOM_BOX, "capsu
 # an edge of one box's face crosses the rim of the other box's face lying on it (face on face, aux = the
 # slot's code: incident edge code // 2, entry or exit code % 2; see narrow.func_box_face_contact)
 SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE = 0, 1, 2, 3, 4
+# the closest points of the two edges whose cross product separates two convex volumes best (a mesh's
+# planes, hull_planes, against another mesh's or a box: narrow.func_hull_pair_test), edge against edge
+SLOT_HULLEDGE = 5
 # an edge-edge axis counts only where it separates two boxes better than every face axis by this
 # fraction of the smaller box's smallest half size (ties, as in face-on-face stacks, are the faces');
 # a face-face crossing counts only this far from the corners of both faces (where corner slots are)
@@ -36,6 +39,10 @@ _D = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, 
 KDOP_DIRS = np.array([d for d in _D] + [tuple(-x for x in d) for d in _D], dtype=float)
 KDOP_DIRS /= np.linalg.norm(KDOP_DIRS, axis=1, keepdims=True)
 N_KDOP = len(KDOP_DIRS)
+
+# the largest convex volume of the hull-edge slots (polytope_hull): N_KDOP planes bound one of at most
+# 2 N_KDOP - 4 corners and 3 N_KDOP - 6 edges (Euler's formula, every corner on three faces or more)
+N_HULL_CORNERS, N_HULL_EDGES = 2 * N_KDOP - 4, 3 * N_KDOP - 6
 
 CYL_RIM_PLANE = 3  # rim samples per cap against a plane (plus the deepest rim point of each cap)
 CYL_RIM_OTHER = 8  # rim samples per cap against other geoms
@@ -178,6 +185,58 @@ def _polytope_corners(kn: np.ndarray, kd: np.ndarray) -> np.ndarray:
     X = np.linalg.solve(A[ok], np.stack([D[i], D[j], D[k]], 1)[ok][..., None])[..., 0]
     tol = 1e-9 * max(float(np.abs(X).max()), 1e-9)
     return X[(X @ N.T - D <= tol).all(1)]
+
+
+def polytope_hull(kn: np.ndarray, kd: np.ndarray):
+    """(planes (P, 4): n, d; corners (V, 3); edges (E, 4, 3): the two ends and the unit normals of the two
+    faces that meet there) of the bounded intersection of the half-spaces n . x <= d: a mesh's collision
+    volume (hull_planes) or a box's. An edge is where the line of two planes runs inside every other plane
+    for a length (clipped in one pass over the plane pairs: no hull of the corners, which qhull would
+    simplify where planes meet at small angles, up to 0.3 mm on example-robot-data's Panda finger); where
+    more than two planes share a line, one of them is kept. The corners are the edges' ends."""
+    planes = np.unique(np.c_[kn, kd], axis=0)
+    N, D = planes[:, :3], planes[:, 3]
+    size = max(float(np.abs(D).max()), 1e-9)
+    tol = 1e-9 * size
+    edges = []
+    for i, j in itertools.combinations(range(len(N)), 2):
+        u = np.cross(N[i], N[j])
+        if np.linalg.norm(u) < 1e-9:
+            continue
+        u /= np.linalg.norm(u)
+        x0 = np.linalg.solve(np.stack([N[i], N[j], u]), np.array([D[i], D[j], 0.0]))
+        a, b = N @ u, D - N @ x0  # the line x0 + t u inside plane k: a_k t <= b_k
+        a[[i, j]], b[[i, j]] = 0.0, 0.0
+        if (b[np.abs(a) <= 1e-12] < -tol).any():
+            continue
+        up, dn = a > 1e-12, a < -1e-12
+        t1 = (b[up] / a[up]).min() if up.any() else np.inf
+        t0 = (b[dn] / a[dn]).max() if dn.any() else -np.inf
+        if not (np.isfinite(t0) and np.isfinite(t1)) or t1 - t0 <= tol:
+            continue
+        e = np.stack([x0 + t0 * u, x0 + t1 * u, N[i], N[j]])
+        if not any(max(np.abs(f[:2] - e[:2]).max(), np.abs(f[:2] - e[1::-1]).max()) <= tol * 10 for f in edges):
+            edges.append(e)
+    E = np.array(edges).reshape(-1, 4, 3)
+    C = []
+    for x in E[:, :2].reshape(-1, 3):
+        if not any(np.linalg.norm(x - c) <= 10 * tol for c in C):
+            C.append(x)
+    return planes, np.array(C).reshape(-1, 3), E
+
+
+def geom_hull(geoms: "GeomTable", g: int):
+    """polytope_hull of geom g, a mesh (its planes) or a box (its six faces), in the geom frame."""
+    if geoms.type[g] == GEOM_BOX:
+        h = geoms.size[g]
+        return polytope_hull(np.r_[np.eye(3), -np.eye(3)], np.r_[h, h])
+    return polytope_hull(geoms.kdop_dirs[g], geoms.kdop[g])
+
+
+def hull_edge_pair(ta: int, tb: int) -> bool:
+    """Whether a pair of these geom types gets a hull-edge slot: two meshes, or a mesh and a box (two boxes
+    have the box pair's own edge and face slots)."""
+    return GEOM_MESH in (ta, tb) and ta in (GEOM_MESH, GEOM_BOX) and tb in (GEOM_MESH, GEOM_BOX)
 
 
 def mesh_box(H: np.ndarray, kn: np.ndarray, kd: np.ndarray):
@@ -497,6 +556,10 @@ def build_slots(geoms: GeomTable, pairs):
             continue
         else:
             jobs = [(a, b, False), (b, a, False)]
+            if hull_edge_pair(ta, tb):
+                # (the broad phase's separating-axis test of the two volumes chooses the edge pair and whether
+                # it holds the contact: narrow.func_hull_pair_test)
+                slots.append((i_p, SLOT_HULLEDGE, a, b, np.zeros(3), 0.0, 0.0))
             if ta == GEOM_BOX and tb == GEOM_BOX:
                 # (the pair's separating-axis test decides which of its edge and face slots hold the contact:
                 # narrow.func_box_pair_test)

@@ -2,7 +2,8 @@
 flags its kernels are specialised on and the capacities its fields need."""
 import numpy as np
 
-from ..collision import SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_SEGSEG, build_geoms, build_slots, candidate_pairs, link_is_dynamic
+from ..collision import (SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_SEGSEG, build_geoms, build_slots,
+                         candidate_pairs, geom_hull, link_is_dynamic)
 from ..flatten import JTYPE
 from .law import LOAD_SHIFT, MARGIN_WIDTHS
 
@@ -63,6 +64,9 @@ class ContactPlan:
         self.has_boxedge = any(x[1] == SLOT_BOXEDGE for x in slots)
         # (box-box pairs have both; the broad phase runs their pair's separating-axis test)
         self.has_boxface = any(x[1] == SLOT_BOXFACE for x in slots)
+        self.has_hulledge = any(x[1] == SLOT_HULLEDGE for x in slots)
+        # the convex volumes of the geoms of hull-edge pairs (collision.polytope_hull), by geom
+        self.hulls = {g: geom_hull(geoms, g) for x in slots if x[1] == SLOT_HULLEDGE for g in x[2:4]}
         self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)
         self.entity_geom_count = list(geoms.entity_count)
@@ -109,7 +113,8 @@ class ContactPlan:
         else:
             self.caps = (_cap(self.n_geoms, 16), _cap(self.n_pairs, 16), _cap(self.n_slots, 64),
                          _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
-        self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types,
+        self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.has_hulledge,
+                      self.sdf_types,
                       (self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift), self.static)
 
 

@@ -6,7 +6,8 @@ import numpy as np
 import taichi as ti
 
 from ... import taichi_compat
-from ..collision import N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns, geom_rotations
+from ..collision import (N_HULL_CORNERS, N_HULL_EDGES, N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns,
+                         geom_rotations)
 from ..kinematics import LINK_STATE
 from ..layout import FieldTree, ZeroPlan, by_env_axis, func_zero_plan
 from .banks import AccBank
@@ -69,8 +70,8 @@ class ContactSolver:
     def __init__(self, core, plan: ContactPlan):
         self.plan = plan
         self.caps, self.flags = plan.caps, plan.flags
-        (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.sdf_types, consts,
-         self.static_sizes) = plan.flags
+        (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.has_hulledge,
+         self.sdf_types, consts, self.static_sizes) = plan.flags
         self.baked_sizes = tuple(plan.cfg_i)
         self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift = consts
         self.margin = MARGIN_WIDTHS * self.delta
@@ -116,6 +117,17 @@ class ContactSolver:
         # a box pair's separating-axis test (collision.func_box_pair_test: the broad phase's, for the active box
         # pairs; their edge and face slots read it)
         self.pair_box = I((B, Pn) if self.has_boxedge else 1)
+        # the convex volumes of the geoms of hull-edge pairs (collision.polytope_hull, in the geom frame): their
+        # planes' normals and offsets, corners, edges (two ends, the normals of the two faces that meet there)
+        # and how many of each (hull_n [g] = planes, corners, edges); and a pair's separating-axis test of the
+        # two volumes (narrow.func_hull_pair_test: the broad phase's, for the active pairs)
+        Gh = G if self.has_hulledge else 1
+        self.hull_pn, self.hull_pd = V3((Gh, N_KDOP), False), F((Gh, N_KDOP), False)
+        self.hull_c = V3((Gh, N_HULL_CORNERS), False)
+        self.hull_e0, self.hull_e1 = V3((Gh, N_HULL_EDGES), False), V3((Gh, N_HULL_EDGES), False)
+        self.hull_f1, self.hull_f2 = V3((Gh, N_HULL_EDGES), False), V3((Gh, N_HULL_EDGES), False)
+        self.hull_n = I((Gh, 3))
+        self.pair_hull = I((B, Pn) if self.has_hulledge else 1)
         # the broad phase's per-geom terms (narrow.func_broad_phase): bounding sphere centre, world box half
         # widths, centre speed, rotation sweep
         self.geom_bc, self.geom_ext = V3((B, G), False), V3((B, G), False)
@@ -305,6 +317,34 @@ class ContactSolver:
                          c(pair_s0[-1:], np.int32), slot_i, c(slot_f, npf),
                          c([x[:3] for x in cross], np.int32), c([x[3] for x in cross], npf),
                          c(plan.np_dense_perm, np.int32))
+        if self.has_hulledge:
+            hp, hc, he = np.zeros((G, N_KDOP, 4)), np.zeros((G, N_HULL_CORNERS, 3)), np.zeros((G, N_HULL_EDGES, 4, 3))
+            hn = np.zeros((G, 3), dtype=np.int32)
+            for g, (planes, corners, edges) in plan.hulls.items():
+                hn[g] = len(planes), len(corners), len(edges)
+                hp[g, : len(planes)], hc[g, : len(corners)], he[g, : len(edges)] = planes, corners, edges
+            self.kernel_load_hulls(c(hp, npf), c(hc, npf), c(he, npf), hn)
+
+    @ti.kernel
+    def kernel_load_hulls(self, hp: ti.types.ndarray(), hc: ti.types.ndarray(), he: ti.types.ndarray(),
+                          hn: ti.types.ndarray()):
+        """The convex volumes of the hull-edge pairs' geoms into the hull_* fields."""
+        for g in range(hn.shape[0]):
+            for k in ti.static(range(3)):
+                self.hull_n[g, k] = hn[g, k]
+            for m in range(N_KDOP):
+                self.hull_pd[g, m] = hp[g, m, 3]
+                for k in ti.static(range(3)):
+                    self.hull_pn[g, m][k] = hp[g, m, k]
+            for m in range(N_HULL_CORNERS):
+                for k in ti.static(range(3)):
+                    self.hull_c[g, m][k] = hc[g, m, k]
+            for m in range(N_HULL_EDGES):
+                for k in ti.static(range(3)):
+                    self.hull_e0[g, m][k] = he[g, m, 0, k]
+                    self.hull_e1[g, m][k] = he[g, m, 1, k]
+                    self.hull_f1[g, m][k] = he[g, m, 2, k]
+                    self.hull_f2[g, m][k] = he[g, m, 3, k]
 
     @ti.kernel
     def kernel_load(self, cfg_i: ti.types.ndarray(), geom_i: ti.types.ndarray(),
