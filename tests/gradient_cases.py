@@ -241,24 +241,29 @@ def build_plank_stack(v):
                  defaults={"hi.dofs_velocity": np.array([0.1, -0.05, -0.2, 0.0, 0.0, 0.3])})
 
 def build_raft(v):
-    """Mesh against mesh, edge on edge (the hull-edge slots, collision/narrow.func_hull_pair_test): two fixed
-    mesh planks (assets/meshes/plank.obj) turned 45 degrees about their lengths, ridge up, and across them at
-    ~70 degrees a free body of two more (assets/mjcf/raft.xml), tilted a little, 0.5 mm above them, falling at
-    0.2 m/s and sliding and turning: they touch only where ridges cross (no corner of either lies
-    inside the other), first at one crossing, then at the others."""
+    """Mesh against mesh, edge on edge and face on face (the hull-edge and hull-face slots,
+    collision/narrow.func_hull_pair_test): mesh planks (assets/meshes/plank.obj), two fixed side by side and
+    across them at ~70 degrees a free body of two more (assets/mjcf/raft*.xml), tilted a little, 0.5 mm above
+    them, falling at 0.2 m/s and sliding and turning. Turned 45 degrees about their lengths ("raft") they touch
+    only where ridges cross; lying flat ("flat", 2 m away) only where the edges of one's bottom face cross the
+    rim of the other's top face: no corner of either lies inside the other."""
     scene = _scene(v, dt=5e-3)
-    ridge = 0.04 * np.sqrt(2.0)
-    q = (np.cos(np.pi / 8), np.sin(np.pi / 8), 0.0, 0.0)
-    for y in (-0.15, 0.15):
-        scene.add_entity(gs.morphs.Mesh(file=str(REPO / "assets" / "meshes" / "plank.obj"), pos=(0.0, y, 0.2),
-                                        quat=q, fixed=True), material=gs.materials.Rigid(friction=0.4))
-    raft = scene.add_entity(gs.morphs.MJCF(file=str(REPO / "assets" / "mjcf" / "raft.xml"),
-                                           pos=(0.01, -0.02, 0.2 + 2 * ridge + 5e-4), quat=_unit([0.82, 0.004, -0.003, 0.57])),
-                            material=gs.materials.Rigid(friction=0.6))
+    ents = {}
+    for name, x, roll, rise, xml in (("raft", 0.0, np.pi / 4, 0.08 * np.sqrt(2.0), "raft.xml"),
+                                     ("flat", 2.0, 0.0, 0.08, "raft_flat.xml")):
+        q = (np.cos(roll / 2), np.sin(roll / 2), 0.0, 0.0)
+        for y in (-0.15, 0.15):
+            scene.add_entity(gs.morphs.Mesh(file=str(REPO / "assets" / "meshes" / "plank.obj"), pos=(x, y, 0.2),
+                                            quat=q, fixed=True), material=gs.materials.Rigid(friction=0.4))
+        ents[name] = scene.add_entity(gs.morphs.MJCF(file=str(REPO / "assets" / "mjcf" / xml),
+                                                     pos=(x + 0.01, -0.02, 0.2 + rise + 5e-4),
+                                                     quat=_unit([0.82, 0.004, -0.003, 0.57])),
+                                      material=gs.materials.Rigid(friction=0.6))
     scene.build(n_envs=v.n_envs)
     # (friction moves the loss by ~1e-4 per unit: its differences at 1e-4 are round-off's, at 1e-3 they converge)
-    return Built(scene, {"raft": raft}, T=8, fd_h={**CONTACT_POSE_H, "friction": 1e-3}, f32_tol=F32_TOL_CONTACT,
-                 defaults={"raft.dofs_velocity": np.array([0.3, -0.2, -0.2, 0.05, -0.1, 0.3])})
+    return Built(scene, ents, T=8, fd_h={**CONTACT_POSE_H, "friction": 1e-3}, f32_tol=F32_TOL_CONTACT,
+                 defaults={"raft.dofs_velocity": np.array([0.3, -0.2, -0.2, 0.05, -0.1, 0.3]),
+                           "flat.dofs_velocity": np.array([0.3, -0.2, -0.2, 0.05, -0.1, 0.3])})
 
 
 def build_arm(v, plane=False):
@@ -902,8 +907,9 @@ def _table() -> List[Case]:
     PLANKS = ("hi.pos", "hi.quat", "hi.dofs_velocity", "lo.links_mass", "hi.friction")
     slow("plank_stack", PLANKS, STACK_OUT)
     # ------------------------------------------------------------------ mesh on mesh, ridges crossed (hull-edge slots)
-    add("raft", ("raft.pos", "raft.quat", "raft.dofs_velocity", "raft.links_mass", "raft.friction"),
-        ("raft.pos", "raft.quat", "raft.vel", "raft.ang"))
+    add("raft", ("raft.pos", "raft.quat", "raft.dofs_velocity", "raft.friction", "flat.pos", "flat.quat",
+                 "flat.dofs_velocity", "flat.links_mass"),
+        ("raft.pos", "raft.quat", "raft.vel", "raft.ang", "flat.pos", "flat.quat", "flat.vel", "flat.ang"))
     # ------------------------------------------------------------------ quadruped standing on the ground
     slow("go2", ("go2.dofs_position", "go2.ctrl_position", "go2.dofs_kp"), ("go2.pos", "go2.quat", "go2.links_pos"))
     slow("go2", ("go2.qpos", "go2.dofs_kv", "go2.dofs_velocity"), ("go2.vel", "go2.ang", "go2.dofs_velocity"))

@@ -97,7 +97,8 @@ def test_the_volume_s_corners_and_edges_close_it(robots_dir):
     clouds += [np.asarray(trimesh.load(f, force="mesh").convex_hull.vertices, dtype=float) for f in files]
     for H in clouds:
         kn, kd = hull_planes(H)
-        planes, C, E = polytope_hull(kn, kd)
+        planes, C, E, EF = polytope_hull(kn, kd)
+        assert np.allclose(planes[EF[:, 0], :3], E[:, 2]) and np.allclose(planes[EF[:, 1], :3], E[:, 3])
         X = HalfspaceIntersection(np.c_[kn, -kd], H.mean(0)).intersections
         size = float(np.ptp(X, 0).max())
         gap = np.linalg.norm(C[:, None] - X[None], axis=2)
@@ -117,19 +118,19 @@ PLANK = str(Path(__file__).resolve().parents[1] / "assets" / "meshes" / "plank.o
 RIDGE = 0.04 * np.sqrt(2.0)  # a plank turned 45 degrees about its length: its ridge's height over its centre
 
 
-def _quat(yaw_deg):
-    """A plank's turn: 45 degrees about its length (x; a ridge up and one down), then yaw_deg about z."""
-    half = np.radians(yaw_deg) / 2
+def _quat(yaw_deg, roll_deg):
+    """A plank's turn: roll_deg about its length (x; 45: a ridge up and one down), then yaw_deg about z."""
+    half, r = np.radians(yaw_deg) / 2, np.radians(roll_deg) / 2
     w1, x1, y1, z1 = np.cos(half), 0.0, 0.0, np.sin(half)
-    w2, x2, y2, z2 = np.cos(np.pi / 8), np.sin(np.pi / 8), 0.0, 0.0
+    w2, x2, y2, z2 = np.cos(r), np.sin(r), 0.0, 0.0
     return (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
             w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
 
 
-def _raft(tmp_path, mesh, z, yaw_deg):
+def _raft(tmp_path, mesh, z, yaw_deg, roll_deg):
     """One free body of two such planks side by side (MJCF), their lengths at yaw_deg, 0.3 m apart."""
     geom = ('type="mesh" mesh="plank"' if mesh else 'type="box" size="0.3 0.04 0.04"') + ' quat="{} {} {} {}"'
-    q = _quat(yaw_deg)
+    q = _quat(yaw_deg, roll_deg)
     side = 0.15 * np.array([np.sin(np.radians(yaw_deg)), -np.cos(np.radians(yaw_deg))])
     geoms = "".join(f'<geom {geom.format(*q)} pos="{sx * side[0]} {sx * side[1]} 0"/>' for sx in (-1, 1))
     xml = (f'<mujoco><asset><mesh name="plank" file="{PLANK}"/></asset><worldbody>'
@@ -139,25 +140,28 @@ def _raft(tmp_path, mesh, z, yaw_deg):
     return gs.morphs.MJCF(file=str(path))
 
 
+@pytest.mark.parametrize("lay", ["ridge", "flat"])
 @pytest.mark.parametrize("lower, upper", [("mesh", "mesh"), ("box", "mesh"), ("mesh", "box")])
-def test_crossed_ridges_rest_on_each_other(tmp_path, lower, upper):
-    """Planks (0.6 x 0.08 x 0.08 m) turned 45 degrees about their lengths, ridge up and ridge down: two fixed
-    ones side by side, and across them at 70 degrees a free body of two more (MJCF), dropped 2 mm onto them.
-    They touch only where ridges (edges) cross, four points, and no corner of either lies inside the other.
-    The free body comes to rest two ridge heights (0.0566 m each) over the fixed planks' centres, within
-    0.5 mm, and still. Before the hull-edge slots (collision.narrow.func_hull_pair_test) a mesh met a mesh or a
-    box only at its hull points and the other's planes: a mesh plank dropped so fell through (-4 m after
-    1 s, measured 2026-12-03)."""
-    z0 = 0.2
+def test_crossed_planks_rest_on_each_other(tmp_path, lower, upper, lay):
+    """Planks (0.6 x 0.08 x 0.08 m), two fixed side by side, and across them at 70 degrees a free body of two
+    more (MJCF), dropped 2 mm onto them: turned 45 degrees about their lengths (ridge up and ridge down) they
+    touch only where ridges (edges) cross, four points; lying flat, only where the edges of one's bottom face
+    cross the rim of the other's top face, sixteen points. No corner of either lies inside the other. The free
+    body comes to rest two ridge heights (0.0566 m each) or two half thicknesses over the fixed planks'
+    centres, within 0.5 mm, and still. Before the hull-edge and hull-face slots (collision.narrow.
+    func_hull_pair_test) a mesh met a mesh or a box only at its hull points and the other's planes: the free
+    body fell through (-4.6 m after 1 s, measured 2026-12-03)."""
+    z0, roll = 0.2, (45.0 if lay == "ridge" else 0.0)
+    rise = 2 * RIDGE if lay == "ridge" else 0.08
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.005))
     for y in (-0.15, 0.15):
         morph = gs.morphs.Mesh if lower == "mesh" else (lambda **k: gs.morphs.Box(size=(0.6, 0.08, 0.08), **k))
         kw = dict(file=PLANK) if lower == "mesh" else {}
-        scene.add_entity(morph(pos=(0.0, y, z0), quat=_quat(0.0), fixed=True, **kw))
-    top = scene.add_entity(_raft(tmp_path, upper == "mesh", z0 + 2 * RIDGE + 2e-3, 70.0))
+        scene.add_entity(morph(pos=(0.0, y, z0), quat=_quat(0.0, roll), fixed=True, **kw))
+    top = scene.add_entity(_raft(tmp_path, upper == "mesh", z0 + rise + 2e-3, 70.0, roll))
     scene.build()
     for _ in range(200):
         scene.step()
     z = float(top.get_pos()[2])
-    assert abs(z - (z0 + 2 * RIDGE)) < 5e-4, z - (z0 + 2 * RIDGE)
+    assert abs(z - (z0 + rise)) < 5e-4, z - (z0 + rise)
     assert float(top.get_vel().abs().max()) < 1e-3 and float(top.get_ang().abs().max()) < 1e-2

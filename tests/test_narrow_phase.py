@@ -13,7 +13,8 @@ import taichi as ti
 
 import genesis_lite as gs
 from solvers.rigid.collision.geoms import (GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE,
-                                           SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_POINT,
+                                           SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_HULLFACE,
+                                           SLOT_POINT,
                                            SLOT_SEGSEG)
 from solvers.rigid.collision.narrow import (func_box_pair_test, func_hull_pair_test, func_is_hull_pair,
                                             func_slot_geometry_branched, func_slot_geometry_selected)
@@ -45,7 +46,7 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
     n_slots = int(c.plan.n_slots)
     kinds = c.slot_kind.to_numpy()[:n_slots]
     sdf_types = c.plan.geoms.type[c.plan.np_slot_gb]
-    for kind in (SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE):
+    for kind in (SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE, SLOT_HULLFACE):
         assert (kinds == kind).any(), kind
     # (a sphere is a slot's point side against every other type: no slot takes its SDF here)
     for t in (GEOM_PLANE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH):
@@ -61,7 +62,7 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
             if (c.geom_type[ga] == GEOM_BOX) & (c.geom_type[gb] == GEOM_BOX):
                 c.pair_box[i_b, i_p] = func_box_pair_test(c, i_b, ga, gb)
             if func_is_hull_pair(c, ga, gb):
-                c.pair_hull[i_b, i_p] = func_hull_pair_test(c, i_b, ga, gb)
+                func_hull_pair_test(c, i_b, i_p, ga, gb)
         for i_b, i_s in ti.ndrange(N_ENVS, c.n_slots):
             p1, n1, d1 = func_slot_geometry_branched(s, i_b, i_s)
             p2, n2, d2 = func_slot_geometry_selected(s, i_b, i_s)
@@ -90,5 +91,5 @@ def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
     assert worst < 1e-12, worst
     # (the poses put slots of every kind near contact, not only far apart)
     depths = np.concatenate(depths, axis=0)
-    for kind in (SLOT_POINT, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE):
+    for kind in (SLOT_POINT, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE, SLOT_HULLFACE):
         assert (np.abs(depths[:, kinds == kind]) < 0.05).any(), kind

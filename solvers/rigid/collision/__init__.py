@@ -26,7 +26,10 @@ function (SDF) of the other (the "SDF side"):
                               whose axis separates the two convex volumes   edge
                               best, where it beats every face axis (edge
                               on edge: geoms.polytope_hull's edges,
-                              narrow.func_hull_pair_test)
+                              narrow.func_hull_pair_test), else the points  the face of the
+                              where the edges of one's face cross the rim   other (its plane)
+                              of the other's best face (face on face: up
+                              to N_HULLFACE)
 
 SDFs are exact for plane, sphere, capsule, box and cylinder; a mesh is its convex hull, whose SDF is
 that of the intersection of 26 of the hull's own face planes (geoms.hull_planes: the bounding box, then
@@ -36,11 +39,11 @@ directions, used before 2026-11-29, reached 8-18 % and put a finger's collision 
 hull). Inside a box, cylinder or mesh the nearest face is ambiguous where faces meet (two stacked
 identical boxes touch corner on corner), so the face is chosen by penetration plus a bias towards the
 face that looks at the other geom's centre. Two meshes (or a mesh and a box) touch where a hull vertex of
-one enters the other's planes, and where two edges of their volumes cross edge on edge with no vertex of
-either inside the other (the hull-edge slot; before 2026-12-03 such ridges passed through each other:
-tests/test_mesh_hull.py). Still missed: an edge of one lying across a face of the other, both ends outside
-it, with the face axis the best (the box pairs' face slots have it; meshes have no such slot), and a
-rounded hull rests on the other's planes, up to their gap to its hull.
+one enters the other's planes, where two edges of their volumes cross edge on edge, and where the edges of
+one's face cross the rim of the other's face lying on it, with no vertex of either inside the other (the
+hull-edge and hull-face slots; before 2026-12-03 crossed mesh planks passed through each other, ridge on
+ridge or flat: tests/test_mesh_hull.py). A rounded hull rests on the other's planes, up to their gap to its
+hull.
 
 Which pairs are candidates: geoms of different kinematic trees (other entities, and an entity's other
 trees: an MJCF's free bodies, its worldbody's floor); geoms of one tree only with `enable_self_collision`,
@@ -56,8 +59,8 @@ Modules: geoms.py (host side: geoms, candidate pairs, slots), sdf.py (the SDFs),
 stages: geom poses, broad phase, slot geometry).
 """
 from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CAPSULE, GEOM_CODE, GEOM_CYLINDER,
-                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_HULL_CORNERS, N_HULL_EDGES, N_KDOP,
-                    SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_POINT, SLOT_SEGSEG, ContactBuildError,
+                    GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_HULL_CORNERS, N_HULL_EDGES, N_HULLFACE, N_KDOP,
+                    SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_HULLFACE, SLOT_POINT, SLOT_SEGSEG, ContactBuildError,
                     GeomTable, build_geoms, build_slots, candidate_pairs, geom_box_columns, geom_hull, geom_rotations,
                     link_is_dynamic, sample_points)
 from .narrow import NO_ADJOINT, func_broad_phase, func_geom_pose, func_slot_geometry

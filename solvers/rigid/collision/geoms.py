@@ -23,6 +23,10 @@ SLOT_POINT, SLOT_CYL_RIM, SLOT_SEGSEG, SLOT_BOXEDGE, SLOT_BOXFACE = 0, 1, 2, 3, 
 # the closest points of the two edges whose cross product separates two convex volumes best (a mesh's
 # planes, hull_planes, against another mesh's or a box: narrow.func_hull_pair_test), edge against edge
 SLOT_HULLEDGE = 5
+# face on face: a point where an edge of one volume's face crosses the rim of the other's face lying on it (the
+# pair's test finds up to N_HULLFACE such crossings, one per slot: narrow.func_hull_face_crossings)
+SLOT_HULLFACE = 6
+N_HULLFACE = 8
 # an edge-edge axis counts only where it separates two boxes better than every face axis by this
 # fraction of the smaller box's smallest half size (ties, as in face-on-face stacks, are the faces');
 # a face-face crossing counts only this far from the corners of both faces (where corner slots are)
@@ -189,7 +193,7 @@ def _polytope_corners(kn: np.ndarray, kd: np.ndarray) -> np.ndarray:
 
 def polytope_hull(kn: np.ndarray, kd: np.ndarray):
     """(planes (P, 4): n, d; corners (V, 3); edges (E, 4, 3): the two ends and the unit normals of the two
-    faces that meet there) of the bounded intersection of the half-spaces n . x <= d: a mesh's collision
+    faces that meet there; the indices of those two faces' planes (E, 2)) of the bounded intersection of the half-spaces n . x <= d: a mesh's collision
     volume (hull_planes) or a box's. An edge is where the line of two planes runs inside every other plane
     for a length (clipped in one pass over the plane pairs: no hull of the corners, which qhull would
     simplify where planes meet at small angles, up to 0.3 mm on example-robot-data's Panda finger); where
@@ -198,7 +202,7 @@ def polytope_hull(kn: np.ndarray, kd: np.ndarray):
     N, D = planes[:, :3], planes[:, 3]
     size = max(float(np.abs(D).max()), 1e-9)
     tol = 1e-9 * size
-    edges = []
+    edges, faces = [], []
     for i, j in itertools.combinations(range(len(N)), 2):
         u = np.cross(N[i], N[j])
         if np.linalg.norm(u) < 1e-9:
@@ -217,12 +221,13 @@ def polytope_hull(kn: np.ndarray, kd: np.ndarray):
         e = np.stack([x0 + t0 * u, x0 + t1 * u, N[i], N[j]])
         if not any(max(np.abs(f[:2] - e[:2]).max(), np.abs(f[:2] - e[1::-1]).max()) <= tol * 10 for f in edges):
             edges.append(e)
+            faces.append((i, j))
     E = np.array(edges).reshape(-1, 4, 3)
     C = []
     for x in E[:, :2].reshape(-1, 3):
         if not any(np.linalg.norm(x - c) <= 10 * tol for c in C):
             C.append(x)
-    return planes, np.array(C).reshape(-1, 3), E
+    return planes, np.array(C).reshape(-1, 3), E, np.array(faces, dtype=np.int32).reshape(-1, 2)
 
 
 def geom_hull(geoms: "GeomTable", g: int):
@@ -560,6 +565,8 @@ def build_slots(geoms: GeomTable, pairs):
                 # (the broad phase's separating-axis test of the two volumes chooses the edge pair and whether
                 # it holds the contact: narrow.func_hull_pair_test)
                 slots.append((i_p, SLOT_HULLEDGE, a, b, np.zeros(3), 0.0, 0.0))
+                for m in range(N_HULLFACE):
+                    slots.append((i_p, SLOT_HULLFACE, a, b, np.zeros(3), 0.0, float(m)))
             if ta == GEOM_BOX and tb == GEOM_BOX:
                 # (the pair's separating-axis test decides which of its edge and face slots hold the contact:
                 # narrow.func_box_pair_test)

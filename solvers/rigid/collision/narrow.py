@@ -9,7 +9,8 @@ a Panda over a plane beside a box, 4.6 -> 1.2 us a step). The two forms agree sl
 import taichi as ti
 
 from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE,
-                    N_HULL_EDGES, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_SEGSEG)
+                    N_HULL_EDGES, N_HULLFACE, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE,
+                    SLOT_HULLFACE, SLOT_SEGSEG)
 from ..math3d import div_floor, func_mm, func_mtv, func_mv
 from .sdf import TINY, func_sdf_any, func_sdf_branched, func_sdf_round, func_segment_closest, func_sgn3
 
@@ -114,7 +115,7 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
                 c.pair_box[i_b, i_p] = func_box_pair_test(c, i_b, ga, gb)
         if ti.static(c.has_hulledge):  # two convex volumes' separating-axis test, for their edge slot
             if (c.pair_active[i_b, i_p] == 1) & func_is_hull_pair(c, ga, gb):
-                c.pair_hull[i_b, i_p] = func_hull_pair_test(c, i_b, ga, gb)
+                func_hull_pair_test(c, i_b, i_p, ga, gb)
 
 
 @ti.func
@@ -576,10 +577,11 @@ def func_is_hull_pair(c: ti.template(), ga, gb):
 
 @ti.func
 def func_hull_face_sep(c: ti.template(), X, Y, xX, RX, xY, RY):
-    """The largest separation along geom X's face planes of geom Y's volume (the least distance of Y's corners
-    beyond each plane; negative: every plane has a corner of Y inside it)."""
+    """(separation, plane) of the best of geom X's face planes: the least distance of geom Y's corners beyond
+    it, largest over X's planes (negative: every plane has a corner of Y inside it)."""
     dx = xX - xY
     best = ti.cast(-1e30, c.dtype)
+    kb = 0
     for k in range(c.hull_n[X, 0]):
         nw = func_mv(RX, c.hull_pn[X, k])
         nY = func_mtv(RY, nw)
@@ -587,25 +589,31 @@ def func_hull_face_sep(c: ti.template(), X, Y, xX, RX, xY, RY):
         least = ti.cast(1e30, c.dtype)
         for m in range(c.hull_n[Y, 1]):
             least = ti.min(least, nY.dot(c.hull_c[Y, m]) - dY)
-        best = ti.max(best, least)
-    return best
+        if least > best:
+            best = least
+            kb = k
+    return best, kb
 
 
 @ti.func
-def func_hull_pair_test(c: ti.template(), i_b, ga, gb):
+def func_hull_pair_test(c: ti.template(), i_b, i_p, ga, gb):
     """The separating-axis test of two convex volumes (a mesh's planes, a box; collision.polytope_hull), once
-    per step for the pair's edge slot (the broad phase runs it for the active pairs; its choices go to
-    pair_hull, func_hull_pack): the best face axis (func_hull_face_sep, both sides), the best edge pair, and
-    whether that edge axis separates better than every face axis by the pair's tol. Only the edge pairs whose
-    Gauss-map arcs cross are axes of the Minkowski difference (Gregorius, "The Separating Axis Test between
-    Convex Polyhedra", GDC 2013): edge a's two face normals against the negated normals of edge b's; along
-    such an axis, turned away from a's inside, the separation is the axis's projection of one edge's point
-    from the other's. The pairs are tested in b's frame; the axis's sign by geom a's centre (inside it)."""
+    per step for the pair's edge and face slots (the broad phase runs it for the active pairs): the best face
+    axis (func_hull_face_sep, both sides), the best edge pair, and whether that edge axis separates better than
+    every face axis by the pair's tol (into pair_hull, func_hull_pack); where it does not, the crossings of the
+    best face's rim with the other volume's face most opposed to it (func_hull_face_crossings, into
+    pair_hcross). Only the edge pairs whose Gauss-map arcs cross are axes of the Minkowski difference
+    (Gregorius, "The Separating Axis Test between Convex Polyhedra", GDC 2013): edge a's two face normals
+    against the negated normals of edge b's; along such an axis, turned away from a's inside, the separation
+    is the axis's projection of one edge's point from the other's. The pairs are tested in b's frame; the
+    axis's sign by geom a's centre (inside it)."""
     xa = c.geom_xpos[i_b, ga]
     xb = c.geom_xpos[i_b, gb]
     Ra = c.geom_xR[i_b, ga]
     Rb = c.geom_xR[i_b, gb]
-    sep_f = ti.max(func_hull_face_sep(c, ga, gb, xa, Ra, xb, Rb), func_hull_face_sep(c, gb, ga, xb, Rb, xa, Ra))
+    sep_a, ka = func_hull_face_sep(c, ga, gb, xa, Ra, xb, Rb)
+    sep_b, kb = func_hull_face_sep(c, gb, ga, xb, Rb, xa, Ra)
+    sep_f = ti.max(sep_a, sep_b)
     Rab = Rb.transpose() @ Ra
     tab = func_mtv(Rb, xa - xb)
     ca = func_mv(Rab, c.geom_center[ga]) + tab
@@ -641,14 +649,128 @@ def func_hull_pair_test(c: ti.template(), i_b, ga, gb):
                             best = sep
                             bi = i
                             bj = j
-    tol = BOXEDGE_TOL * ti.min(c.geom_thick[ga], c.geom_thick[gb])
-    return func_hull_pack(bi, bj, best > sep_f + tol)
+    tol = func_hull_tol(c, ga, gb)
+    edge_wins = best > sep_f + tol
+    c.pair_hull[i_b, i_p] = func_hull_pack(bi, bj, edge_wins)
+    n_cross = 0
+    if not edge_wins:
+        on_b = sep_b > sep_a  # (ties: a's face, as the box pairs' test)
+        n_cross = func_hull_face_crossings(c, i_b, i_p, ti.select(on_b, gb, ga), ti.select(on_b, ga, gb),
+                                           ti.select(on_b, kb, ka), ti.select(on_b, 1, 0), tol)
+    for m in range(n_cross, N_HULLFACE):
+        c.pair_hcross[i_b, i_p, m] = -1
+
+
+@ti.func
+def func_hull_tol(c: ti.template(), ga, gb):
+    """A volume pair's tol: 2 % of the thinner one's half thickness (func_face_tol's rule for box pairs)."""
+    return BOXEDGE_TOL * ti.min(c.geom_thick[ga], c.geom_thick[gb])
+
+
+@ti.func
+def func_hull_face_crossings(c: ti.template(), i_b, i_p, X, Y, k, side, tol):
+    """Face on face: where the edges of geom Y's incident face (its plane most opposed to X's plane k, the
+    reference face) cross the reference face's rim, each at least tol from the ends of both edges (the corners
+    are the point slots'), into pair_hcross[i_b, i_p, :] (func_hull_cross_pack, up to N_HULLFACE; the rest
+    left to the caller). In X's frame; the rim edge's outward direction in the face's plane is its other
+    face's normal less its part along the plane's. Returns how many it found."""
+    xX = c.geom_xpos[i_b, X]
+    RX = c.geom_xR[i_b, X]
+    RXY = RX.transpose() @ c.geom_xR[i_b, Y]
+    tXY = func_mtv(RX, c.geom_xpos[i_b, Y] - xX)
+    nk = c.hull_pn[X, k]
+    inc = 0
+    least = ti.cast(1e30, c.dtype)
+    for j in range(c.hull_n[Y, 0]):
+        d = func_mv(RXY, c.hull_pn[Y, j]).dot(nk)
+        if d < least:
+            least = d
+            inc = j
+    n = 0
+    for e in range(c.hull_n[Y, 2]):
+        if (c.hull_ef[Y, e, 0] == inc) | (c.hull_ef[Y, e, 1] == inc):
+            q0 = func_mv(RXY, c.hull_e0[Y, e]) + tXY
+            dq = func_mv(RXY, c.hull_e1[Y, e]) + tXY - q0
+            lq = ti.sqrt(dq.dot(dq))
+            for r in range(c.hull_n[X, 2]):
+                f0 = c.hull_ef[X, r, 0]
+                if (f0 == k) | (c.hull_ef[X, r, 1] == k):
+                    no = c.hull_pn[X, ti.select(f0 == k, c.hull_ef[X, r, 1], f0)]
+                    sr = no - no.dot(nk) * nk
+                    p0 = c.hull_e0[X, r]
+                    dp = c.hull_e1[X, r] - p0
+                    lp = ti.sqrt(dp.dot(dp))
+                    den = sr.dot(dq)
+                    if ti.abs(den) > 1e-9 * ti.sqrt(sr.dot(sr)) * lq:
+                        t = sr.dot(p0 - q0) / den
+                        u = (q0 + t * dq - p0).dot(dp) / (lp * lp)
+                        if (t * lq > tol) & ((1.0 - t) * lq > tol) & (u * lp > tol) & ((1.0 - u) * lp > tol):
+                            if n < N_HULLFACE:
+                                c.pair_hcross[i_b, i_p, n] = func_hull_cross_pack(e, r, k, side)
+                                n += 1
+    return n
+
+
+@ti.func
+def func_hull_cross_pack(e, r, k, side):
+    """A face-on-face crossing as one integer, pair_hcross's: incident edge e, rim edge r, reference plane k,
+    and which geom of the pair holds the reference face (side 1: its second)."""
+    return e + 128 * (r + 128 * (k + 32 * side))
+
+
+@ti.func
+def func_hull_cross_unpack(code):
+    """(e, r, k, whether the reference face is the pair's second geom's) of func_hull_cross_pack's integer."""
+    return code % 128, (code // 128) % 128, (code // 16384) % 32, code >= 524288
+
+
+@ti.func
+def func_hull_face_slot(c: ti.template(), i_b, i_s, ga, gb, xa, Ra, xb, Rb):
+    """(point, normal from geom b towards geom a, depth) of hull-face slot i_s (its aux: which of its pair's
+    crossings, func_hull_face_crossings): where the incident edge crosses the plane through the rim edge
+    perpendicular to the reference face, midway between it and the reference face's plane; the normal the
+    reference face's (turned from b to a), the depth how far the crossing lies below that plane. Depth -1 (no
+    contact) where the pair has no such crossing or it lies within tol of an edge's end. Finite for every
+    slot (the single-assignment form evaluates it for slots of other kinds, whose code reads edge 0)."""
+    code = c.pair_hcross[i_b, c.slot_pair[i_s], ti.min(ti.max(ti.cast(c.slot_aux[i_s], ti.i32), 0), N_HULLFACE - 1)]
+    e, r, k, on_b = func_hull_cross_unpack(ti.max(code, 0))
+    X = ti.select(on_b, gb, ga)
+    Y = ti.select(on_b, ga, gb)
+    xX = ti.select(on_b, xb, xa)
+    RX = ti.select(on_b, Rb, Ra)
+    xY = ti.select(on_b, xa, xb)
+    RY = ti.select(on_b, Ra, Rb)
+    nk = func_mv(RX, c.hull_pn[X, k])
+    f0 = c.hull_ef[X, r, 0]
+    nl = c.hull_pn[X, ti.select(f0 == k, c.hull_ef[X, r, 1], f0)]
+    sr = func_mv(RX, nl - nl.dot(c.hull_pn[X, k]) * c.hull_pn[X, k])
+    p0 = xX + func_mv(RX, c.hull_e0[X, r])
+    dp = func_mv(RX, c.hull_e1[X, r] - c.hull_e0[X, r])
+    q0 = xY + func_mv(RY, c.hull_e0[Y, e])
+    dq = func_mv(RY, c.hull_e1[Y, e] - c.hull_e0[Y, e])
+    den = sr.dot(dq)
+    ok = ti.abs(den) > 1e-9 * ti.sqrt(sr.dot(sr) * dq.dot(dq) + TINY)
+    t = sr.dot(p0 - q0) / ti.select(ok, den, 1.0)
+    x = q0 + t * dq
+    lq = ti.sqrt(dq.dot(dq) + TINY)
+    lp = ti.sqrt(dp.dot(dp) + TINY)
+    u = (x - p0).dot(dp) / ti.max(lp * lp, ti.static(div_floor()))
+    depth = c.hull_pd[X, k] + nk.dot(xX) - nk.dot(x)
+    tol = func_hull_tol(c, ga, gb)
+    inner = ok & (code >= 0) & (t * lq > tol) & ((1.0 - t) * lq > tol) & (u * lp > tol) & ((1.0 - u) * lp > tol)
+    return x + (0.5 * depth) * nk, ti.select(on_b, nk, -nk), ti.select(inner, depth, -1.0)
 
 
 @ti.func
 def func_hull_pack(i, j, edge_wins):
     """func_hull_pair_test's choices as one integer, pair_hull's: i + N (j + N edge_wins), N the edges' capacity."""
     return i + N_HULL_EDGES * (j + ti.select(edge_wins, N_HULL_EDGES, 0))
+
+
+@ti.func
+def func_hull_unpack(code):
+    """(i, j, edge_wins) of func_hull_pack's integer."""
+    return code % N_HULL_EDGES, (code // N_HULL_EDGES) % N_HULL_EDGES, code >= N_HULL_EDGES * N_HULL_EDGES
 
 
 @ti.func
@@ -659,10 +781,7 @@ def func_hull_edge_slot(c: ti.template(), i_b, i_s, ga, gb, xa, Ra, xb, Rb):
     edge axis beat every face axis and the closest points lie inside both edges (else corners and faces carry
     the contact: the point slots). Finite for every slot (the single-assignment form evaluates it for slots
     of other kinds, whose code reads edge 0)."""
-    code = c.pair_hull[i_b, c.slot_pair[i_s]]
-    i = code % N_HULL_EDGES
-    j = (code // N_HULL_EDGES) % N_HULL_EDGES
-    verdict = code >= N_HULL_EDGES * N_HULL_EDGES
+    i, j, verdict = func_hull_unpack(c.pair_hull[i_b, c.slot_pair[i_s]])
     pa0 = xa + func_mv(Ra, c.hull_e0[ga, i])
     pa1 = xa + func_mv(Ra, c.hull_e1[ga, i])
     pb0 = xb + func_mv(Rb, c.hull_e0[gb, j])
@@ -681,11 +800,15 @@ def func_hull_edge_slot(c: ti.template(), i_b, i_s, ga, gb, xa, Ra, xb, Rb):
 
 @ti.func
 def func_with_hulledge(c: ti.template(), i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb, pos, n, depth):
-    """(point, normal, depth) of the slot: those given, or for hull-edge slots the edge-edge contact."""
+    """(point, normal, depth) of the slot: those given, or for hull-edge slots the edge-edge contact and for
+    hull-face slots the face-on-face crossing."""
     if ti.static(c.has_hulledge):
         pe, ne, de = func_hull_edge_slot(c, i_b, i_s, ga, gb, xa, Ra, xb, Rb)
+        pf, nf, df = func_hull_face_slot(c, i_b, i_s, ga, gb, xa, Ra, xb, Rb)
         he = kind == SLOT_HULLEDGE
-        return ti.select(he, pe, pos), ti.select(he, ne, n), ti.select(he, de, depth)
+        hf = kind == SLOT_HULLFACE
+        return (ti.select(he, pe, ti.select(hf, pf, pos)), ti.select(he, ne, ti.select(hf, nf, n)),
+                ti.select(he, de, ti.select(hf, df, depth)))
     else:
         return pos, n, depth
 
@@ -734,13 +857,16 @@ def func_slot_geometry_branched(s: ti.template(), i_b, i_s):
         box_kind = (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE)
     hull_kind = False
     if ti.static(c.has_hulledge):
-        hull_kind = kind == SLOT_HULLEDGE
+        hull_kind = (kind == SLOT_HULLEDGE) | (kind == SLOT_HULLFACE)
     if box_kind:
         if ti.static(c.has_boxedge):
             pos, n, depth = func_box_slot(c, i_b, i_s, kind, ga, gb, xa, Ra, xb, Rb)
     elif hull_kind:
         if ti.static(c.has_hulledge):
-            pos, n, depth = func_hull_edge_slot(c, i_b, i_s, ga, gb, xa, Ra, xb, Rb)
+            if kind == SLOT_HULLEDGE:
+                pos, n, depth = func_hull_edge_slot(c, i_b, i_s, ga, gb, xa, Ra, xb, Rb)
+            else:
+                pos, n, depth = func_hull_face_slot(c, i_b, i_s, ga, gb, xa, Ra, xb, Rb)
     else:
         ra = c.slot_r[i_s]
         zb = ti.Vector([Rb[0, 2], Rb[1, 2], Rb[2, 2]])

@@ -4,7 +4,7 @@ slot's numbers; the friction law is applied where its inputs are known (passes.p
 import taichi as ti
 
 from ..math3d import div_floor
-from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE
+from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_HULLEDGE, SLOT_HULLFACE
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
@@ -167,10 +167,10 @@ def func_rot_corr(s: ti.template(), i_b, i_s, h, pos, n, depth):
     gb = c.slot_gb[i_s]
     la = c.geom_link[ga]
     lb = c.geom_link[gb]
-    # pos is midway between the two surfaces against a moving geom and for box and hull edge and box face slots, else
+    # pos is midway between the two surfaces against a moving geom and for edge and face slots, else
     # on the point side's surface (func_slot_geometry)
     kind = c.slot_kind[i_s]
-    mid = (c.link_dyn[lb] == 1) | (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE) | (kind == SLOT_HULLEDGE)
+    mid = (c.link_dyn[lb] == 1) | (kind == SLOT_BOXEDGE) | (kind == SLOT_BOXFACE) | (kind == SLOT_HULLEDGE) | (kind == SLOT_HULLFACE)
     sa = ti.select(mid, pos - (0.5 * depth) * n, pos)
     tb = c.geom_type[gb]
     rb = ti.select((tb == GEOM_SPHERE) | (tb == GEOM_CAPSULE), c.geom_size[gb][0], 0.0)

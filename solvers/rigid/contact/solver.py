@@ -6,7 +6,7 @@ import numpy as np
 import taichi as ti
 
 from ... import taichi_compat
-from ..collision import (N_HULL_CORNERS, N_HULL_EDGES, N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns,
+from ..collision import (N_HULL_CORNERS, N_HULL_EDGES, N_HULLFACE, N_KDOP, func_broad_phase, func_geom_pose, geom_box_columns,
                          geom_rotations)
 from ..kinematics import LINK_STATE
 from ..layout import FieldTree, ZeroPlan, by_env_axis, func_zero_plan
@@ -127,7 +127,11 @@ class ContactSolver:
         self.hull_e0, self.hull_e1 = V3((Gh, N_HULL_EDGES), False), V3((Gh, N_HULL_EDGES), False)
         self.hull_f1, self.hull_f2 = V3((Gh, N_HULL_EDGES), False), V3((Gh, N_HULL_EDGES), False)
         self.hull_n = I((Gh, 3))
+        self.hull_ef = I((Gh, N_HULL_EDGES, 2))  # the planes of an edge's two faces (indices into hull_pn)
         self.pair_hull = I((B, Pn) if self.has_hulledge else 1)
+        # face on face: the crossings of the incident face's edges with the reference face's rim that the pair's
+        # test found (narrow.func_hull_face_crossings; -1: none), one per hull-face slot
+        self.pair_hcross = I((B, Pn, N_HULLFACE) if self.has_hulledge else 1)
         # the broad phase's per-geom terms (narrow.func_broad_phase): bounding sphere centre, world box half
         # widths, centre speed, rotation sweep
         self.geom_bc, self.geom_ext = V3((B, G), False), V3((B, G), False)
@@ -319,19 +323,23 @@ class ContactSolver:
                          c(plan.np_dense_perm, np.int32))
         if self.has_hulledge:
             hp, hc, he = np.zeros((G, N_KDOP, 4)), np.zeros((G, N_HULL_CORNERS, 3)), np.zeros((G, N_HULL_EDGES, 4, 3))
-            hn = np.zeros((G, 3), dtype=np.int32)
-            for g, (planes, corners, edges) in plan.hulls.items():
+            hn, hf = np.zeros((G, 3), dtype=np.int32), np.zeros((G, N_HULL_EDGES, 2), dtype=np.int32)
+            for g, (planes, corners, edges, faces) in plan.hulls.items():
                 hn[g] = len(planes), len(corners), len(edges)
                 hp[g, : len(planes)], hc[g, : len(corners)], he[g, : len(edges)] = planes, corners, edges
-            self.kernel_load_hulls(c(hp, npf), c(hc, npf), c(he, npf), hn)
+                hf[g, : len(edges)] = faces
+            self.kernel_load_hulls(c(hp, npf), c(hc, npf), c(he, npf), hn, hf)
 
     @ti.kernel
     def kernel_load_hulls(self, hp: ti.types.ndarray(), hc: ti.types.ndarray(), he: ti.types.ndarray(),
-                          hn: ti.types.ndarray()):
+                          hn: ti.types.ndarray(), hf: ti.types.ndarray()):
         """The convex volumes of the hull-edge pairs' geoms into the hull_* fields."""
         for g in range(hn.shape[0]):
             for k in ti.static(range(3)):
                 self.hull_n[g, k] = hn[g, k]
+            for m in range(N_HULL_EDGES):
+                for k in ti.static(range(2)):
+                    self.hull_ef[g, m, k] = hf[g, m, k]
             for m in range(N_KDOP):
                 self.hull_pd[g, m] = hp[g, m, 3]
                 for k in ti.static(range(3)):
