@@ -1459,7 +1459,9 @@ def test_grad_through_mesh_against_mesh_contact(mesh_files, moving):
     # relative, round-off), the velocity's 1e-6 (over 1e-5 its second component is off by 2.9e-4
     # relative, converging on autograd's as the step shrinks: -0.0090891, -0.0090917, -0.00909176)
     m, mu, v = _t(0.7), _t(0.6), _t([0.4, 0.2, -0.5])
-    for fn, inputs, eps in ((lambda a, b: loss(a, b, v), {"mass": m, "mu": mu}, 1e-5),
+    # (2026-12-03, with the meshes' face slots: the mass's differences at 1e-5 are 1.75e-5 off autograd's by the
+    # loss's curvature, at 3e-6 1.5e-6, at 1e-6 6e-8; a WIP note, see the branch's last commit)
+    for fn, inputs, eps in ((lambda a, b: loss(a, b, v), {"mass": m, "mu": mu}, 1e-6),
                             (lambda x: loss(m, mu, x), {"v": v}, 1e-6)):
         rep = gs.grad.check(fn, inputs, eps=eps, tol=1e-5)
         assert rep.ok, str(rep)

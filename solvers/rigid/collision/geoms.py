@@ -326,7 +326,9 @@ def build_geoms(models, max_mesh_points: int) -> GeomTable:
                 else:
                     P, H, c, kn, kd, box = _mesh_hull_points(g, what, max_mesh_points)
                     # the planes fit the full hull; contacts use the reduced point set
-                    r = float(np.sqrt(((H - c) ** 2).sum(1).max()))
+                    # the bounding radius of the collision volume (the planes' intersection reaches past the
+                    # hull at its corners: the hull-edge and hull-face slots lie on it)
+                    r = float(np.sqrt(((np.r_[H, _polytope_corners(kn, kd)] - c) ** 2).sum(1).max()))
                     b = 0.25 * float(np.ptp(H, 0).min())
                     # half the thinnest width across the planes' normals
                     t = 0.5 * float((kd + (-(H @ kn.T)).max(0)).min())

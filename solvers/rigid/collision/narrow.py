@@ -758,7 +758,10 @@ def func_hull_face_slot(c: ti.template(), i_b, i_s, ga, gb, xa, Ra, xb, Rb):
     depth = c.hull_pd[X, k] + nk.dot(xX) - nk.dot(x)
     tol = func_hull_tol(c, ga, gb)
     inner = ok & (code >= 0) & (t * lq > tol) & ((1.0 - t) * lq > tol) & (u * lp > tol) & ((1.0 - u) * lp > tol)
-    return x + (0.5 * depth) * nk, ti.select(on_b, nk, -nk), ti.select(inner, depth, -1.0)
+    # (a slot without a crossing takes the rim edge's start as its point: x is then anywhere on the incident
+    # edge's line, metres away, and the solve's speculative test reads the point's speed)
+    return (ti.select(inner, x + (0.5 * depth) * nk, p0), ti.select(on_b, nk, -nk),
+            ti.select(inner, depth, -1.0))
 
 
 @ti.func
