@@ -1436,7 +1436,7 @@ def test_grad_through_mesh_against_mesh_contact(mesh_files, moving):
     scene.add_entity(gs.morphs.Mesh(file=str(slab), pos=(0.0, 0.0, -0.05), fixed=True),
                      material=gs.materials.Rigid(friction=0.3))
     lower = scene.add_entity(gs.morphs.Mesh(file=mbox, pos=(0.0, 0.0, 0.05)),
-                             material=gs.materials.Rigid(rho=200.0)) if moving else None  # light: it moves
+                             material=gs.materials.Rigid(rho=200.0, friction=0.4)) if moving else None  # light: it moves
     top = scene.add_entity(gs.morphs.Mesh(file=mbox, pos=(0.04, 0.01, 0.17 if moving else 0.07),
                                           quat=tuple(np.array([0.99, 0.03, -0.02, 0.15]) / np.linalg.norm([0.99, 0.03, -0.02, 0.15]))))
     scene.build()
