@@ -65,8 +65,10 @@ class ContactPlan:
         # (box-box pairs have both; the broad phase runs their pair's separating-axis test)
         self.has_boxface = any(x[1] == SLOT_BOXFACE for x in slots)
         self.has_hulledge = any(x[1] == SLOT_HULLEDGE for x in slots)
-        # the convex volumes of the geoms of hull-edge pairs (collision.polytope_hull), by geom
-        self.hulls = {g: geom_hull(geoms, g) for x in slots if x[1] == SLOT_HULLEDGE for g in x[2:4]}
+        # the convex volumes of the geoms of hull-edge pairs (collision.polytope_hull), by geom, each once (a geom
+        # is in many such pairs: 180 volumes for the 18 geoms of a self-colliding Panda beside a cube)
+        hull_geoms = sorted({g for x in slots if x[1] == SLOT_HULLEDGE for g in x[2:4]})
+        self.hulls = {g: geom_hull(geoms, g) for g in hull_geoms}
         self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)
         self.entity_geom_count = list(geoms.entity_count)
