@@ -110,9 +110,7 @@ class URDF(FileMorph):
         if isinstance(self.links_to_keep, str):
             raise ValueError(f"gs.morphs.URDF(links_to_keep={self.links_to_keep!r}): give a list of link names")
         self.links_to_keep = tuple(str(n) for n in self.links_to_keep)
-        if self.coacd_options is not None and not isinstance(self.coacd_options, dict):
-            raise ValueError(f"gs.morphs.URDF(coacd_options={self.coacd_options!r}): give a dict of coacd.run_coacd "
-                             "keyword arguments")
+        _check_coacd_options(self)
 
 
 @dataclass
@@ -130,6 +128,14 @@ class MJCF(FileMorph):
     def _check(self):
         super()._check()
         _check_default_armature(self)
+
+
+def _check_coacd_options(morph):
+    """coacd_options (URDF, Mesh): None or a dict of coacd.run_coacd keyword arguments."""
+    v = morph.coacd_options
+    if v is not None and not isinstance(v, dict):
+        raise ValueError(f"gs.morphs.{type(morph).__name__}(coacd_options={v!r}): give a dict of coacd.run_coacd "
+                         "keyword arguments")
 
 
 def _check_default_armature(morph):
@@ -168,9 +174,7 @@ class Mesh(FileMorph):
         t = self.decompose_error_threshold
         if not (isinstance(t, (int, float)) and t >= 0):
             raise ValueError(f"gs.morphs.Mesh(decompose_error_threshold={t!r}): give a relative volume error >= 0")
-        if self.coacd_options is not None and not isinstance(self.coacd_options, dict):
-            raise ValueError(f"gs.morphs.Mesh(coacd_options={self.coacd_options!r}): give a dict of coacd.run_coacd "
-                             "keyword arguments")
+        _check_coacd_options(self)
 
 
 @dataclass

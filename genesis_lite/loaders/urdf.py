@@ -236,19 +236,19 @@ def _collision_geoms(path, link, s, capsules, morph) -> List[GeomDesc]:
             V, F = load_mesh_file(file, f"URDF '{path}', link '{link.name}' (mesh '{g.mesh.filename}')")
             mscale = 1.0 if g.mesh.scale is None else np.asarray(g.mesh.scale, dtype=float)
             V, F = scale_mesh(V, F, mscale * s)
-            parts = None
-            if not getattr(morph, "convexify", True):
+            shapes = [(V, F)]
+            if not morph.convexify:
                 import trimesh
 
+                # (a URDF has no decompose_nonconvex: with convexify=False convex_parts splits or finds the mesh
+                # convex, and leaves no note)
                 what = f"URDF '{path}', {where} (mesh '{g.mesh.filename}')"
-                notes = []
                 parts = convex_parts(morph, trimesh.Trimesh(vertices=V, faces=F, process=True), convex_hull(V, what),
-                                     what, notes)
-                for msg in notes:
-                    warnings.warn(msg, stacklevel=4)
-            for V, F in [(V, F)] if parts is None else [(np.array(p.vertices, dtype=np.float64),
-                                                         np.array(p.faces, dtype=np.int64)) for p in parts]:
-                geoms.append(GeomDesc("mesh", pos, quat, (), vertices=V, faces=F, hull=mesh_hull(V)))
+                                     what, [])
+                if parts is not None:
+                    shapes = [(np.array(p.vertices, dtype=np.float64), np.array(p.faces, dtype=np.int64)) for p in parts]
+            for Vs, Fs in shapes:
+                geoms.append(GeomDesc("mesh", pos, quat, (), vertices=Vs, faces=Fs, hull=mesh_hull(Vs)))
         else:
             raise _err(path, f"{where}: empty <geometry>")
     return geoms
