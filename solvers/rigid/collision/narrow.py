@@ -180,8 +180,7 @@ def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
                 dY = c.geom_kdop[X, k] + nw.dot(dx)
                 least = ti.cast(1e30, c.dtype)
                 if ti.static(c.has_hulledge):  # the corners of Y's volume: the plane parts the two volumes
-                    for m in range(c.hull_n[Y, 1]):
-                        least = ti.min(least, nY.dot(c.hull_c[Y, m]) - dY)
+                    least = func_corners_beyond(c, Y, nY, dY)
                 else:
                     for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
                         if c.slot_ga[i_s] == Y:
@@ -576,6 +575,16 @@ def func_is_hull_pair(c: ti.template(), ga, gb):
 
 
 @ti.func
+def func_corners_beyond(c: ti.template(), Y, nY, dY):
+    """The least distance beyond the plane nY . x = dY (in geom Y's frame) of Y's volume's corners
+    (collision.polytope_hull): >= 0 where the plane parts Y from the side it bounds."""
+    least = ti.cast(1e30, c.dtype)
+    for m in range(c.hull_n[Y, 1]):
+        least = ti.min(least, nY.dot(c.hull_c[Y, m]) - dY)
+    return least
+
+
+@ti.func
 def func_hull_face_sep(c: ti.template(), X, Y, xX, RX, xY, RY):
     """(separation, plane) of the best of geom X's face planes: the least distance of geom Y's corners beyond
     it, largest over X's planes (negative: every plane has a corner of Y inside it)."""
@@ -586,9 +595,7 @@ def func_hull_face_sep(c: ti.template(), X, Y, xX, RX, xY, RY):
         nw = func_mv(RX, c.hull_pn[X, k])
         nY = func_mtv(RY, nw)
         dY = c.hull_pd[X, k] + nw.dot(dx)
-        least = ti.cast(1e30, c.dtype)
-        for m in range(c.hull_n[Y, 1]):
-            least = ti.min(least, nY.dot(c.hull_c[Y, m]) - dY)
+        least = func_corners_beyond(c, Y, nY, dY)
         if least > best:
             best = least
             kb = k
