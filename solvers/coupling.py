@@ -18,7 +18,7 @@ velocity:
     leaves it along the normal instead of staying in
 
 The momentum the node loses, m (v - v_new), is the impulse the MPM material gives the body: divided by
-the substep it becomes a force at the node on the geom's link (and its torque about the world origin),
+the substep it becomes a force at the node on the geom's link (and its torque about the link's tree's origin),
 summed into the rigid solver's external wrench of that substep (solvers/rigid/external.py), which the
 rigid solver applies in the same substep (after this stage). Both directions are differentiable: the projection is part
 of the MPM grid update (Taichi's autodiff), the body's pose and velocity come from the rigid
@@ -240,12 +240,17 @@ class RigidMPMCoupler:
             ll = ti.max(l, 0)
             Rl = self.rigid.link_R[i_b, ll]
             target = self.rigid.link_pos[i_b, ll] + func_mv(Rl, self.att_local[i_b, i_p])
-            v_link = self.rigid.cvel_v[i_b, ll] + self.rigid.cvel_w[i_b, ll].cross(x)
+            v_link = self.rigid.cvel_v[i_b, ll] + self.rigid.cvel_w[i_b, ll].cross(x - self.func_link_origin(i_b, ll))
             m = mpm.p_mass[i_p]
             k = self.att_k[i_b, i_p] * has
             c = self.att_c[i_b, i_p] * has
             dv = -h * (k * (x + h * v - target) + c * (v - v_link)) / (m + h * c + h * h * k + TINY)
             func_g2p_store(mpm, i_b, i_p, dst, x, v + dv, C, h)  # a free particle's dv is 0: func_g2p's numbers
+
+    @ti.func
+    def func_link_origin(self, i_b, l):
+        """The point link l's spatial velocity and wrenches are about (RigidPort: its tree's root link's origin)."""
+        return self.rigid.link_pos[i_b, self.rigid.link_root[l]]
 
     @ti.func
     def func_geom_frame(self, i_b, g):
@@ -315,7 +320,8 @@ class RigidMPMCoupler:
         gg = ti.max(g, 0)
         x = self.lower + ti.cast(I, float) * self.dx
         phi, n, l = self.func_sdf_world(i_b, gg, x)
-        v_body = self.rigid.cvel_v[i_b, l] + self.rigid.cvel_w[i_b, l].cross(x)
+        o = self.func_link_origin(i_b, l)
+        v_body = self.rigid.cvel_v[i_b, l] + self.rigid.cvel_w[i_b, l].cross(x - o)
         v_rel = v - v_body
         vn = v_rel.dot(n)
         t = ti.min(ti.max(1.0 - phi / self.softness, 0.0), 1.0)
@@ -336,7 +342,7 @@ class RigidMPMCoupler:
         if ti.static(self.reaction):
             f = (self.geom_react[gg] * mpm.grid_m[i_b, I] / h) * (v - v_new)
             self.rigid.ext_f[i_b, sub, l] += f
-            self.rigid.ext_t[i_b, sub, l] += x.cross(f)
+            self.rigid.ext_t[i_b, sub, l] += (x - o).cross(f)
         return v_new
 
 

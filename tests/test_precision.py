@@ -174,15 +174,9 @@ def _spin_errors(precision):
     return tuple(json.loads(out.stdout.strip().splitlines()[-1]))
 
 
-def test_float32_free_body_spins_true_at_the_origin():
-    # float64 everywhere, float32 at the origin: w stays w0 to round-off
-    assert max(_spin_errors("64")) < 1e-7, _spin_errors("64")  # 1.8e-14, 1.1e-10, 5.6e-9 (2026-12-03)
-    assert _spin_errors("32")[0] < 1e-4, _spin_errors("32")  # 4.3e-6 (1 m: 0.044, 5 m: 1.21)
-
-
-@pytest.mark.xfail(strict=True, reason="Known gap (README): the rigid solver's spatial algebra is about the world "
-                   "origin, so in float32 a light body's rotation loses digits with its distance from it (a 38 g cube "
-                   "1 m away: |w - w0| ~4 % of w0 after 4 s; the float32 grasp of Genesis's franka_cube hangs on "
-                   "it). The cure is a reference point per kinematic tree, as MuJoCo's centre-of-mass frames")
-def test_float32_free_body_spins_true_away_from_the_origin():
-    assert max(_spin_errors("32")[1:]) < 1e-3, _spin_errors("32")
+def test_float32_free_body_spins_true_anywhere():
+    # float64 and float32, at the origin and away from it: w stays w0 to round-off. Before each kinematic
+    # tree's spatial algebra was about its own root (kinematics.func_link_origin), it was about the world
+    # origin: float32 4.3e-6 / 0.044 / 1.21 at 0, 1 and 5 m, float64 1.8e-14 / 1.1e-10 / 5.6e-9 (2026-12-03)
+    assert max(_spin_errors("64")) < 1e-12, _spin_errors("64")  # 1.8e-14 at each spot
+    assert max(_spin_errors("32")) < 1e-4, _spin_errors("32")  # 4.3e-6 at each spot

@@ -144,6 +144,9 @@ class RigidCore:
         self.dof_mimic_leader, self.dof_mimic_mult, self.dof_mimic_off = I(N), F(N, False), F(N, False)
         self.dof_fold_leader = I(N)  # a folded mimic follower's leader, else -1 (flatten.np_fold_leader)
         self.free_link = I(N)  # n_free_links entries
+        # the root of each link's kinematic tree: the spatial algebra of a tree is about its root link's origin
+        # (kinematics.func_link_origin), not the world's
+        self.link_root = I(N)
         self.dof_springref = F(N, False)  # rest position of the joint spring (MJCF springref; else 0)
         # the limit constraint's k and b (actuation.limit_gains) and solimp (dmin, dmax, width, mid, power), then
         # the impedance curve's two scales 1 / mid^(power - 1), 1 / (1 - mid)^(power - 1) (func_limit_constraint)
@@ -254,6 +257,10 @@ class RigidCore:
                 self.link_jaxis[i][k] = link_f[i, 7 + k]
             for k in ti.static(range(4)):
                 self.link_jquat[i][k] = link_f[i, 3 + k]
+        ti.loop_config(serialize=True)
+        for i in range(link_i.shape[0]):  # parents come before their children
+            p = link_i[i, 0]
+            self.link_root[i] = ti.select(p >= 0, self.link_root[ti.max(p, 0)], i)
         for i in range(dof_i.shape[0]):
             self.dof_link[i] = dof_i[i, 0]
             self.dof_q[i] = dof_i[i, 1]

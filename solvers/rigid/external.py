@@ -5,12 +5,13 @@ the whole step, folded into the links' bias forces (func_applied_wrench, run bet
 and the accumulation up the tree, so it costs O(links) per evaluation and shares the bias stages' tree walk
 and projection). The user's part is stored as a force f (N, world) and its moment m about the link's
 origin (N m, world, the lever frozen when the force was applied); each evaluation takes the moment about
-the world origin at the link's current origin p, m + p x f, so the force follows the link through the
+its tree's origin o (kinematics.func_link_origin) at the link's current origin p, m + (p - o) x f, so the
+force follows the link through the
 step's substeps. Gravity compensation gc (per env and link, 0..1) adds the force -gc m g at the link's
 centre of mass: the entity feels (1 - gc) of gravity, Genesis's meaning.
 
 ExternalWrench (the rigid-MPM coupler's reaction forces), one per substep, added to
-the generalised force: a force f (N, world frame) and a torque t (N m, about the world origin) on
+the generalised force: a force f (N, world frame) and a torque t (N m, about the link's tree's origin) on
 link l act on dof d through its motion subspace as cdof_w . t + cdof_v . f when d moves l, that is
 when d's link is l or one of its ancestors.
 
@@ -27,6 +28,7 @@ import numpy as np
 import taichi as ti
 
 from .contact.banks import func_acc
+from .kinematics import func_link_origin
 
 
 @ti.data_oriented
@@ -115,7 +117,7 @@ class AppliedWrench:
 @ti.func
 def func_applied_wrench(s: ti.template(), i_b, e, src, h):
     """The links' bias forces (what their motion needs, bias.func_link_forces) less the applied wrench:
-    the user's (its moment moved to the world origin from the link's current origin) and gravity
+    the user's (its moment moved to the tree's origin from the link's current origin) and gravity
     compensation's -gc m g at the centre of mass (moment -gc (m c) x g, m c being link_h)."""
     a = s.applied
     for i_l in range(s.n_links):
@@ -123,7 +125,8 @@ def func_applied_wrench(s: ti.template(), i_b, e, src, h):
         g = s.gravity[i_b]
         gc = a.gcomp[i_b, i_l]
         f_ext = f - (gc * s.link_mass[i_b, i_l]) * g
-        t_ext = a.moment[i_b, i_l] + s.link_pos[i_b, i_l].cross(f) - gc * s.link_h[i_b, i_l].cross(g)
+        t_ext = (a.moment[i_b, i_l] + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(f)
+                 - gc * s.link_h[i_b, i_l].cross(g))
         func_acc(s, s.cfrc_n, i_b, i_l, -t_ext)
         func_acc(s, s.cfrc_f, i_b, i_l, -f_ext)
 

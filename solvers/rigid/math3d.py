@@ -1,7 +1,8 @@
 """Small rotation and spatial-algebra helpers shared by the rigid stages (Taichi functions).
 
-Spatial vectors are pairs of 3-vectors expressed in the world frame about the world origin:
-motion (w, v) and force (n, f), as in MuJoCo's com-based formulation.
+Spatial vectors are pairs of 3-vectors expressed in the world frame about a point fixed in space over
+an evaluation, each kinematic tree's root link's origin (kinematics.func_link_origin): motion (w, v) and
+force (n, f), as in MuJoCo's com-based formulation (MuJoCo takes the tree's centre of mass).
 """
 import taichi as ti
 

@@ -6,10 +6,11 @@ these fields inside its own kernels and calls nothing else of the solver.
 
 
 class RigidPort:
-    """link_pos [env, link] (m, world), link_R [env, link] (rotation, world), cvel_v / cvel_w [env, link]
-    (the link's spatial velocity at the world origin: linear m/s, angular rad/s; a point x moves at
-    cvel_v + cvel_w x x), link_mass [env, link] (kg), ext_f / ext_t [env, substep, link] (force N, torque
-    N m about the world origin);
+    """link_pos [env, link] (m, world), link_R [env, link] (rotation, world), link_root [link] (the root link
+    of the link's kinematic tree, whose origin o = link_pos[env, link_root[link]] the tree's spatial algebra is
+    about: solvers/rigid/kinematics.func_link_origin), cvel_v / cvel_w [env, link] (the link's spatial
+    velocity at o: linear m/s, angular rad/s; a point x moves at cvel_v + cvel_w x (x - o)), link_mass [env,
+    link] (kg), ext_f / ext_t [env, substep, link] (force N, torque N m about o);
     n_envs, n_links: the scene's counts. `update_poses(i)` fills the poses and velocities for substep i."""
 
     def __init__(self, solver):
@@ -20,6 +21,7 @@ class RigidPort:
         self.n_envs, self.n_links = solver.n_envs, solver.n_links
         self.link_pos, self.link_R = solver.link_pos, solver.link_R
         self.cvel_v, self.cvel_w = solver.cvel_v, solver.cvel_w
+        self.link_root = solver.core.link_root
         self.link_mass = solver.core.link_mass
         self.ext_f, self.ext_t = solver.external.ext_f, solver.external.ext_t
 

@@ -217,7 +217,8 @@ class RigidSolver:
     link_quat = _core_field("link_quat", "[env, link] link orientations (w, x, y, z) of the last kinematics")
     link_R = _core_field("link_R", "[env, link] link rotation matrices of the last kinematics")
     cvel_w = _core_field("cvel_w", "[env, link] link angular velocities (world, rad/s)")
-    cvel_v = _core_field("cvel_v", "[env, link] link linear velocities of the point at the world origin (m/s)")
+    cvel_v = _core_field("cvel_v", "[env, link] link linear velocities of the point at their kinematic tree's origin "
+                         "(its root link's, kinematics.func_link_origin; m/s)")
 
     # ------------------------------------------------------------------ build
     def _schedule(self):

@@ -4,6 +4,7 @@ composite inertia; contacts between two moving links also sum per link pair into
 coupling outside the tree sparsity, see the package docstring)."""
 import taichi as ti
 
+from ..kinematics import func_link_origin
 from ..layout import FieldTree
 from ..math3d import func_mm, func_mtv, func_mv, func_skew
 
@@ -30,10 +31,12 @@ def func_acc2(s: ti.template(), x: ti.template(), i_b, i, j, v):
 
 @ti.data_oriented
 class AccBank:
-    """Per-link sums of one set of contact forces (wrench about the world origin) and, with
-    `matrices`, of their implicit blocks J^T W J (6x6 per link: Sww, Swv, Svv), per link pair for
-    contacts between two moving links (the coupling outside the tree sparsity), and the per-dof
-    vectors S(link(i)) cdof_i the projection onto M dots with the ancestors' cdofs."""
+    """Per-link sums of one set of contact forces (wrench about the link's tree's origin,
+    kinematics.func_link_origin) and, with `matrices`, of their implicit blocks J^T W J (6x6 per link: Sww,
+    Swv, Svv), per link pair for contacts between two moving links (the coupling outside the tree
+    sparsity: -J_2^T W J_1, its two off-diagonal 3x3 blocks apart, lp_Swv and lp_Svw, since the two links'
+    trees may have different origins), and the per-dof vectors S(link(i)) cdof_i the projection onto M dots
+    with the ancestors' cdofs."""
 
     def __init__(self, B, L, D, n_lp, dtype, grad, matrices):
         t = FieldTree(dtype, grad, B)
@@ -49,8 +52,9 @@ class AccBank:
             self.grad_fields += [self.link_Sww, self.link_Swv, self.link_Svv, self.dof_Sw, self.dof_Sv]
         if self.pairs:
             self.lp_Sww, self.lp_Swv, self.lp_Svv = M3((B, n_lp)), M3((B, n_lp)), M3((B, n_lp))
+            self.lp_Svw = M3((B, n_lp))
             self.lp_touch = t.I((B, n_lp))  # a slot of the pair added to it (func_bank_cross skips the others)
-            self.grad_fields += [self.lp_Sww, self.lp_Swv, self.lp_Svv]
+            self.grad_fields += [self.lp_Sww, self.lp_Swv, self.lp_Svv, self.lp_Svw]
         self.tree = t.finalize()
 
 
@@ -87,44 +91,57 @@ def func_zero_pair(s: ti.template(), b: ti.template(), i_b, lp):
     b.lp_Sww[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
     b.lp_Swv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
     b.lp_Svv[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
+    b.lp_Svw[i_b, lp] = ti.Matrix.zero(s.dtype, 3, 3)
 
 
 @ti.func
 def func_bank_add(s: ti.template(), b: ti.template(), i_b, i_s, pos, F, W):
     """Force F at pos on the point side of slot i_s (-F on the other side) and, with matrices, the
-    implicit block W (3x3, on the relative velocity at pos), added onto the slot's moving links."""
+    implicit block W (3x3, on the relative velocity at pos), added onto the slot's moving links, each about
+    its tree's origin (the lever r = pos - o, P = [r]x: the point moves at v - P w)."""
     c = s.contact
     la = c.geom_link[c.slot_ga[i_s]]
     lb = c.geom_link[c.slot_gb[i_s]]
-    PW, Sww = W, W
+    ra = pos - func_link_origin(s, i_b, la)
+    rb = pos - func_link_origin(s, i_b, lb)
+    PWa, Swwa, PWb, Swwb = W, W, W, W
+    Pa, Pb = W, W
     if ti.static(b.matrices):
-        P = func_skew(pos)
-        PW = func_mm(P, W)
-        Sww = -func_mm(PW, P)
-    tq = pos.cross(F)
+        Pa = func_skew(ra)
+        Pb = func_skew(rb)
+        PWa = func_mm(Pa, W)
+        Swwa = -func_mm(PWa, Pa)
+        PWb = func_mm(Pb, W)
+        Swwb = -func_mm(PWb, Pb)
     if c.link_dyn[la] == 1:
         b.link_touch[i_b, la] = 1
         func_acc(s, b.link_ff, i_b, la, F)
-        func_acc(s, b.link_fn, i_b, la, tq)
+        func_acc(s, b.link_fn, i_b, la, ra.cross(F))
         if ti.static(b.matrices):
-            func_acc(s, b.link_Sww, i_b, la, Sww)
-            func_acc(s, b.link_Swv, i_b, la, PW)
+            func_acc(s, b.link_Sww, i_b, la, Swwa)
+            func_acc(s, b.link_Swv, i_b, la, PWa)
             func_acc(s, b.link_Svv, i_b, la, W)
     if c.link_dyn[lb] == 1:
         b.link_touch[i_b, lb] = 1
         func_acc(s, b.link_ff, i_b, lb, -F)
-        func_acc(s, b.link_fn, i_b, lb, -tq)
+        func_acc(s, b.link_fn, i_b, lb, -rb.cross(F))
         if ti.static(b.matrices):
-            func_acc(s, b.link_Sww, i_b, lb, Sww)
-            func_acc(s, b.link_Swv, i_b, lb, PW)
+            func_acc(s, b.link_Sww, i_b, lb, Swwb)
+            func_acc(s, b.link_Swv, i_b, lb, PWb)
             func_acc(s, b.link_Svv, i_b, lb, W)
     if ti.static(b.pairs):
         lp = c.slot_lp[i_s]
         if lp >= 0:
             if ti.static(not s.requires_grad):
                 b.lp_touch[i_b, lp] = 1
-            func_acc(s, b.lp_Sww, i_b, lp, Sww)
-            func_acc(s, b.lp_Swv, i_b, lp, PW)
+            # the pair's links in the cross list's order (plan.py: the lower link index first, its dofs i, the
+            # other's j): u_j^T W u_i with u = v - P w on each side's own lever
+            low_a = la < lb
+            P1 = ti.select(low_a, Pa, Pb)
+            PW2 = ti.select(low_a, PWb, PWa)
+            func_acc(s, b.lp_Sww, i_b, lp, -func_mm(PW2, P1))
+            func_acc(s, b.lp_Swv, i_b, lp, PW2)
+            func_acc(s, b.lp_Svw, i_b, lp, ti.select(low_a, PWa, PWb))
             func_acc(s, b.lp_Svv, i_b, lp, W)
 
 
@@ -237,5 +254,6 @@ def func_cross_term(s: ti.template(), b: ti.template(), i_b, t):
     vi = s.cdof_v[i_b, i]
     wj = s.cdof_w[i_b, j]
     vj = s.cdof_v[i_b, j]
-    m = wj.dot(func_mv(b.lp_Sww[i_b, lp], wi) + func_mv(Swv, vi)) + vj.dot(func_mtv(Swv, wi) + func_mv(b.lp_Svv[i_b, lp], vi))
+    m = (wj.dot(func_mv(b.lp_Sww[i_b, lp], wi) + func_mv(Swv, vi))
+         + vj.dot(func_mtv(b.lp_Svw[i_b, lp], wi) + func_mv(b.lp_Svv[i_b, lp], vi)))
     func_acc2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)

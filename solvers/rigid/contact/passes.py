@@ -15,6 +15,8 @@ Taichi, each stage one loop per env as the dynamics stages.
 """
 import taichi as ti
 
+from ..kinematics import func_link_origin
+
 from ..math3d import div_floor
 from .banks import (func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof,
                     func_bank_dof_vectors, func_bank_project, func_bank_tree)
@@ -33,7 +35,7 @@ def func_vec3(x: ti.template(), e, i_b, i):
 
 @ti.func
 def func_link_motion(s: ti.template(), x: ti.template(), e, i_b, out_w: ti.template(), out_v: ti.template()):
-    """Spatial velocity (about the world origin) of every link for the dof velocities h * x[e, i_b], h
+    """Spatial velocity (about its tree's origin, kinematics.func_link_origin) of every link for the dof velocities h * x[e, i_b], h
     the evaluation's step (kinematics.func_velocity's recursion for another velocity vector). With
     gradients in single-assignment form, every joint shape's term masked (x is sized by the core's
     element capacity, so the clamped reads of masked-out shapes stay inside it); without, a branch per
@@ -56,7 +58,7 @@ def func_link_motion(s: ti.template(), x: ti.template(), e, i_b, out_w: ti.templ
             wb = func_vec3(x, e, i_b, df + 3)
             out_w[i_b, i_l] = ti.select(has_p, out_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * one + free * wb
             out_v[i_b, i_l] = (ti.select(has_p, out_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * one
-                               + free * (vb + s.link_pos[i_b, i_l].cross(wb)))
+                               + free * (vb + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(wb)))
         else:
             w = zero
             v = zero
@@ -72,7 +74,7 @@ def func_link_motion(s: ti.template(), x: ti.template(), e, i_b, out_w: ti.templ
                 vb = func_vec3(x, e, i_b, d0)
                 wb = func_vec3(x, e, i_b, d0 + 3)
                 w = w + scale * wb
-                v = v + scale * (vb + s.link_pos[i_b, i_l].cross(wb))
+                v = v + scale * (vb + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(wb))
             out_w[i_b, i_l] = w
             out_v[i_b, i_l] = v
 
@@ -83,7 +85,8 @@ def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.t
     c = s.contact
     la = c.geom_link[c.slot_ga[i_s]]
     lb = c.geom_link[c.slot_gb[i_s]]
-    return (lv[i_b, la] + lw[i_b, la].cross(pos)) - (lv[i_b, lb] + lw[i_b, lb].cross(pos))
+    return ((lv[i_b, la] + lw[i_b, la].cross(pos - func_link_origin(s, i_b, la)))
+            - (lv[i_b, lb] + lw[i_b, lb].cross(pos - func_link_origin(s, i_b, lb))))
 
 
 # the relative round-off of a law's value in the normal rounds' check (rounds.py), by precision, and in
