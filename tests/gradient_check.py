@@ -142,7 +142,7 @@ class Rollout:
             x = b.defaults.get(name)
             x = np.asarray(spec.base(b, b.ents[ent], ent, rng) if x is None else x, dtype=np.float64)
             if b.n_envs:
-                xs = [x] + [x + spec.jitter * k * rng.normal(size=x.shape) for k in range(1, b.n_envs)]
+                xs = [x] + [x + b.jitter * spec.jitter * k * rng.normal(size=x.shape) for k in range(1, b.n_envs)]
                 if spec.symmetric:
                     xs = [0.5 * (a + np.swapaxes(a, -1, -2)) for a in xs]
                 x = np.stack(xs)
