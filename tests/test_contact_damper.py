@@ -141,6 +141,9 @@ def test_the_weights_are_mujocos_body_invweight0(tmp_path):
     assert 1.0 / W[foot][2, 2] > 10.0 * own_mass
 
 
+# slow: ~47 s of a fresh-cache default suite (2026-12-03: 1,127 s on 2 cores, over its 15 minutes); the gradient
+# matrix's gripper_plane case keeps an articulated link's contact gradient in the default suite
+@pytest.mark.slow
 def test_grad_through_a_landing_on_an_articulated_link(tmp_path):
     """The damper's weight along a normal that turns: a free ball (its own mass) thrown at the ball of the skewed
     slider with rotor inertia (weighed through its joint, n.W n with n the line between the two centres), the

@@ -130,6 +130,9 @@ def test_thrown_piles_stay_bounded():
         assert o["v_max"] < 8.0 and o["z_min"] > 0.0, o
 
 
+# slow: ~74 s of a fresh-cache default suite (2026-12-03, 1,127 s on 2 cores, over its 15 minutes), most of it
+# compiling the box-cylinder pair's adjoint; the default suite keeps many bodies' gradients in test_adstack.py
+@pytest.mark.slow
 def test_grad_through_the_normal_rounds():
     """Gradients of a box and a cylinder thrown onto each other and the ground (three steps, each
     recording normal rounds: the rounds choose the contacts, the last solve's system carries the
