@@ -93,6 +93,14 @@ def func_link_origin(s: ti.template(), i_b, i_l):
 
 
 @ti.func
+def func_point_velocity(s: ti.template(), lw: ti.template(), lv: ti.template(), i_b, i_l, x):
+    """The velocity of the world point x moving with link i_l, from link spatial velocities lw, lv [env, link]
+    about the link's tree's origin (func_link_origin): lv + lw x (x - o). lw, lv: cvel_w, cvel_v, or another
+    velocity vector's (contact.passes.func_link_motion)."""
+    return lv[i_b, i_l] + lw[i_b, i_l].cross(x - func_link_origin(s, i_b, i_l))
+
+
+@ti.func
 def func_parent_slot(s: ti.template(), p):
     """Where link data of parent p is read: p itself, or for a root (p = -1) the core's last link slot,
     which no scene's link occupies (the element capacity exceeds n_links) and nothing writes. Reading

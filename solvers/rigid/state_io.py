@@ -7,7 +7,7 @@ buffers, filled or read in place). They loop over the scene's envs with the core
 """
 import taichi as ti
 
-from .kinematics import func_link_origin
+from .kinematics import func_point_velocity
 
 
 # Every torch tensor passed to a kernel costs ~30 us here, so each crossing packs its data in one:
@@ -204,7 +204,7 @@ def kernel_link_outputs(s: ti.template(), pos: ti.types.ndarray(), quat: ti.type
             for i_l in range(s.n_links):
                 p = s.link_pos[i_b, i_l]
                 w = s.cvel_w[i_b, i_l]
-                v = s.cvel_v[i_b, i_l] + w.cross(p - func_link_origin(s, i_b, i_l))
+                v = func_point_velocity(s, s.cvel_w, s.cvel_v, i_b, i_l, p)
                 q = s.link_quat[i_b, i_l]
                 if ti.static(vjp):
                     acc = 0.0

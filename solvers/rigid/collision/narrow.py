@@ -11,7 +11,7 @@ import taichi as ti
 from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE,
                     N_HULL_EDGES, N_HULLFACE, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE,
                     SLOT_HULLFACE, SLOT_SEGSEG)
-from ..kinematics import func_link_origin
+from ..kinematics import func_point_velocity
 from ..math3d import div_floor, func_mm, func_mtv, func_mv
 from .sdf import TINY, func_sdf_any, func_sdf_branched, func_sdf_round, func_segment_closest, func_sgn3
 
@@ -79,7 +79,7 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
         c.geom_ext[i_b, g] = ti.Vector([func_plane_extent(c, g, R, ti.Vector([1.0, 0.0, 0.0])),
                                         func_plane_extent(c, g, R, ti.Vector([0.0, 1.0, 0.0])),
                                         func_plane_extent(c, g, R, ti.Vector([0.0, 0.0, 1.0]))])
-        v = s.cvel_v[i_b, l] + s.cvel_w[i_b, l].cross(cg - func_link_origin(s, i_b, l))
+        v = func_point_velocity(s, s.cvel_w, s.cvel_v, i_b, l, cg)
         w = s.cvel_w[i_b, l]
         c.geom_speed[i_b, g] = ti.sqrt(v.dot(v) + TINY)
         c.geom_sweep[i_b, g] = ti.min(ti.sqrt(w.dot(w) + TINY), 2.0 / h) * ti.min(c.geom_rbound[g], 1e6)

@@ -15,8 +15,7 @@ Taichi, each stage one loop per env as the dynamics stages.
 """
 import taichi as ti
 
-from ..kinematics import func_link_origin
-
+from ..kinematics import func_link_origin, func_point_velocity
 from ..math3d import div_floor
 from .banks import (func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof,
                     func_bank_dof_vectors, func_bank_project, func_bank_tree)
@@ -85,8 +84,7 @@ def func_rel_motion(s: ti.template(), i_b, i_s, pos, lw: ti.template(), lv: ti.t
     c = s.contact
     la = c.geom_link[c.slot_ga[i_s]]
     lb = c.geom_link[c.slot_gb[i_s]]
-    return ((lv[i_b, la] + lw[i_b, la].cross(pos - func_link_origin(s, i_b, la)))
-            - (lv[i_b, lb] + lw[i_b, lb].cross(pos - func_link_origin(s, i_b, lb))))
+    return func_point_velocity(s, lw, lv, i_b, la, pos) - func_point_velocity(s, lw, lv, i_b, lb, pos)
 
 
 # the relative round-off of a law's value in the normal rounds' check (rounds.py), by precision, and in

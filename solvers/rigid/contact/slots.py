@@ -5,7 +5,7 @@ import taichi as ti
 
 from ..collision import TINY, func_broad_phase, func_geom_pose, func_slot_geometry
 from .banks import func_bank_add, func_bank_clear, func_bank_clear_pairs, func_bank_cross, func_bank_dof, func_bank_project, func_bank_tree
-from ..kinematics import func_link_origin
+from ..kinematics import func_point_velocity
 from .linalg import func_tree_env
 from .law import func_heavy_scale, func_normal_law, func_rot_corr
 
@@ -85,8 +85,8 @@ def func_contact_slot(s: ti.template(), i_b, i_s, h):
     pos, n, depth = func_slot_geometry(s, i_b, i_s)
     la = c.geom_link[c.slot_ga[i_s]]
     lb = c.geom_link[c.slot_gb[i_s]]
-    ua = s.cvel_v[i_b, la] + s.cvel_w[i_b, la].cross(pos - func_link_origin(s, i_b, la))
-    ub = s.cvel_v[i_b, lb] + s.cvel_w[i_b, lb].cross(pos - func_link_origin(s, i_b, lb))
+    ua = func_point_velocity(s, s.cvel_w, s.cvel_v, i_b, la, pos)
+    ub = func_point_velocity(s, s.cvel_w, s.cvel_v, i_b, lb, pos)
     u = ua - ub
     # the depth predicted for the end of the step is depth - h u.n - corr: the two sides' reference
     # points (func_rot_corr; on the normal through pos, where u.n is the same) moved as the integrator
