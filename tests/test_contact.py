@@ -570,6 +570,9 @@ def _mixed_contact_rollout(requires_grad, n_steps=60):
             np.concatenate([_np(c["valid_mask"]), _np(p["valid_mask"])], axis=1))
 
 
+@pytest.mark.slow  # ~70 s of a fresh-cache default suite (2026-12-04): its five-body scene compiled twice, with and
+# without gradients, for it alone; the default set keeps the fused step against the op-by-op one on joint limits
+# (test_joint_limits.py::test_every_step_path_gives_the_same_limits) and the gradient schedule against FD (the matrix)
 def test_fused_step_without_gradients_matches_the_gradient_schedule():
     """Without gradients the fused step's contact solve skips work (only the slots that are on, no second
     factorisation when pass 1 changes nothing, nothing for an env without contacts); a scene built with
@@ -646,6 +649,9 @@ def test_an_arm_over_a_plane_it_never_reaches_runs_no_contact_kernel_and_gives_t
     assert g_alone.abs().min() > 1e-3  # (every start angle moves the links)
 
 
+@pytest.mark.slow  # ~69 s of a fresh-cache default suite (2026-12-04): a Panda over a plane compiled sparse and dense
+# for it alone; the default set keeps 'skipping changes no number' for contacts on the skew arm over a plane
+# (the test above) and for emitters (test_emitter.py)
 def test_a_box_the_arm_never_touches_leaves_the_arm_s_numbers_to_the_bit():
     """A free box beside a Panda makes the contact system a dense one (a pair of moving links could couple:
     mass_cross and the envelope factorisation). Without gradients an evaluation in which no listed slot

@@ -9,6 +9,7 @@ SDF type (box corners, edges and faces, capsule segment pairs, cylinder rims, po
 capsules, cylinders and meshes; spheres as points), its bodies and a Panda's joints posed at random in 4 envs: both forms,
 slot by slot, give the same point, normal and depth to round-off. Default options, float64."""
 import numpy as np
+import pytest
 import taichi as ti
 
 import genesis_lite as gs
@@ -38,6 +39,9 @@ def _scene():
     return scene, arm, bodies
 
 
+@pytest.mark.slow  # ~58 s of a fresh-cache default suite (2026-12-04), its every-slot-kind scene compiled for it
+# alone; by default each form is checked on its own: the branched one by the contact tests' rests and landings,
+# the selected one by the gradient matrix's contact cases against finite differences
 def test_the_branched_narrow_phase_gives_the_selected_form_s_geometry():
     scene, arm, bodies = _scene()
     solver = scene.sim.rigid_solver

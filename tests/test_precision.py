@@ -181,8 +181,14 @@ def _spin_errors(precision):
 
 
 def test_float32_free_body_spins_true_anywhere():
-    # float64 and float32, at the origin and away from it: w stays w0 to round-off. Before each kinematic
-    # tree's spatial algebra was about its own root (kinematics.func_link_origin), it was about the world
-    # origin: float32 4.3e-6 / 0.044 / 1.21 at 0, 1 and 5 m, float64 1.8e-14 / 1.1e-10 / 5.6e-9 (2026-12-03)
-    assert max(_spin_errors("64")) < 1e-12, _spin_errors("64")  # 1.8e-14 at each spot
+    # at the origin and away from it: w stays w0 to round-off. Before each kinematic tree's spatial algebra was
+    # about its own root (kinematics.func_link_origin), it was about the world origin: float32 4.3e-6 / 0.044 /
+    # 1.21 at 0, 1 and 5 m (2026-12-03)
     assert max(_spin_errors("32")) < 1e-4, _spin_errors("32")  # 4.3e-6 at each spot
+
+
+@pytest.mark.slow  # ~40 s of a fresh-cache default suite (2026-12-04: the three cubes' scene compiled in the suite's
+# process for it alone); the lever lost float64 digits too, but float32 (above, by default) is where it showed
+def test_float64_free_body_spins_true_anywhere():
+    # before the tree-origin change: 1.8e-14 / 1.1e-10 / 5.6e-9 at 0, 1 and 5 m (2026-12-03)
+    assert max(_spin_errors("64")) < 1e-12, _spin_errors("64")  # 1.8e-14 at each spot
