@@ -287,8 +287,9 @@ FLOOR_AND_BOXES = """<mujoco model="floor_and_boxes">
 """
 
 
-@pytest.mark.slow  # ~43 s of a fresh-cache default suite (2026-12-04); by default MJCF bodies collide in
-# test_self_collision_follows_genesis_s_rules and test_mesh_geom_lands_where_mujoco_puts_it
+@pytest.mark.slow  # ~43 s of a fresh-cache default suite (2026-12-04), its scene class compiled for it alone; by
+# default stay the rule it rests on, a file's free body a tree of its own (test_adjacency_and_trees_are_genesis_s),
+# and links of one file landing on its own table (test_self_collision_follows_genesis_s_rules)
 def test_bodies_of_one_file_collide_with_each_other_and_its_floor(tmp_path):
     """An MJCF's bodies that are not one kinematic tree collide, as in MuJoCo and in Genesis (whose "self"
     collision is between links of one root): two free boxes dropped on the file's own floor come to rest
