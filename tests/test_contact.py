@@ -85,7 +85,8 @@ def test_box_rests_on_plane_10s():
     assert abs(abs(q[0]) - 1.0) < 1e-6
 
 
-@pytest.mark.parametrize("load", ["coulomb", "frictionless"])
+# the non-default load ("frictionless") is slow: its own scene class, ~18 s of a fresh-cache default suite
+@pytest.mark.parametrize("load", ["coulomb", pytest.param("frictionless", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("mu,v0", [(0.5, 3.0), (0.3, 2.0)])
 def test_sliding_box_stops_after_v2_over_2mug(mu, v0, load):
     """A box launched on a floor stops after v0^2 / (2 mu g), within 5 %, with either friction load
