@@ -66,16 +66,43 @@ class FileMorph(Morph):
     centre of mass and turned to its principal axes of inertia, so that its pose (get_pos, get_quat,
     get_qpos, get_dofs_position) is that frame's. None (Genesis's default) aligns a basic rigid object (a
     free root with nothing below it on a hinge or slide joint: a mesh, a one-body URDF or MJCF); True any
-    free root; False keeps the file's frame (as MuJoCo and Pinocchio report it). See loaders/align.py."""
+    free root; False keeps the file's frame (as MuJoCo and Pinocchio report it). See loaders/align.py.
+
+    Collision meshes, by Genesis's rules and options: a convex mesh collides as itself, a non-convex one as
+    its convex hull or, split by CoACD (pip install coacd), as the hulls of its parts: an object's (a Mesh, or a
+    URDF / MJCF body with no hinge or slide joint at or below it) when its hull's volume is more than
+    decompose_object_error_threshold (0.15) over its own, a robot's only past decompose_robot_error_threshold
+    (infinite by default: the hull, as Genesis and MuJoCo collide a robot's meshes), any with convexify=False
+    (Genesis: the raw mesh; parts are how genesis_lite collides a non-convex surface). coacd_options:
+    gs.options.CoacdOptions or a dict of its fields (Genesis's defaults); CoACD's parts are cached on disk by
+    mesh and options. recompute_inertia=True: each moving link's mass, centre of mass and inertia from its
+    collision shapes at the material's density, not the file's. decimate, decimate_face_num,
+    decimate_aggressiveness and batch_fixed_verts are Genesis's and change nothing here (_check_file_options);
+    file_meshes_are_zup must be True."""
 
     file: str = ""
     scale: float = 1.0
     align: Optional[bool] = None
+    # Genesis's FileMorph options (see _check_file_options): collision meshes are convex hulls or CoACD's
+    # parts of the whole mesh, never decimated; recompute_inertia takes the moving links' mass properties from
+    # their collision shapes at the material's density
+    convexify: bool = True
+    decompose_object_error_threshold: float = 0.15
+    decompose_robot_error_threshold: float = float("inf")
+    coacd_options: Optional[object] = None
+    decimate: bool = True
+    decimate_face_num: int = 500
+    decimate_aggressiveness: int = 2
+    recompute_inertia: bool = False
+    file_meshes_are_zup: bool = True
+    batch_fixed_verts: bool = False
 
     def _check(self):
         owner = type(self).__name__
         if not self.file:
             raise ValueError(f"gs.morphs.{owner}: `file` is required")
+        _check_file_options(self)
+        _check_decomposition(self)
         if self.align not in (None, True, False):
             raise ValueError(f"gs.morphs.{owner}(align={self.align!r}): use None (Genesis's default: align a free "
                              "rigid object's frame to its centre of mass and principal axes), True or False")
@@ -95,13 +122,16 @@ class URDF(FileMorph):
     collide as their convex hulls (Genesis does not decompose robot meshes by default either); with
     convexify=False (Genesis: collide the raw mesh) a non-convex collision mesh is split into convex parts
     by CoACD, as gs.morphs.Mesh does (parts are how genesis_lite collides a non-convex surface: the paddles
-    of Genesis's water wheel, not the drum of their hull); coacd_options go to coacd.run_coacd."""
+    of Genesis's water wheel, not the drum of their hull). Genesis's thresholds decide the rest, as its
+    URDF morph does: a file with a hinge or slide joint is a robot, whose meshes are split only when their
+    hull is off them by more than decompose_robot_error_threshold (infinite by default: never); a file
+    without one is an object (a tank, a mug, a table), whose non-convex meshes are split when their hull
+    is off them by more than decompose_object_error_threshold (0.15, as gs.morphs.Mesh). coacd_options:
+    gs.options.CoacdOptions or a dict of its fields (Genesis's defaults)."""
 
     merge_fixed_links: bool = True
     requires_jac_and_IK: bool = False
     links_to_keep: Sequence[str] = ()
-    convexify: bool = True
-    coacd_options: Optional[dict] = None
     default_armature: Optional[float] = 0.1
 
     def _check(self):
@@ -110,7 +140,6 @@ class URDF(FileMorph):
         if isinstance(self.links_to_keep, str):
             raise ValueError(f"gs.morphs.URDF(links_to_keep={self.links_to_keep!r}): give a list of link names")
         self.links_to_keep = tuple(str(n) for n in self.links_to_keep)
-        _check_coacd_options(self)
 
 
 @dataclass
@@ -119,7 +148,9 @@ class MJCF(FileMorph):
     quat / euler place the whole model (its worldbody) in the world; `scale` scales it uniformly (lengths
     times scale, masses scale^3). fixed: None (the default) keeps what the file says (a body with a
     <freejoint/> floats, one without joints is welded to the world); True welds free bodies too; False
-    also frees the worldbody's bodies that have no joint."""
+    also frees the worldbody's bodies that have no joint. Its meshes collide by Genesis's rules (FileMorph):
+    an object's non-convex mesh (a free body's with nothing articulated below it) as CoACD's parts, where
+    MuJoCo would take its hull; a robot's as its hull, as MuJoCo's."""
 
     fixed: Optional[bool] = None
     requires_jac_and_IK: bool = False
@@ -130,12 +161,44 @@ class MJCF(FileMorph):
         _check_default_armature(self)
 
 
-def _check_coacd_options(morph):
-    """coacd_options (URDF, Mesh): None or a dict of coacd.run_coacd keyword arguments."""
-    v = morph.coacd_options
-    if v is not None and not isinstance(v, dict):
-        raise ValueError(f"gs.morphs.{type(morph).__name__}(coacd_options={v!r}): give a dict of coacd.run_coacd "
-                         "keyword arguments")
+def _check_file_options(morph):
+    """Genesis's FileMorph options. decimate / decimate_face_num / decimate_aggressiveness (Genesis simplifies a
+    collision mesh to ~500 faces before taking its hull) are checked and change nothing: genesis_lite takes the
+    hull (or CoACD's parts) of the whole mesh, as Genesis does with decimate=False, and samples it at most at
+    RigidOptions.max_mesh_contact_points points; cameras draw the file itself. batch_fixed_verts (Genesis: a copy
+    of fixed geoms' vertices per env) changes nothing either: every env sees the same fixed geoms. recompute_inertia
+    (loaders.load_morph) and file_meshes_are_zup (True only: the files' meshes are read z-up) act."""
+    owner = f"gs.morphs.{type(morph).__name__}"
+    for name in ("decimate", "recompute_inertia", "file_meshes_are_zup", "batch_fixed_verts"):
+        if not isinstance(getattr(morph, name), bool):
+            raise ValueError(f"{owner}({name}={getattr(morph, name)!r}): use True or False")
+    n = morph.decimate_face_num
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"{owner}(decimate_face_num={n!r}): give a positive number of faces")
+    a = morph.decimate_aggressiveness
+    if isinstance(a, bool) or not isinstance(a, (int, np.integer)) or not 0 <= a <= 8:
+        raise ValueError(f"{owner}(decimate_aggressiveness={a!r}): give an integer from 0 to 8")
+    if not morph.file_meshes_are_zup:
+        raise ValueError(f"{owner}(file_meshes_are_zup=False): genesis_lite reads mesh files z-up only (Genesis's "
+                         "default); convert the file (y-up to z-up: (x, y, z) -> (x, -z, y)) or turn the morph "
+                         "+90 degrees about x with quat / euler")
+
+
+def _check_decomposition(morph):
+    """coacd_options (URDF, Mesh) as gs.options.CoacdOptions (None: Genesis's defaults; a dict: some of its
+    fields), convexify and the decomposition thresholds (relative volume errors >= 0; inf: never)."""
+    from .options import CoacdOptions
+
+    owner = f"gs.morphs.{type(morph).__name__}"
+    morph.coacd_options = CoacdOptions.of(morph.coacd_options, owner)
+    if not isinstance(morph.convexify, bool):
+        raise ValueError(f"{owner}(convexify={morph.convexify!r}): use True or False")
+    for name in ("decompose_object_error_threshold", "decompose_robot_error_threshold"):
+        t = getattr(morph, name)
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not t >= 0:
+            raise ValueError(f"{owner}({name}={t!r}): give a relative volume error >= 0 (float('inf'): never "
+                             "split)")
+        setattr(morph, name, float(t))
 
 
 def _check_default_armature(morph):
@@ -154,27 +217,32 @@ def _check_default_armature(morph):
 class Mesh(FileMorph):
     """A single rigid body from a mesh file (STL, OBJ, DAE, ...). Collision shapes are convex (as in
     Genesis): a convex mesh collides as itself; a non-convex one is split into convex parts by CoACD
-    (pip install coacd) when its convex hull exceeds its volume by more than `decompose_error_threshold`
-    (relative, Genesis's decompose_object_error_threshold, default 0.15), or always with
+    (pip install coacd) when its convex hull's volume exceeds the mesh's by more than
+    `decompose_object_error_threshold` (relative, Genesis's name, default and measure, which takes an open but
+    consistently wound surface's volume as trimesh closes it and splits a mesh whose winding stays inconsistent
+    whatever the threshold; for a sheet without volume, how deep it lies inside its hull relative to the hull's
+    half thinnest width), or always with
     decompose_nonconvex=True; with decompose_nonconvex=False it collides as its convex hull (and a
     warning says so). convexify=False (Genesis: collide the raw mesh) decomposes too: parts are how
-    genesis_lite collides a non-convex surface. coacd_options go to coacd.run_coacd (e.g. threshold,
-    the concavity each part may keep, default 0.05). Mass and inertia come from the mesh's own volume
-    when it is closed, else from the parts (or the hull)."""
+    genesis_lite collides a non-convex surface. decompose_robot_error_threshold is accepted (Genesis's;
+    a mesh is an object). decompose_error_threshold is genesis_lite's earlier name of the object threshold
+    (given, it overrides it). coacd_options: gs.options.CoacdOptions or a dict of its fields (Genesis's
+    defaults: threshold 0.1, the concavity each part may keep). Mass and inertia come from the mesh's own
+    volume when it is closed, else from the parts (or the hull)."""
 
-    convexify: bool = True
     decompose_nonconvex: Optional[bool] = None
-    decompose_error_threshold: float = 0.15
-    coacd_options: Optional[dict] = None
+    decompose_error_threshold: Optional[float] = None
 
     def _check(self):
-        super()._check()
         if self.decompose_nonconvex not in (None, True, False):
             raise ValueError(f"gs.morphs.Mesh(decompose_nonconvex={self.decompose_nonconvex!r}): use None, True or False")
         t = self.decompose_error_threshold
-        if not (isinstance(t, (int, float)) and t >= 0):
-            raise ValueError(f"gs.morphs.Mesh(decompose_error_threshold={t!r}): give a relative volume error >= 0")
-        _check_coacd_options(self)
+        if t is not None:
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not t >= 0:
+                raise ValueError(f"gs.morphs.Mesh(decompose_error_threshold={t!r}): give a relative volume error >= 0")
+            self.decompose_object_error_threshold = t
+            self.decompose_error_threshold = None
+        super()._check()
 
 
 @dataclass

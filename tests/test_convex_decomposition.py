@@ -7,7 +7,10 @@ The tank (assets/meshes/tank.obj, written by assets/make_tank.py: 0.4 x 0.4 x 0.
 - its mass is its material's density times its own volume;
 - a ball dropped over its middle comes to rest on the inner floor (10 cm above the outer bottom), not on
   the hull's top face 20 cm higher;
-- with decompose_nonconvex=False it is one convex shape and a warning says so, on every load.
+- with decompose_nonconvex=False it is one convex shape and a warning says so, on every load;
+- in a URDF, Genesis's rules: an object's meshes (a file without hinge or slide joints) are split past
+  decompose_object_error_threshold, a robot's past decompose_robot_error_threshold (never, by default);
+- CoACD runs with Genesis's gs.options.CoacdOptions defaults, or the options given.
 """
 from __future__ import annotations
 
@@ -72,50 +75,158 @@ def test_decomposition_off_collides_as_the_hull_and_says_so_every_time():
         gs.morphs.Mesh(file=str(TANK), decompose_nonconvex="yes")
 
 
-def _tank_urdf(tmp_path, inertial=True):
-    """A one-link URDF whose collision shape is the tank's mesh (Genesis's water wheel is such a file: a
-    paddled wheel, one non-convex mesh, loaded with convexify=False)."""
+def _tank_urdf(tmp_path, inertial=True, hinge=False):
+    """A one-link URDF whose collision shape is the tank's mesh (an object, by Genesis's rule: no hinge or
+    slide joint), or with hinge=True the tank on a hinge below a small base link (a robot)."""
     inert = ('<inertial><mass value="10"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial>'
              if inertial else "")
-    path = tmp_path / "tank.urdf"
-    path.write_text(f'<robot name="tank"><link name="tank">{inert}<collision><geometry>'
-                    f'<mesh filename="{TANK}"/></geometry></collision></link></robot>')
+    tank = (f'<link name="tank">{inert}<collision><geometry><mesh filename="{TANK}"/></geometry></collision>'
+            '</link>')
+    if hinge:
+        tank = ('<link name="base"><inertial><mass value="1"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" '
+                'izz="1"/></inertial></link><joint name="hinge" type="revolute"><parent link="base"/><child '
+                'link="tank"/><axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+                + tank)
+    path = tmp_path / ("tank_on_hinge.urdf" if hinge else "tank.urdf")
+    path.write_text(f'<robot name="tank">{tank}</robot>')
     return path
 
 
-def test_urdf_convexify_false_splits_a_nonconvex_mesh_as_genesis_keeps_it_whole(tmp_path):
-    path = _tank_urdf(tmp_path, inertial=False)
+def _parts_volume(link):
+    return sum(trimesh.Trimesh(g.vertices, g.faces).convex_hull.volume for g in link.geoms)
+
+
+def test_a_urdf_splits_meshes_by_genesis_s_rules(tmp_path):
+    """Genesis's URDF morph: a file without hinge or slide joints is an object, whose non-convex meshes are
+    split when their hull's volume is more than decompose_object_error_threshold (0.15) over the mesh's (the
+    tank's: 60 % over); a robot's meshes only past decompose_robot_error_threshold (infinite by default);
+    convexify=False (Genesis: the raw mesh) always."""
     rho = 500.0
-    hull = load_morph(gs.morphs.URDF(file=str(path), fixed=True), gs.materials.Rigid(rho=rho), name="tank")
-    assert len(hull.links[0].geoms) == 1  # a robot's mesh collides as its hull by default, as in Genesis
-    parts = load_morph(gs.morphs.URDF(file=str(path), fixed=True, convexify=False, coacd_options=FAST),
-                       gs.materials.Rigid(rho=rho), name="tank")
-    geoms = parts.links[0].geoms
-    assert len(geoms) >= 5
-    vol = sum(trimesh.Trimesh(g.vertices, g.faces).convex_hull.volume for g in geoms)
-    assert abs(vol - 0.03) < 0.002, vol  # the tank's own volume; its hull's is 0.048
-    # no <inertial>: the link is filled at the material's density, the closed mesh's own volume (0.03 m^3)
-    # either way (the parts: their hulls' volumes, as the Mesh morph's open surfaces)
-    assert hull.links[0].mass == pytest.approx(rho * 0.03, rel=1e-6)
-    assert parts.links[0].mass == pytest.approx(rho * vol, rel=1e-6)
-    with pytest.raises(ValueError, match="coacd_options"):
-        gs.morphs.URDF(file=str(path), convexify=False, coacd_options=0.05)
+    obj = _tank_urdf(tmp_path, inertial=False)
+    robot = _tank_urdf(tmp_path, hinge=True)
+
+    def tank_link(path, **kw):
+        model = load_morph(gs.morphs.URDF(file=str(path), fixed=True, coacd_options=FAST, **kw),
+                           gs.materials.Rigid(rho=rho), name="tank")
+        return next(link for link in model.links if link.name == "tank")
+
+    parts = tank_link(obj)
+    assert len(parts.geoms) >= 5  # a floor and four walls at least
+    assert abs(_parts_volume(parts) - 0.03) < 0.002  # the tank's own volume; its hull's is 0.048
+    # no <inertial>: the link is filled at the material's density: the parts' volume
+    assert parts.mass == pytest.approx(rho * _parts_volume(parts), rel=1e-6)
+    hull = tank_link(obj, decompose_object_error_threshold=float("inf"))
+    assert len(hull.geoms) == 1 and hull.mass == pytest.approx(rho * 0.03, rel=1e-6)  # the closed mesh's volume
+    assert len(tank_link(obj, decompose_object_error_threshold=0.7).geoms) == 1  # 60 % is within 70 %
+    assert len(tank_link(robot).geoms) == 1  # a robot's link collides as its hull, as in Genesis
+    assert len(tank_link(robot, decompose_robot_error_threshold=0.5).geoms) >= 5
+    assert len(tank_link(robot, convexify=False).geoms) >= 5
+    assert len(tank_link(obj, decompose_object_error_threshold=float("inf"), convexify=False).geoms) >= 5
+    for bad in (0.05, {"threshold": 0.1, "treshold": 0.1}):
+        with pytest.raises(ValueError, match="coacd_options"):
+            gs.morphs.URDF(file=str(obj), coacd_options=bad)
+    with pytest.raises(ValueError, match="decompose_object_error_threshold"):
+        gs.morphs.URDF(file=str(obj), decompose_object_error_threshold=-0.1)
 
 
-def test_ball_falls_into_a_urdf_tank_with_convexify_false(tmp_path):
+def test_ball_falls_into_a_urdf_tank_or_onto_its_hull(tmp_path):
     path = _tank_urdf(tmp_path)
     r = 0.04
     heights = {}
-    for convexify in (True, False):
+    for split in (True, False):
         scene = gs.Scene(sim_options=gs.options.SimOptions(dt=2e-3))
-        scene.add_entity(gs.morphs.URDF(file=str(path), fixed=True, pos=(0.0, 0.0, 0.15), convexify=convexify,
-                                        coacd_options=FAST))
+        scene.add_entity(gs.morphs.URDF(file=str(path), fixed=True, pos=(0.0, 0.0, 0.15), coacd_options=FAST,
+                                        decompose_object_error_threshold=0.15 if split else float("inf")))
         ball = scene.add_entity(gs.morphs.Sphere(radius=r, pos=(0.01, -0.02, 0.45)))
         scene.build()
         for _ in range(400):
             scene.step()
-        heights[convexify] = ball.get_pos()[2].item()
+        heights[split] = ball.get_pos()[2].item()
         assert ball.get_vel().norm().item() < 1e-2
     # hull: on its top face, 0.30 m above the outer bottom (0.15 - 0.15 + 0.30 + r); parts: on the inner floor
-    assert abs(heights[True] - (0.30 + r)) < 5e-3, heights
-    assert abs(heights[False] - (0.10 + r)) < 5e-3, heights
+    assert abs(heights[False] - (0.30 + r)) < 5e-3, heights
+    assert abs(heights[True] - (0.10 + r)) < 5e-3, heights
+
+
+# Genesis 0.4.5's gs.options.CoacdOptions defaults (genesis/options/misc.py), coarser than CoACD's own
+GENESIS_COACD = {"threshold": 0.1, "max_convex_hull": -1, "preprocess_mode": "auto", "preprocess_resolution": 30,
+                 "resolution": 1000, "mcts_nodes": 20, "mcts_iterations": 100, "mcts_max_depth": 3, "pca": False,
+                 "merge": True, "decimate": False, "max_ch_vertex": 256, "extrude": False, "extrude_margin": 0.1,
+                 "apx_mode": "ch", "seed": 0}
+
+
+def test_coacd_options_are_genesis_s_and_reach_coacd():
+    assert gs.options.CoacdOptions().kwargs() == GENESIS_COACD
+    assert gs.morphs.Mesh(file=str(TANK)).coacd_options == gs.options.CoacdOptions()
+    # a dict overrides some of Genesis's defaults, the same as the options object
+    m = gs.morphs.Mesh(file=str(TANK), coacd_options={"threshold": 0.2})
+    assert m.coacd_options == gs.options.CoacdOptions(threshold=0.2)
+    # they reach CoACD: at most max_convex_hull parts (13 without the cap)
+    capped = load_morph(gs.morphs.Mesh(file=str(TANK), fixed=True,
+                                       coacd_options=gs.options.CoacdOptions(max_convex_hull=3, **FAST)),
+                        gs.materials.Rigid(), name="tank")
+    assert 1 < len(capped.links[0].geoms) <= 3
+    for bad, what in (({"threshold": -1.0}, "threshold"), ({"resolution": 0}, "resolution"),
+                      ({"preprocess_mode": "yes"}, "preprocess_mode")):
+        with pytest.raises(ValueError, match=what):
+            gs.options.CoacdOptions(**bad)
+    with pytest.raises(ValueError, match="not CoACD options"):
+        gs.morphs.Mesh(file=str(TANK), coacd_options={"mcts_iteration": 10})
+    # genesis_lite's earlier name of the object threshold still sets it
+    assert gs.morphs.Mesh(file=str(TANK), decompose_error_threshold=0.5).decompose_object_error_threshold == 0.5
+
+
+def _tank_mjcf(tmp_path, free=True):
+    """The tank's mesh as an MJCF body: a free body (an object, by Genesis's rule) or on a hinge (a robot)."""
+    joint = "<freejoint/>" if free else '<joint type="hinge" axis="0 0 1"/>'
+    path = tmp_path / ("tank_free.xml" if free else "tank_hinge.xml")
+    path.write_text(f'<mujoco><asset><mesh name="tank" file="{TANK}"/></asset><worldbody><body name="tank" '
+                    f'pos="0 0 0.15">{joint}<geom type="mesh" mesh="tank"/></body></worldbody></mujoco>')
+    return path
+
+
+def test_an_mjcf_splits_an_object_s_mesh_by_genesis_s_rules(tmp_path):
+    """MuJoCo collides every mesh as its hull; Genesis splits an MJCF object's non-convex mesh (a free body with
+    nothing articulated below it) past decompose_object_error_threshold, as a URDF's, and a robot's only past
+    decompose_robot_error_threshold (never by default)."""
+    def tank(path, **kw):
+        model = load_morph(gs.morphs.MJCF(file=str(path), coacd_options=FAST, **kw), gs.materials.Rigid(), name="t")
+        return next(link for link in model.links if link.name == "tank")
+
+    obj = tank(_tank_mjcf(tmp_path))
+    assert len(obj.geoms) >= 5 and abs(_parts_volume(obj) - 0.03) < 0.002
+    assert len(tank(_tank_mjcf(tmp_path), decompose_object_error_threshold=float("inf")).geoms) == 1
+    assert len(tank(_tank_mjcf(tmp_path, free=False)).geoms) == 1
+    assert len(tank(_tank_mjcf(tmp_path, free=False), convexify=False).geoms) >= 5
+
+
+def test_coacd_runs_once_a_mesh_and_options(tmp_path, monkeypatch):
+    """CoACD's parts are cached by the mesh and the options (GS_CACHE_DIR/coacd): the tank placed elsewhere, or
+    in an MJCF file (which has no model cache), does not run CoACD again; other options do."""
+    import coacd
+
+    monkeypatch.setenv("GS_CACHE_DIR", str(tmp_path / "cache"))
+    calls = []
+    run = coacd.run_coacd
+    monkeypatch.setattr(coacd, "run_coacd", lambda *a, **k: calls.append(k) or run(*a, **k))
+    first = load_morph(gs.morphs.Mesh(file=str(TANK), coacd_options=FAST), gs.materials.Rigid(), name="a")
+    again = load_morph(gs.morphs.Mesh(file=str(TANK), pos=(1.0, 2.0, 3.0), coacd_options=FAST), gs.materials.Rigid(),
+                       name="b")
+    assert len(calls) == 1
+    assert [g.vertices.tobytes() for g in first.links[0].geoms] == [g.vertices.tobytes() for g in again.links[0].geoms]
+    load_morph(gs.morphs.Mesh(file=str(TANK), coacd_options={**FAST, "max_convex_hull": 4}), gs.materials.Rigid(),
+               name="c")
+    assert len(calls) == 2
+
+
+def test_an_open_surface_is_measured_by_its_volume_as_genesis_measures_it(tmp_path):
+    """The tank with one bottom triangle removed: open, its winding still consistent, its volume as trimesh
+    closes it ~0.03 m^3 against the hull's 0.048 (60 % over): split, as Genesis splits it."""
+    tank = trimesh.load(TANK, force="mesh", process=True)
+    bottom = int(np.argmin(tank.triangles_center[:, 2]))
+    open_tank = trimesh.Trimesh(tank.vertices, np.delete(tank.faces, bottom, axis=0), process=True)
+    assert not open_tank.is_watertight and open_tank.is_winding_consistent
+    path = tmp_path / "open_tank.obj"
+    open_tank.export(path)
+    model = load_morph(gs.morphs.Mesh(file=str(path), fixed=True, coacd_options=FAST), gs.materials.Rigid(), name="t")
+    assert len(model.links[0].geoms) >= 5

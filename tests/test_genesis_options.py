@@ -9,6 +9,10 @@ checked, and, where genesis_lite has the same notion, act as in Genesis.
 - RigidOptions(constraint_solver=, iterations=, tolerance=, max_collision_pairs=, box_box_detection=,
   batch_dofs_info=, batch_links_info=, enable_adjacent_collision=, enable_neutral_collision=), gs.constraint_solver,
   gs.tc_int / tc_bool, gs.init(performance_mode=).
+- The file morphs' (Mesh, URDF, MJCF) decimate=, decimate_face_num=, decimate_aggressiveness=,
+  batch_fixed_verts= (accepted, checked, change nothing: hulls of whole meshes), file_meshes_are_zup= (True only)
+  and recompute_inertia= (a moving link's mass properties from its collision shapes at the material's density,
+  against the analytic box).
 """
 from __future__ import annotations
 
@@ -360,3 +364,62 @@ def test_kernel_cache_cap_fits_the_library(monkeypatch):
         monkeypatch.setenv("GS_KERNEL_CACHE_MB", bad)
         with pytest.raises(GenesisException, match="GS_KERNEL_CACHE_MB"):
             gs.kernel_cache_cap_bytes()
+
+
+BOX_LINK = """<robot name="r"><link name="base"/><joint name="j" type="revolute"><parent link="base"/>
+<child link="arm"/><axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+<link name="arm"><inertial><origin xyz="0.3 0 0"/><mass value="10"/><inertia ixx="1" ixy="0" ixz="0" iyy="1"
+iyz="0" izz="1"/></inertial><collision><origin xyz="0.1 0.2 0.05" rpy="0 0 0.5"/><geometry>
+<box size="0.2 0.1 0.4"/></geometry></collision></link></robot>"""
+BOX_MJCF = """<mujoco><compiler angle="radian"/><worldbody><body name="base"><body name="arm"><joint name="j" type="hinge" axis="0 0 1"/>
+<inertial pos="0.3 0 0" mass="10" diaginertia="1 1 1"/><geom type="box" size="0.1 0.05 0.2" pos="0.1 0.2 0.05"
+euler="0 0 0.5"/></body></body></worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("kind", ["URDF", "MJCF"])
+def test_recompute_inertia_fills_the_collision_shapes(tmp_path, kind):
+    """Genesis's recompute_inertia=True: the arm link's file inertia (10 kg at x = 0.3 m) is replaced by that of
+    its box (0.2 x 0.1 x 0.4 m, turned 0.5 rad about z, at (0.1, 0.2, 0.05)) filled at the material's density:
+    the analytic box, m = rho a b c, I = m / 12 diag(b^2 + c^2, a^2 + c^2, a^2 + b^2) turned."""
+    from genesis_lite.loaders import load_morph
+
+    path = tmp_path / ("r.urdf" if kind == "URDF" else "r.xml")
+    path.write_text(BOX_LINK if kind == "URDF" else BOX_MJCF)
+    morph = getattr(gs.morphs, kind)
+    arm = lambda **kw: next(l for l in load_morph(morph(file=str(path), fixed=True, **kw),  # noqa: E731
+                                                   gs.materials.Rigid(rho=500.0), name="r").links if l.name == "arm")
+    kept = arm()
+    assert kept.mass == pytest.approx(10.0) and np.allclose(kept.com, [0.3, 0.0, 0.0])
+    new = arm(recompute_inertia=True)
+    a, b, c = 0.2, 0.1, 0.4
+    m = 500.0 * a * b * c
+    c5, s5 = np.cos(0.5), np.sin(0.5)
+    R = np.array([[c5, -s5, 0.0], [s5, c5, 0.0], [0.0, 0.0, 1.0]])
+    I = R @ np.diag([b * b + c * c, a * a + c * c, a * a + b * b]) @ R.T * m / 12.0
+    assert new.mass == pytest.approx(m, rel=1e-12)
+    np.testing.assert_allclose(new.com, [0.1, 0.2, 0.05], atol=1e-12)
+    np.testing.assert_allclose(new.inertia, I, atol=1e-12 * m)
+
+
+def test_genesis_s_file_morph_options_are_accepted_and_checked(tmp_path):
+    """decimate / decimate_face_num / decimate_aggressiveness / batch_fixed_verts change nothing (genesis_lite
+    takes the hull of the whole mesh, Genesis's decimate=False); bad values and file_meshes_are_zup=False are
+    refused by name."""
+    from genesis_lite.loaders import load_morph
+
+    path = tmp_path / "r.urdf"
+    path.write_text(BOX_LINK)
+    plank = os.path.join(os.path.dirname(__file__), os.pardir, "assets", "meshes", "plank.obj")
+    opts = dict(decimate=False, decimate_face_num=100, decimate_aggressiveness=5, batch_fixed_verts=True)
+    for morph in (lambda **kw: gs.morphs.URDF(file=str(path), **kw), lambda **kw: gs.morphs.Mesh(file=plank, **kw)):
+        base, other = (load_morph(morph(**kw), name="e") for kw in ({}, opts))
+        for la, lb in zip(base.links, other.links):
+            assert la.mass == lb.mass and all(np.array_equal(ga.vertices, gb.vertices)
+                                              for ga, gb in zip(la.geoms, lb.geoms))
+        for bad, name in ((dict(decimate=1), "decimate"), (dict(decimate_face_num=0), "decimate_face_num"),
+                          (dict(decimate_aggressiveness=9), "decimate_aggressiveness"),
+                          (dict(recompute_inertia="yes"), "recompute_inertia"),
+                          (dict(file_meshes_are_zup=False), "file_meshes_are_zup"),
+                          (dict(convexify=None), "convexify")):
+            with pytest.raises(ValueError, match=name):
+                morph(**bad)

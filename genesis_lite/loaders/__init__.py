@@ -20,10 +20,11 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
     if material is None:
         material = materials.Rigid()
     if isinstance(morph, morphs.URDF):
-        return align_model(_with_default_armature(load_urdf(morph, material, name), morph.default_armature), morph.align)
+        model = _with_default_armature(load_urdf(morph, material, name), morph.default_armature)
+        return align_model(_with_recomputed_inertia(model, morph, material), morph.align)
     if isinstance(morph, morphs.MJCF):
         # its default_armature applied as it reads the file
-        return align_model(load_mjcf(morph, material, name), morph.align)
+        return align_model(_with_recomputed_inertia(load_mjcf(morph, material, name), morph, material), morph.align)
     if isinstance(morph, morphs.Mesh):
         return align_model(load_mesh(morph, material, name), morph.align)
     if isinstance(morph, (morphs.Box, morphs.Sphere, morphs.Capsule, morphs.Cylinder, morphs.Plane)):
@@ -32,6 +33,26 @@ def load_morph(morph, material=None, name: str = "entity") -> EntityModel:
         f"entity '{name}': cannot load a morph of type {type(morph).__name__}; expected one of gs.morphs.URDF, "
         "MJCF, Mesh, Box, Sphere, Capsule, Cylinder, Plane"
     )
+
+
+def _with_recomputed_inertia(model: EntityModel, morph, material) -> EntityModel:
+    """Genesis's recompute_inertia=True: each link that moves (its joint not fixed) takes its mass, centre of mass
+    and inertia from its collision shapes filled at the material's density (Genesis's default for a robot's links
+    when the file has a hinge or slide joint, else for an object), not from the file; a link without collision
+    shapes keeps the file's. A new model (a loaded one may be the model cache's)."""
+    if not morph.recompute_inertia:
+        return model
+    from .primitives import combine_inertias, geom_mass_properties
+
+    rho = material.density(robot=any(l.joint_type in ("revolute", "prismatic") for l in model.links))
+    links = []
+    for l in model.links:
+        if l.joint_type != "fixed" and l.geoms:
+            mass, com, inertia = combine_inertias([geom_mass_properties(g, rho, f"entity '{model.name}', link "
+                                                                          f"'{l.name}'") for g in l.geoms])
+            l = dataclasses.replace(l, mass=mass, com=com, inertia=inertia)
+        links.append(l)
+    return dataclasses.replace(model, links=links)
 
 
 def _with_default_armature(model: EntityModel, armature) -> EntityModel:

@@ -81,7 +81,7 @@ def _code_fingerprint() -> str:
         for p in [os.path.join(here, n) for n in _SOURCES] + [os.path.abspath(m.__file__) for m in (model, geoms)]:
             with open(p, "rb") as f:
                 h.update(f.read())
-        for dist in ("yourdfpy", "trimesh", "scipy"):
+        for dist in ("yourdfpy", "trimesh", "scipy", "coacd"):
             try:
                 h.update(f"{dist} {metadata.version(dist)}".encode())
             except metadata.PackageNotFoundError:
@@ -144,6 +144,38 @@ def cached(path: str, morph, material, name: str, load: Callable):
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
     _write(entry, (deps, model, [(str(w.message), w.category) for w in caught]))
     return model
+
+
+def coacd_parts(V, F, options: dict, run: Callable):
+    """run() (CoACD's parts of the mesh (V, F) with these coacd.run_coacd options: a list of (vertices, faces)),
+    through an on-disk cache keyed by the mesh's numbers, the options and CoACD's version
+    (cache_root()/coacd): CoACD takes seconds to minutes a mesh, and a mesh morph placed elsewhere, or an MJCF
+    file (which has no model cache), would run it again. Off with the model cache (GS_MODEL_CACHE=0)."""
+    from importlib import metadata
+
+    import numpy as np
+
+    if not enabled():
+        return run()
+    try:
+        version = metadata.version("coacd")
+    except metadata.PackageNotFoundError:
+        version = "none"
+    h = hashlib.sha256(f"{FORMAT} coacd {version} {sorted(options.items())!r}".encode())
+    for a in (np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64)):
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    entry = os.path.join(cache_root(), "coacd", h.hexdigest() + ".pkl")
+    hit = _read(entry)
+    if hit is not None:
+        try:
+            os.utime(entry)
+        except OSError:
+            pass
+        return hit
+    parts = [(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)) for v, f in run()]
+    _write(entry, parts)
+    return parts
 
 
 def _read(entry: str):

@@ -43,7 +43,7 @@ import numpy as np
 
 from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, MimicDesc, VisualDesc
 
-from .primitives import ROOT_JOINT_NAME, combine_inertias, mat_to_quat, mesh_hull, pose_matrix, quat_to_mat
+from .primitives import ROOT_JOINT_NAME, combine_inertias, mat_to_quat, mesh_hull, mesh_shapes, pose_matrix, quat_to_mat
 
 # mjtGeom / mjtJoint / mjtEq / mjtTrn codes (stable across MuJoCo 2.x-3.x; spelled out so the module reads
 # without the enums)
@@ -89,9 +89,10 @@ def _trans(p):
 def load_mjcf(morph, material, name) -> EntityModel:
     """gs.morphs.MJCF -> EntityModel: the file is compiled by MuJoCo (`MjModel.from_xml_path`) and its
     bodies, joints, inertias (kg, m, kg m^2), geoms and joint parameters (limits in rad or m, damping,
-    armature, friction loss, springs, actuator force ranges as effort in N or N m) are mapped onto links; bodies
-    without joints are merged into their parent. `material` is not used for mass (MuJoCo's compiled
-    inertias are), nor for friction (each geom keeps MuJoCo's sliding friction)."""
+    armature, friction loss, springs, actuator force ranges as effort in N or N m) are mapped onto links; a body
+    without joints is a link of its own welded to its parent (Genesis keeps it). `material` is not used for mass (MuJoCo's compiled
+    inertias are, unless the morph's recompute_inertia: loaders.load_morph), nor for friction (each geom keeps
+    MuJoCo's sliding friction)."""
     path = os.path.abspath(os.fspath(morph.file))
     mujoco, m = _compile(path)
     s = float(getattr(morph, "scale", 1.0))
@@ -206,6 +207,7 @@ def load_mjcf(morph, material, name) -> EntityModel:
                                        joint_type="fixed", joint_pos=T_morph[:3, 3].copy(),
                                        joint_quat=mat_to_quat(T_morph[:3, :3])))
 
+    robot_body = _robot_bodies(m)
     for b in range(m.nbody):
         li = int(link_of[b])
         if li < 0:  # the worldbody without geoms
@@ -217,7 +219,7 @@ def load_mjcf(morph, material, name) -> EntityModel:
             com = Tb[:3, :3] @ (np.asarray(m.body_ipos[b], dtype=float) * s) + Tb[:3, 3]
             parts[li].append((float(m.body_mass[b]) * s**3, com, I * s**5))
         for g in range(int(m.body_geomadr[b]), int(m.body_geomadr[b]) + int(m.body_geomnum[b])):
-            _add_geom(path, mujoco, m, g, body_name[b], Tb, s, descs[li], ignored)
+            _add_geom(path, mujoco, m, g, body_name[b], Tb, s, descs[li], ignored, morph, robot_body[b])
 
     for d, pt in zip(descs, parts):
         d.mass, d.com, d.inertia = combine_inertias(pt)
@@ -296,7 +298,32 @@ def _joint_gains(m):
     return kp, kv
 
 
-def _add_geom(path, mujoco, m, g, bname, Tb, s, desc: LinkDesc, ignored):
+def _robot_bodies(m) -> List[bool]:
+    """Per MuJoCo body, whether Genesis counts it a robot's (its mesh decomposition threshold then the morph's
+    decompose_robot_error_threshold, else decompose_object_error_threshold): bodies welded to each other (no
+    joint between them, the worldbody included) form a group, and a group is a robot's when one of its bodies
+    hangs on a hinge or slide joint or carries a body that does; a free body with nothing articulated below it is
+    an object."""
+    group = list(range(m.nbody))
+
+    def find(b):
+        while group[b] != b:
+            group[b] = group[group[b]]
+            b = group[b]
+        return b
+
+    for b in range(1, m.nbody):
+        if int(m.body_jntnum[b]) == 0:
+            group[find(b)] = find(int(m.body_parentid[b]))
+    robot = set()
+    for b in range(1, m.nbody):
+        jadr, jnum = int(m.body_jntadr[b]), int(m.body_jntnum[b])
+        if any(int(m.jnt_type[j]) in (_HINGE, _SLIDE) for j in range(jadr, jadr + jnum)):
+            robot.update((find(b), find(int(m.body_parentid[b]))))
+    return [find(b) in robot for b in range(m.nbody)]
+
+
+def _add_geom(path, mujoco, m, g, bname, Tb, s, desc: LinkDesc, ignored, morph, is_robot):
     gt = int(m.geom_type[g])
     T = Tb @ pose_matrix(np.asarray(m.geom_pos[g], dtype=float) * s, m.geom_quat[g])
     size = np.asarray(m.geom_size[g], dtype=float) * s
@@ -331,8 +358,12 @@ def _add_geom(path, mujoco, m, g, bname, Tb, s, desc: LinkDesc, ignored):
         fa, fn = int(m.mesh_faceadr[mid]), int(m.mesh_facenum[mid])
         V = np.asarray(m.mesh_vert[va:va + vn], dtype=np.float64) * s
         F = np.asarray(m.mesh_face[fa:fa + fn], dtype=np.int64)
-        desc.geoms.append(GeomDesc("mesh", T[:3, 3].copy(), mat_to_quat(T[:3, :3]), (), vertices=V, faces=F,
-                                   friction=friction, hull=mesh_hull(V)))
+        # Genesis's rules: an object's non-convex mesh is split into CoACD's parts, a robot's only past its
+        # threshold (never by default: the hull, as MuJoCo collides every mesh)
+        shapes = mesh_shapes(morph, V, F, f"MJCF '{path}', {where}", is_robot)
+        for Vs, Fs in shapes:
+            desc.geoms.append(GeomDesc("mesh", T[:3, 3].copy(), mat_to_quat(T[:3, :3]), (), vertices=Vs, faces=Fs,
+                                       friction=friction, hull=mesh_hull(Vs)))
         return
     if gt == _ELLIPSOID:
         V, F = _ellipsoid_polytope(size[:3])

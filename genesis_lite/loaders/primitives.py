@@ -17,7 +17,7 @@ import numpy as np
 from solvers.rigid.collision.geoms import hull_planes, mesh_box
 from solvers.rigid.model import EntityModel, GeomDesc, LinkDesc, VisualDesc
 
-from .cache import note_file
+from .cache import coacd_parts, note_file
 
 ROOT_JOINT_NAME = "root_joint"  # what Pinocchio calls the free-flyer it adds; entity-scoped
 
@@ -317,51 +317,81 @@ def load_mesh(morph, material, name) -> EntityModel:
     return model
 
 
-def convex_parts(morph, mesh, hull, what, notes):
+def convex_parts(morph, mesh, hull, what, notes, robot=False):
     """None (collide as the hull: the mesh is convex, or decomposition is off) or the convex hulls of
-    CoACD's parts of `mesh` (a processed trimesh), per the morph's decomposition options: gs.morphs.Mesh's
-    (decompose_nonconvex, decompose_error_threshold, convexify, coacd_options), or a URDF's, which has
-    convexify and coacd_options only (its threshold is infinite: a robot's meshes are split only with
-    convexify=False, as Genesis keeps them whole unless told)."""
+    CoACD's parts of `mesh` (a processed trimesh), by Genesis's rules: with convexify=False always (Genesis
+    collides the raw mesh; parts are how genesis_lite collides a non-convex surface), else when the hull is
+    off the mesh by more than the morph's decompose_robot_error_threshold (robot=True: a link of a robot
+    with hinge or slide joints; infinite by default) or decompose_object_error_threshold (an object: 0.15);
+    gs.morphs.Mesh's decompose_nonconvex=True / False forces it either way. CoACD runs with the morph's
+    coacd_options (gs.options.CoacdOptions, Genesis's defaults)."""
     import trimesh
 
-    if mesh.is_watertight and hull.volume > 0:
-        # closed (overlapping closed parts count their overlap twice: the error is then underestimated)
-        error = max(0.0, 1.0 - abs(float(mesh.volume)) / float(hull.volume))
+    threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
+    forced = getattr(morph, "decompose_nonconvex", None)
+    if forced is None and morph.convexify and threshold == float("inf"):
+        return None  # (a robot's meshes by default: no error to measure, nothing to say)
+    solid = mesh
+    if not solid.is_winding_consistent:
+        solid = mesh.copy()
+        solid.process(validate=True)  # (as Genesis tries before measuring)
+    if not solid.is_winding_consistent:
+        error = float("inf")  # Genesis's: no volume to trust, split it
+    elif abs(float(solid.volume)) > 1e-3 * float(hull.volume):
+        # Genesis's measure: how much larger the hull's volume is than the mesh's (an open but consistently wound
+        # surface too, whose volume trimesh closes; overlapping closed parts count their overlap twice: the error
+        # is then underestimated)
+        error = max(0.0, float(hull.volume) / abs(float(solid.volume)) - 1.0)
     else:
-        # an open surface has no volume to compare: how deep its surface lies inside the hull (sampled: a
-        # notch's inner corner need not be a vertex), relative to the hull's thinnest extent (the most a
-        # point can lie inside it)
+        # a sheet has no volume to compare (Genesis leaves it whole): how deep its surface lies inside the hull
+        # (sampled: a notch's inner corner need not be a vertex), relative to the hull's thinnest extent (the most
+        # a point can lie inside it)
         pts = np.vstack([mesh.vertices, trimesh.sample.sample_surface(mesh, 2000, seed=0)[0]])
         d = np.abs(trimesh.proximity.signed_distance(hull, pts)).max()
         error = float(d) / max(0.5 * float(np.ptp(hull.vertices, axis=0).min()), 1e-12)
-    threshold = getattr(morph, "decompose_error_threshold", float("inf"))
-    decompose = getattr(morph, "decompose_nonconvex", None)
-    if decompose is None:
-        decompose = (not morph.convexify) or error > threshold
+    how = ("its faces' winding is inconsistent" if error == float("inf")
+           else f"its convex hull is {100 * error:.0f} % off it")
+    decompose = ((not morph.convexify) or error > threshold) if forced is None else forced
     if not decompose or error <= 1e-9:
-        if error > threshold:
-            notes.append(f"{what}: the mesh is not convex (its convex hull is {100 * error:.0f} % off it) and "
+        if forced is False and error > threshold:
+            notes.append(f"{what}: the mesh is not convex ({how}) and "
                          "collides as its convex hull because decompose_nonconvex=False; leave it None or True to "
                          "split it into convex parts")
         return None
-    off = "decompose_nonconvex=False" if hasattr(morph, "decompose_nonconvex") else "convexify=True"
+    off = ("decompose_nonconvex=False" if hasattr(morph, "decompose_nonconvex")
+           else f"convexify=True and decompose_{'robot' if robot else 'object'}_error_threshold=float('inf')")
     try:
         import coacd
     except ImportError as e:
-        raise ImportError(f"{what}: the mesh is not convex ({100 * error:.0f} % off its hull) and splitting it into "
+        raise ImportError(f"{what}: the mesh is not convex ({how}) and splitting it into "
                           f"convex parts needs CoACD: pip install coacd (or pass {off} to collide "
                           "as the convex hull)") from e
     coacd.set_log_level("error")
-    opts = {"threshold": 0.05, "seed": 0}
-    opts.update(morph.coacd_options or {})
-    parts = coacd.run_coacd(coacd.Mesh(np.asarray(mesh.vertices, dtype=np.float64),
-                                       np.asarray(mesh.faces, dtype=np.int64)), **opts)
+    V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    opts = morph.coacd_options.kwargs()
+    parts = coacd_parts(V, F, opts, lambda: coacd.run_coacd(coacd.Mesh(V, F), **opts))
     out = [convex_hull(np.asarray(pv, dtype=np.float64), what) for pv, _ in parts if len(pv) >= 4]
     if not out:
         raise ValueError(f"{what}: CoACD returned no convex parts; pass {off} to collide as the "
                          "convex hull")
     return out
+
+
+def mesh_shapes(morph, V, F, what, robot):
+    """The convex shapes a URDF's or MJCF's collision mesh (V, F) collides as, by convex_parts's rules: [(V, F)]
+    (its hull) or CoACD's parts as (vertices, faces) each. A robot's mesh with the defaults is not looked at."""
+    threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
+    if morph.convexify and threshold == float("inf"):
+        return [(V, F)]
+    import trimesh
+
+    # (URDF and MJCF morphs have no decompose_nonconvex: convex_parts splits the mesh or finds it convex enough,
+    # and leaves no note)
+    parts = convex_parts(morph, trimesh.Trimesh(vertices=V, faces=F, process=True), convex_hull(V, what), what, [],
+                         robot=robot)
+    if parts is None:
+        return [(V, F)]
+    return [(np.array(p.vertices, dtype=np.float64), np.array(p.faces, dtype=np.int64)) for p in parts]
 
 
 def _load_mesh(morph, material, name) -> EntityModel:

@@ -29,12 +29,11 @@ from . import cache as model_cache
 from .primitives import (
     ROOT_JOINT_NAME,
     combine_inertias,
-    convex_hull,
-    convex_parts,
     geom_mass_properties,
     load_mesh_file,
     mat_to_quat,
     mesh_hull,
+    mesh_shapes,
     pose_matrix,
     scale_mesh,
 )
@@ -201,9 +200,11 @@ def _origin(T, s) -> np.ndarray:
     return out
 
 
-def _collision_geoms(path, link, s, capsules, morph) -> List[GeomDesc]:
+def _collision_geoms(path, link, s, capsules, morph, is_robot) -> List[GeomDesc]:
     """Collision shapes of a URDF link, in the link frame, scaled. A non-convex mesh collides as its convex
-    hull, or with morph.convexify=False as its CoACD parts (primitives.convex_parts)."""
+    hull, or as its CoACD parts (primitives.convex_parts) with morph.convexify=False or past the morph's
+    decomposition threshold for a robot's links (is_robot: the file has a hinge or slide joint, infinite by
+    default) or an object's (0.15 by default)."""
     geoms = []
     for idx, col in enumerate(link.collisions):
         T = _origin(col.origin, s)
@@ -236,17 +237,7 @@ def _collision_geoms(path, link, s, capsules, morph) -> List[GeomDesc]:
             V, F = load_mesh_file(file, f"URDF '{path}', link '{link.name}' (mesh '{g.mesh.filename}')")
             mscale = 1.0 if g.mesh.scale is None else np.asarray(g.mesh.scale, dtype=float)
             V, F = scale_mesh(V, F, mscale * s)
-            shapes = [(V, F)]
-            if not morph.convexify:
-                import trimesh
-
-                # (a URDF has no decompose_nonconvex: with convexify=False convex_parts splits or finds the mesh
-                # convex, and leaves no note)
-                what = f"URDF '{path}', {where} (mesh '{g.mesh.filename}')"
-                parts = convex_parts(morph, trimesh.Trimesh(vertices=V, faces=F, process=True), convex_hull(V, what),
-                                     what, [])
-                if parts is not None:
-                    shapes = [(np.array(p.vertices, dtype=np.float64), np.array(p.faces, dtype=np.int64)) for p in parts]
+            shapes = mesh_shapes(morph, V, F, f"URDF '{path}', {where} (mesh '{g.mesh.filename}')", is_robot)
             for Vs, Fs in shapes:
                 geoms.append(GeomDesc("mesh", pos, quat, (), vertices=Vs, faces=Fs, hull=mesh_hull(Vs)))
         else:
@@ -385,7 +376,11 @@ def _load_urdf(morph, material, name) -> EntityModel:
     robot, capsules = _parse(path)
     # a link without <inertial> is filled at the material's density: Genesis's default for an articulated
     # robot's links when the file has a hinge or slide joint, else its default for an object
-    rho = material.density(robot=any(j.type in _MOVING for j in robot.joints))
+    # (and Genesis's rule for which decomposition threshold its meshes take: a link is a robot's when it or a
+    # link it is welded to hangs on or carries a hinge or slide joint; in a URDF, whose floating joints are
+    # refused, that is every link of a file with one such joint)
+    is_robot = any(j.type in _MOVING for j in robot.joints)
+    rho = material.density(robot=is_robot)
     links, children, root = _check_tree(path, robot)
     merge = getattr(morph, "merge_fixed_links", True)
     keep = set(getattr(morph, "links_to_keep", ()))
@@ -442,7 +437,7 @@ def _load_urdf(morph, material, name) -> EntityModel:
             parts.append([])
             di, T = len(descs) - 1, np.eye(4)
         link = links[ln]
-        geoms = _collision_geoms(path, link, s, capsules, morph)
+        geoms = _collision_geoms(path, link, s, capsules, morph, is_robot)
         m, c, I = _link_inertia(path, link, s, geoms, rho)
         R = T[:3, :3]
         parts[di].append((m, R @ c + T[:3, 3], R @ I @ R.T))
