@@ -108,9 +108,9 @@ class RigidOptions(_Options):
     those too) and pairs of collision shapes that already overlap or touch with every joint at zero, as a
     robot's shapes often do where its parts meet (enable_neutral_collision=True keeps those; the test is a
     voxel-like grid of ~24 cells along each shape, collision.neutral_overlaps). Unlike Genesis, self-collision
-    is off by default: it makes a robot scene's step two to four times longer (Genesis's MJCF Panda over a
-    plane: 1.8-2.0x at 1 env, 2.3-3.9x at 1,024 envs; every own pair through the broad phase, and the dense
-    contact system; benchmarks/results/self_collision.md). contact_stiffness (N/m per contact point) and
+    is off by default: it makes a robot scene's step several times longer (Genesis's MJCF Panda over a plane
+    holding a bent pose: 4.6-4.7x at 1 env, 5.7-6.1x at 1,024 envs, one active pair of meshes' separating-axis
+    search; benchmarks/results/self_collision.md). contact_stiffness (N/m per contact point) and
     contact_damping (N s/m per contact point) set the penalty model (the stiffness scaled up for pairs
     heavier than 100 kg). Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
     by d, the constraint asks for the reference acceleration -b v - k imp d (b = 2 / (0.95 tc),
