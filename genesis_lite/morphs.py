@@ -73,7 +73,8 @@ class FileMorph(Morph):
     URDF / MJCF body with no hinge or slide joint at or below it) when its hull's volume is more than
     decompose_object_error_threshold (0.15) over its own, a robot's only past decompose_robot_error_threshold
     (infinite by default: the hull, as Genesis and MuJoCo collide a robot's meshes), any with convexify=False
-    (Genesis: the raw mesh; parts are how genesis_lite collides a non-convex surface). coacd_options:
+    (Genesis: the raw mesh; parts are how genesis_lite collides a non-convex surface). decompose_nonconvex
+    (Genesis's older switch): True splits every non-convex mesh, False none, None leaves it to the thresholds. coacd_options:
     gs.options.CoacdOptions or a dict of its fields (Genesis's defaults); CoACD's parts are cached on disk by
     mesh and options. recompute_inertia=True: each moving link's mass, centre of mass and inertia from its
     collision shapes at the material's density, not the file's. decimate, decimate_face_num,
@@ -87,6 +88,7 @@ class FileMorph(Morph):
     # parts of the whole mesh, never decimated; recompute_inertia takes the moving links' mass properties from
     # their collision shapes at the material's density
     convexify: bool = True
+    decompose_nonconvex: Optional[bool] = None
     decompose_object_error_threshold: float = 0.15
     decompose_robot_error_threshold: float = float("inf")
     coacd_options: Optional[object] = None
@@ -190,6 +192,8 @@ def _check_decomposition(morph):
     from .options import CoacdOptions
 
     owner = f"gs.morphs.{type(morph).__name__}"
+    if morph.decompose_nonconvex not in (None, True, False):
+        raise ValueError(f"{owner}(decompose_nonconvex={morph.decompose_nonconvex!r}): use None, True or False")
     morph.coacd_options = CoacdOptions.of(morph.coacd_options, owner)
     if not isinstance(morph.convexify, bool):
         raise ValueError(f"{owner}(convexify={morph.convexify!r}): use True or False")
@@ -230,12 +234,9 @@ class Mesh(FileMorph):
     defaults: threshold 0.1, the concavity each part may keep). Mass and inertia come from the mesh's own
     volume when it is closed, else from the parts (or the hull)."""
 
-    decompose_nonconvex: Optional[bool] = None
     decompose_error_threshold: Optional[float] = None
 
     def _check(self):
-        if self.decompose_nonconvex not in (None, True, False):
-            raise ValueError(f"gs.morphs.Mesh(decompose_nonconvex={self.decompose_nonconvex!r}): use None, True or False")
         t = self.decompose_error_threshold
         if t is not None:
             if isinstance(t, bool) or not isinstance(t, (int, float)) or not t >= 0:

@@ -122,6 +122,9 @@ def test_a_urdf_splits_meshes_by_genesis_s_rules(tmp_path):
     assert len(tank_link(robot, decompose_robot_error_threshold=0.5).geoms) >= 5
     assert len(tank_link(robot, convexify=False).geoms) >= 5
     assert len(tank_link(obj, decompose_object_error_threshold=float("inf"), convexify=False).geoms) >= 5
+    # Genesis's older switch, on every file morph: True splits a robot's mesh too, False keeps an object's whole
+    assert len(tank_link(robot, decompose_nonconvex=True).geoms) >= 5
+    assert len(tank_link(obj, decompose_nonconvex=False).geoms) == 1
     for bad in (0.05, {"threshold": 0.1, "treshold": 0.1}):
         with pytest.raises(ValueError, match="coacd_options"):
             gs.morphs.URDF(file=str(obj), coacd_options=bad)

@@ -323,12 +323,12 @@ def convex_parts(morph, mesh, hull, what, notes, robot=False):
     collides the raw mesh; parts are how genesis_lite collides a non-convex surface), else when the hull is
     off the mesh by more than the morph's decompose_robot_error_threshold (robot=True: a link of a robot
     with hinge or slide joints; infinite by default) or decompose_object_error_threshold (an object: 0.15);
-    gs.morphs.Mesh's decompose_nonconvex=True / False forces it either way. CoACD runs with the morph's
+    the morph's decompose_nonconvex=True / False forces it either way. CoACD runs with the morph's
     coacd_options (gs.options.CoacdOptions, Genesis's defaults)."""
     import trimesh
 
     threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
-    forced = getattr(morph, "decompose_nonconvex", None)
+    forced = morph.decompose_nonconvex
     if forced is None and morph.convexify and threshold == float("inf"):
         return None  # (a robot's meshes by default: no error to measure, nothing to say)
     solid = mesh
@@ -358,8 +358,7 @@ def convex_parts(morph, mesh, hull, what, notes, robot=False):
                          "collides as its convex hull because decompose_nonconvex=False; leave it None or True to "
                          "split it into convex parts")
         return None
-    off = ("decompose_nonconvex=False" if hasattr(morph, "decompose_nonconvex")
-           else f"convexify=True and decompose_{'robot' if robot else 'object'}_error_threshold=float('inf')")
+    off = "decompose_nonconvex=False"
     try:
         import coacd
     except ImportError as e:
@@ -381,12 +380,12 @@ def mesh_shapes(morph, V, F, what, robot):
     """The convex shapes a URDF's or MJCF's collision mesh (V, F) collides as, by convex_parts's rules: [(V, F)]
     (its hull) or CoACD's parts as (vertices, faces) each. A robot's mesh with the defaults is not looked at."""
     threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
-    if morph.convexify and threshold == float("inf"):
+    forced = morph.decompose_nonconvex
+    if forced is False or (forced is None and morph.convexify and threshold == float("inf")):
         return [(V, F)]
     import trimesh
 
-    # (URDF and MJCF morphs have no decompose_nonconvex: convex_parts splits the mesh or finds it convex enough,
-    # and leaves no note)
+    # (convex_parts splits the mesh or finds it convex enough; a URDF or MJCF leaves no note)
     parts = convex_parts(morph, trimesh.Trimesh(vertices=V, faces=F, process=True), convex_hull(V, what), what, [],
                          robot=robot)
     if parts is None:
