@@ -74,9 +74,9 @@ class FileMorph(Morph):
     decompose_object_error_threshold (0.15) over its own, a robot's only past decompose_robot_error_threshold
     (infinite by default: the hull, as Genesis and MuJoCo collide a robot's meshes), any with convexify=False
     (Genesis: the raw mesh; parts are how genesis_lite collides a non-convex surface). decompose_nonconvex
-    (Genesis's older switch): True splits every non-convex mesh, False none, None leaves it to the thresholds. coacd_options:
-    gs.options.CoacdOptions or a dict of its fields (Genesis's defaults); CoACD's parts are cached on disk by
-    mesh and options. recompute_inertia=True: each moving link's mass, centre of mass and inertia from its
+    (Genesis's older switch): True splits every non-convex mesh, False none, None leaves it to the thresholds.
+    coacd_options: gs.options.CoacdOptions or a dict of its fields (Genesis's defaults); CoACD's parts are
+    cached on disk by mesh and options. recompute_inertia=True: each moving link's mass, centre of mass and inertia from its
     collision shapes at the material's density, not the file's. decimate, decimate_face_num,
     decimate_aggressiveness and batch_fixed_verts are Genesis's and change nothing here (_check_file_options);
     file_meshes_are_zup must be True."""
@@ -187,8 +187,8 @@ def _check_file_options(morph):
 
 
 def _check_decomposition(morph):
-    """coacd_options (URDF, Mesh) as gs.options.CoacdOptions (None: Genesis's defaults; a dict: some of its
-    fields), convexify and the decomposition thresholds (relative volume errors >= 0; inf: never)."""
+    """decompose_nonconvex, coacd_options as gs.options.CoacdOptions (None: Genesis's defaults; a dict: some of
+    its fields), convexify and the decomposition thresholds (relative volume errors >= 0; inf: never)."""
     from .options import CoacdOptions
 
     owner = f"gs.morphs.{type(morph).__name__}"

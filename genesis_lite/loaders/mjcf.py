@@ -90,9 +90,9 @@ def load_mjcf(morph, material, name) -> EntityModel:
     """gs.morphs.MJCF -> EntityModel: the file is compiled by MuJoCo (`MjModel.from_xml_path`) and its
     bodies, joints, inertias (kg, m, kg m^2), geoms and joint parameters (limits in rad or m, damping,
     armature, friction loss, springs, actuator force ranges as effort in N or N m) are mapped onto links; a body
-    without joints is a link of its own welded to its parent (Genesis keeps it). `material` is not used for mass (MuJoCo's compiled
-    inertias are, unless the morph's recompute_inertia: loaders.load_morph), nor for friction (each geom keeps
-    MuJoCo's sliding friction)."""
+    without joints is a link of its own welded to its parent (Genesis keeps it). `material` is not used for
+    mass (MuJoCo's compiled inertias are, unless the morph's recompute_inertia: loaders.load_morph), nor for
+    friction (each geom keeps MuJoCo's sliding friction)."""
     path = os.path.abspath(os.fspath(morph.file))
     mujoco, m = _compile(path)
     s = float(getattr(morph, "scale", 1.0))
