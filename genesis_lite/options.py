@@ -387,8 +387,8 @@ class VisOptions(_Options):
 class CoacdOptions(_Options):
     """CoACD's convex decomposition (Genesis's gs.options.CoacdOptions: its fields and its defaults, which are
     coarser and faster than CoACD's own: threshold 0.1, preprocess_resolution 30, resolution 1000,
-    mcts_iterations 100 against 0.05, 50, 2000, 150). gs.morphs.Mesh / URDF(coacd_options=) take one, or a
-    dict of some of its fields (the rest Genesis's defaults). threshold is the concavity each part may keep
+    mcts_iterations 100 against 0.05, 50, 2000, 150). gs.morphs.Mesh / URDF / MJCF(coacd_options=) take one, or
+    a dict of some of its fields (the rest Genesis's defaults). threshold is the concavity each part may keep
     (halving it about doubles the parts); the others go to coacd.run_coacd as they are."""
 
     threshold: float = 0.1

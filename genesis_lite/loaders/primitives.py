@@ -317,6 +317,15 @@ def load_mesh(morph, material, name) -> EntityModel:
     return model
 
 
+def _split_rule(morph, robot):
+    """(threshold, forced, settled) of a mesh of this morph: its decomposition threshold (the robot's or the
+    object's), the morph's decompose_nonconvex, and whether the rule keeps the hull without looking at the mesh
+    (a robot's mesh with the defaults)."""
+    threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
+    forced = morph.decompose_nonconvex
+    return threshold, forced, forced is None and morph.convexify and threshold == float("inf")
+
+
 def convex_parts(morph, mesh, hull, what, notes, robot=False):
     """None (collide as the hull: the mesh is convex, or decomposition is off) or the convex hulls of
     CoACD's parts of `mesh` (a processed trimesh), by Genesis's rules: with convexify=False always (Genesis
@@ -327,9 +336,8 @@ def convex_parts(morph, mesh, hull, what, notes, robot=False):
     coacd_options (gs.options.CoacdOptions, Genesis's defaults)."""
     import trimesh
 
-    threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
-    forced = morph.decompose_nonconvex
-    if forced is None and morph.convexify and threshold == float("inf"):
+    threshold, forced, settled = _split_rule(morph, robot)
+    if settled:
         return None  # (a robot's meshes by default: no error to measure, nothing to say)
     solid = mesh
     if not solid.is_winding_consistent:
@@ -379,9 +387,8 @@ def convex_parts(morph, mesh, hull, what, notes, robot=False):
 def mesh_shapes(morph, V, F, what, robot):
     """The convex shapes a URDF's or MJCF's collision mesh (V, F) collides as, by convex_parts's rules: [(V, F)]
     (its hull) or CoACD's parts as (vertices, faces) each. A robot's mesh with the defaults is not looked at."""
-    threshold = morph.decompose_robot_error_threshold if robot else morph.decompose_object_error_threshold
-    forced = morph.decompose_nonconvex
-    if forced is False or (forced is None and morph.convexify and threshold == float("inf")):
+    _, forced, settled = _split_rule(morph, robot)
+    if settled or forced is False:  # (forced off: the hull, and a URDF's or MJCF's note would go nowhere)
         return [(V, F)]
     import trimesh
 
