@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, field
 from typing import Optional, Sequence, Tuple
 
@@ -79,7 +80,7 @@ class FileMorph(Morph):
     cached on disk by mesh and options. recompute_inertia=True: each moving link's mass, centre of mass and inertia from its
     collision shapes at the material's density, not the file's. decimate, decimate_face_num,
     decimate_aggressiveness and batch_fixed_verts are Genesis's and change nothing here (_check_file_options);
-    file_meshes_are_zup must be True."""
+    file_meshes_are_zup=False reads a Mesh's or a URDF's mesh files as y-up (Genesis's turn, (x, y, z) -> (x, -z, y))."""
 
     file: str = ""
     scale: float = 1.0
@@ -169,7 +170,9 @@ def _check_file_options(morph):
     hull (or CoACD's parts) of the whole mesh, as Genesis does with decimate=False, and samples it at most at
     RigidOptions.max_mesh_contact_points points; cameras draw the file itself. batch_fixed_verts (Genesis: a copy
     of fixed geoms' vertices per env) changes nothing either: every env sees the same fixed geoms. recompute_inertia
-    (loaders.load_morph) and file_meshes_are_zup (True only: the files' meshes are read z-up) act."""
+    (loaders.load_morph) and file_meshes_are_zup act: False turns a Mesh's or a URDF's mesh files from y-up to z-up,
+    (x, y, z) -> (x, -z, y), before the morph's scale, as Genesis does (an MJCF's meshes are placed by MuJoCo's
+    compiler, and Genesis ignores the option there too: a warning says so)."""
     owner = f"gs.morphs.{type(morph).__name__}"
     for name in ("decimate", "recompute_inertia", "file_meshes_are_zup", "batch_fixed_verts"):
         if not isinstance(getattr(morph, name), bool):
@@ -180,10 +183,10 @@ def _check_file_options(morph):
     a = morph.decimate_aggressiveness
     if isinstance(a, bool) or not isinstance(a, (int, np.integer)) or not 0 <= a <= 8:
         raise ValueError(f"{owner}(decimate_aggressiveness={a!r}): give an integer from 0 to 8")
-    if not morph.file_meshes_are_zup:
-        raise ValueError(f"{owner}(file_meshes_are_zup=False): genesis_lite reads mesh files z-up only (Genesis's "
-                         "default); convert the file (y-up to z-up: (x, y, z) -> (x, -z, y)) or turn the morph "
-                         "+90 degrees about x with quat / euler")
+    if not morph.file_meshes_are_zup and isinstance(morph, MJCF):
+        warnings.warn(f"{owner}(file_meshes_are_zup=False) changes nothing: an MJCF's meshes are placed as MuJoCo "
+                      "compiles the file (its <mesh refquat>, each geom's pos and quat), as Genesis places them; "
+                      "turn the whole model with the morph's quat or euler", stacklevel=4)
 
 
 def _check_decomposition(morph):

@@ -10,8 +10,9 @@ checked, and, where genesis_lite has the same notion, act as in Genesis.
   batch_dofs_info=, batch_links_info=, enable_adjacent_collision=, enable_neutral_collision=), gs.constraint_solver,
   gs.tc_int / tc_bool, gs.init(performance_mode=).
 - The file morphs' (Mesh, URDF, MJCF) decimate=, decimate_face_num=, decimate_aggressiveness=,
-  batch_fixed_verts= (accepted, checked, change nothing: hulls of whole meshes), file_meshes_are_zup= (True only)
-  and recompute_inertia= (a moving link's mass properties from its collision shapes at the material's density,
+  batch_fixed_verts= (accepted, checked, change nothing: hulls of whole meshes), file_meshes_are_zup=False (a
+  Mesh's or a URDF's y-up files turned as Genesis turns them, against the same mesh turned by trimesh and written
+  z-up; an MJCF's meshes as MuJoCo places them, with a warning) and recompute_inertia= (a moving link's mass properties from its collision shapes at the material's density,
   against the analytic box).
 """
 from __future__ import annotations
@@ -403,8 +404,7 @@ def test_recompute_inertia_fills_the_collision_shapes(tmp_path, kind):
 
 def test_genesis_s_file_morph_options_are_accepted_and_checked(tmp_path):
     """decimate / decimate_face_num / decimate_aggressiveness / batch_fixed_verts change nothing (genesis_lite
-    takes the hull of the whole mesh, Genesis's decimate=False); bad values and file_meshes_are_zup=False are
-    refused by name."""
+    takes the hull of the whole mesh, Genesis's decimate=False); bad values are refused by name."""
     from genesis_lite.loaders import load_morph
 
     path = tmp_path / "r.urdf"
@@ -419,7 +419,84 @@ def test_genesis_s_file_morph_options_are_accepted_and_checked(tmp_path):
         for bad, name in ((dict(decimate=1), "decimate"), (dict(decimate_face_num=0), "decimate_face_num"),
                           (dict(decimate_aggressiveness=9), "decimate_aggressiveness"),
                           (dict(recompute_inertia="yes"), "recompute_inertia"),
-                          (dict(file_meshes_are_zup=False), "file_meshes_are_zup"),
+                          (dict(file_meshes_are_zup=None), "file_meshes_are_zup"),
                           (dict(convexify=None), "convexify")):
             with pytest.raises(ValueError, match=name):
                 morph(**bad)
+
+
+YUP_URDF = """<robot name="y"><link name="base"><inertial><mass value="1"/><inertia ixx="1" ixy="0" ixz="0" iyy="1"
+iyz="0" izz="1"/></inertial><collision><origin xyz="0.1 0 0" rpy="0.3 0 0"/><geometry><mesh filename="{f}"
+scale="1 2 3"/></geometry></collision><visual><origin xyz="0.1 0 0" rpy="0.3 0 0"/><geometry><mesh filename="{f}"
+scale="1 2 3"/></geometry></visual></link></robot>"""
+
+
+def test_y_up_mesh_files_are_turned_before_the_scale_as_genesis_turns_them(tmp_path):
+    """Genesis's file_meshes_are_zup=False: a y-up file's vertices are turned (x, y, z) -> (x, -z, y) (+90 degrees
+    about x), then scaled per axis. A lopsided solid (a box with a wedge on it: no symmetry) written y-up and
+    loaded so must give what the same solid turned by trimesh and written z-up gives with the default: the
+    collision vertices, mass, centre of mass and inertia of a gs.morphs.Mesh and of a URDF mesh (its <mesh
+    scale="1 2 3"> and a turned origin: the file's y extent ends along z, times 3), the URDF's drawn
+    visual, and an MPM entity's particles. An MJCF's meshes are placed by MuJoCo's compiler (Genesis ignores the
+    option there too): a warning says so."""
+    import trimesh
+    from trimesh.transformations import quaternion_matrix, rotation_matrix
+
+    from genesis_lite.loaders import load_morph
+    from genesis_lite.loaders.particles import sample_particles
+    from genesis_lite.vis.geometry import load_visual_file
+
+    box = trimesh.creation.box((0.1, 0.4, 0.2))
+    wedge = trimesh.Trimesh([[0.05, 0.2, 0.1], [-0.05, 0.2, 0.1], [0.05, -0.2, 0.1], [0.05, 0.2, 0.25]],
+                            [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    solid = trimesh.util.concatenate([box, wedge]).convex_hull  # closed, lopsided
+    solid.apply_translation((0.02, 0.03, -0.01))
+    solid.export(tmp_path / "yup.obj")
+    turned = solid.copy()
+    turned.apply_transform(rotation_matrix(np.pi / 2, [1, 0, 0]))
+    turned.export(tmp_path / "zup.obj")
+
+    def same(a, b):
+        for la, lb in zip(a.links, b.links):
+            assert la.mass == pytest.approx(lb.mass, rel=1e-12)
+            np.testing.assert_allclose(la.com, lb.com, atol=1e-12)
+            np.testing.assert_allclose(la.inertia, lb.inertia, atol=1e-12)
+            for ga, gb in zip(la.geoms, lb.geoms):
+                np.testing.assert_allclose(np.asarray(ga.pos), np.asarray(gb.pos), atol=1e-12)
+                np.testing.assert_allclose(np.asarray(ga.quat), np.asarray(gb.quat), atol=1e-12)
+                np.testing.assert_allclose(np.sort(ga.vertices, axis=0), np.sort(gb.vertices, axis=0), atol=1e-12)
+
+    ex, ey, ez = solid.extents
+    mesh = lambda f, **kw: load_morph(gs.morphs.Mesh(file=str(tmp_path / f), scale=1.5, align=False, **kw),  # noqa: E731
+                                      gs.materials.Rigid(rho=500.0), name="m")
+    y, z = mesh("yup.obj", file_meshes_are_zup=False), mesh("zup.obj")
+    same(y, z)
+    V = y.links[0].geoms[0].vertices
+    np.testing.assert_allclose(V.max(0) - V.min(0), [1.5 * ex, 1.5 * ez, 1.5 * ey], atol=1e-12)
+
+    for f in ("yup.obj", "zup.obj"):
+        (tmp_path / f"{f}.urdf").write_text(YUP_URDF.format(f=f))
+    urdf = lambda f, **kw: load_morph(gs.morphs.URDF(file=str(tmp_path / f"{f}.urdf"), fixed=True, **kw),  # noqa: E731
+                                      gs.materials.Rigid(rho=500.0), name="u")
+    y, z = urdf("yup.obj", file_meshes_are_zup=False), urdf("zup.obj")
+    same(y, z)
+    V = y.links[0].geoms[0].vertices  # the <mesh scale="1 2 3"> after the turn: the file's z times 2, its y times 3
+    np.testing.assert_allclose(V.max(0) - V.min(0), [ex, 2 * ez, 3 * ey], atol=1e-12)
+
+    def drawn(v):
+        V = load_visual_file(v.file, v.scale)[0]
+        return np.sort(V @ quaternion_matrix(v.quat)[:3, :3].T + v.pos, axis=0)
+
+    np.testing.assert_allclose(drawn(y.links[0].visuals[0]), drawn(z.links[0].visuals[0]), atol=1e-6)
+
+    pts = [sample_particles(gs.morphs.Mesh(file=str(tmp_path / f), **kw), 0.02, "p")[0]
+           for f, kw in (("yup.obj", dict(file_meshes_are_zup=False)), ("zup.obj", {}))]
+    np.testing.assert_allclose(np.sort(pts[0], axis=0), np.sort(pts[1], axis=0), atol=1e-9)
+
+    (tmp_path / "m.xml").write_text(f"""<mujoco><compiler meshdir="{tmp_path}"/><asset><mesh file="yup.obj"/></asset>
+<worldbody><body name="b"><joint type="hinge"/><geom type="mesh" mesh="yup"/></body></worldbody></mujoco>""")
+    mjcf = lambda **kw: load_morph(gs.morphs.MJCF(file=str(tmp_path / "m.xml"), fixed=True, **kw),  # noqa: E731
+                                   gs.materials.Rigid(), name="x")
+    with pytest.warns(UserWarning, match="file_meshes_are_zup=False.*changes nothing"):
+        y = mjcf(file_meshes_are_zup=False)
+    same(y, mjcf())

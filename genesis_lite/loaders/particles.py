@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .primitives import quat_to_mat
+from .primitives import quat_to_mat, zup_vertices
 
 
 def _lattice(half_extents, spacing):
@@ -48,6 +48,8 @@ def sample_particles(morph, spacing: float, name: str):
         import trimesh
 
         mesh = trimesh.load(morph.file, force="mesh")
+        if not morph.file_meshes_are_zup:  # Genesis's turn of a y-up file, before the scale
+            mesh.vertices = zup_vertices(np.asarray(mesh.vertices, dtype=np.float64), False)
         mesh.apply_scale(morph.scale)
         if not mesh.is_watertight:
             # an OBJ splits its vertices along texture and normal seams (Genesis's duck.obj): joined at the

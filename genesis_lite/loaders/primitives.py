@@ -239,6 +239,26 @@ def load_mesh_file(path: str, what: str) -> Tuple[np.ndarray, np.ndarray]:
     return hit[0].copy(), hit[1].copy()
 
 
+# Genesis's FileMorph(file_meshes_are_zup=False): the file's meshes are drawn y-up and are turned +90 degrees about
+# x, (x, y, z) -> (x, -z, y), before the morph's (per-axis) scale, as Genesis turns them
+_YUP_QUAT = np.array([np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0])
+
+
+def zup_vertices(V, zup: bool):
+    """A mesh file's vertices (n, 3) in the z-up frame: as read where the file is z-up, else turned from y-up."""
+    return V if zup else np.stack([V[:, 0], -V[:, 2], V[:, 1]], axis=1)
+
+
+def zup_visual(quat, scale, zup: bool):
+    """(quat, per-axis scale) of a visual mesh drawn from its file as read (vis.geometry.load_visual_file scales
+    it, then turns it by quat): a y-up file's turn follows quat, and since Genesis scales after that turn, the
+    file's y and z take the scale's z and y."""
+    scale = np.broadcast_to(np.asarray(scale, dtype=float), (3,)).copy()
+    if zup:
+        return np.asarray(quat, dtype=float), scale
+    return quat_mul(quat, _YUP_QUAT), scale[[0, 2, 1]]
+
+
 def scale_mesh(V, F, scale):
     """Apply a per-axis scale; a mirroring scale flips the triangles so normals still point out."""
     s = np.broadcast_to(np.asarray(scale, dtype=float), (3,))
@@ -406,7 +426,7 @@ def _load_mesh(morph, material, name) -> EntityModel:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{what}: no such file; give a path to an existing mesh file")
     V, F = load_mesh_file(path, what)
-    V, F = scale_mesh(V, F, morph.scale)
+    V, F = scale_mesh(zup_vertices(V, morph.file_meshes_are_zup), F, morph.scale)
     hull = convex_hull(V, what)
     hull.density = material.density(robot=False)
     import trimesh
@@ -428,8 +448,8 @@ def _load_mesh(morph, material, name) -> EntityModel:
     model = _root_link(morph, name, body.mass, body.center_mass, body.moment_inertia, geoms)
     model.load_warnings = notes
     # cameras draw the file's own surface, not the hull that stands in for it in the physics
-    scale = np.broadcast_to(np.asarray(morph.scale, dtype=float), (3,)).copy()
-    model.links[0].visuals.append(VisualDesc("mesh", file=path, filename=morph.file, scale=scale))
+    quat, scale = zup_visual((1.0, 0.0, 0.0, 0.0), morph.scale, morph.file_meshes_are_zup)
+    model.links[0].visuals.append(VisualDesc("mesh", quat=quat, file=path, filename=morph.file, scale=scale))
     model.source = path
     model.validate()
     return model

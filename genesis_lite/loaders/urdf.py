@@ -36,6 +36,8 @@ from .primitives import (
     mesh_shapes,
     pose_matrix,
     scale_mesh,
+    zup_vertices,
+    zup_visual,
 )
 
 _MOVING = {"revolute", "continuous", "prismatic"}
@@ -236,7 +238,7 @@ def _collision_geoms(path, link, s, capsules, morph, is_robot) -> List[GeomDesc]
             file = _resolve_mesh(g.mesh.filename, path, link.name)
             V, F = load_mesh_file(file, f"URDF '{path}', link '{link.name}' (mesh '{g.mesh.filename}')")
             mscale = 1.0 if g.mesh.scale is None else np.asarray(g.mesh.scale, dtype=float)
-            V, F = scale_mesh(V, F, mscale * s)
+            V, F = scale_mesh(zup_vertices(V, morph.file_meshes_are_zup), F, mscale * s)
             shapes = mesh_shapes(morph, V, F, f"URDF '{path}', {where} (mesh '{g.mesh.filename}')", is_robot)
             for Vs, Fs in shapes:
                 geoms.append(GeomDesc("mesh", pos, quat, (), vertices=Vs, faces=Fs, hull=mesh_hull(Vs)))
@@ -245,10 +247,10 @@ def _collision_geoms(path, link, s, capsules, morph, is_robot) -> List[GeomDesc]
     return geoms
 
 
-def _visual_descs(path, link, s, capsules, materials) -> List[VisualDesc]:
-    """Visual shapes of a URDF link, in the link frame, scaled. Mesh files are located but not read
-    (cameras read them on first use); a visual that cannot be drawn is skipped with a warning, since
-    it changes nothing in the physics."""
+def _visual_descs(path, link, s, capsules, materials, zup=True) -> List[VisualDesc]:
+    """Visual shapes of a URDF link, in the link frame, scaled (a mesh turned from y-up unless zup). Mesh files
+    are located but not read (cameras read them on first use); a visual that cannot be drawn is skipped with a
+    warning, since it changes nothing in the physics."""
     out = []
     for idx, vis in enumerate(link.visuals):
         T = _origin(vis.origin, s)
@@ -276,7 +278,8 @@ def _visual_descs(path, link, s, capsules, materials) -> List[VisualDesc]:
             elif g.mesh is not None:
                 file = next((p for p in _mesh_candidates(g.mesh.filename, path) if model_cache.note_file(p)), None)
                 mscale = np.broadcast_to(np.asarray(1.0 if g.mesh.scale is None else g.mesh.scale, dtype=float), (3,))
-                v = VisualDesc("mesh", pos, quat, (), file=file, filename=g.mesh.filename, scale=mscale * s)
+                vquat, vscale = zup_visual(quat, mscale * s, zup)
+                v = VisualDesc("mesh", pos, vquat, (), file=file, filename=g.mesh.filename, scale=vscale)
             else:
                 raise ValueError("empty <geometry>")
             d = np.asarray(v.size, dtype=float)
@@ -445,7 +448,7 @@ def _load_urdf(morph, material, name) -> EntityModel:
             Tg = T @ pose_matrix(g.pos, g.quat)
             g.pos, g.quat = Tg[:3, 3].copy(), mat_to_quat(Tg[:3, :3])
             descs[di].geoms.append(g)
-        for v in _visual_descs(path, link, s, capsules, materials):
+        for v in _visual_descs(path, link, s, capsules, materials, morph.file_meshes_are_zup):
             Tv = T @ pose_matrix(v.pos, v.quat)
             v.pos, v.quat = Tv[:3, 3].copy(), mat_to_quat(Tv[:3, :3])
             descs[di].visuals.append(v)
