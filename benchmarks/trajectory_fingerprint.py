@@ -11,6 +11,8 @@ Scenes (all at the default build options: collision on, default integrator, floa
   mpm      no gradients: elastic, neo-Hookean, plasticine, sand and liquid bodies falling and colliding in
            2 envs with different initial velocities, 25 steps (the solver's no-gradient substep)
   coupling_nograd  the coupling scene's box and cube without gradients, 10 steps
+  hull     no gradients: plank meshes crossed ridge on ridge, a box flat on plank meshes, a pile of plank meshes
+           and a box on a plane, 150 steps each; the Panda (example-robot-data) with self-collision, 4 envs
 --precision 32 runs the scenes in float32 (only mpm and coupling_nograd take no float64 inputs).
 Prints the sha256 of the raw float64 bytes of every recorded tensor, then one line per scene (a hash of
 the tensors' hashes). Two runs on one tree must print the same lines; a refactor that claims to change no
@@ -159,10 +161,70 @@ def coupling_nograd_scene():
     return {"pusher_qpos": traj, "particles": parts}
 
 
+def _turn(yaw_deg, roll_deg):
+    """A plank's quaternion (w, x, y, z): roll_deg about its length (x), then yaw_deg about z."""
+    y, r = np.radians(yaw_deg) / 2, np.radians(roll_deg) / 2
+    return (np.cos(y) * np.cos(r), np.cos(y) * np.sin(r), np.sin(y) * np.sin(r), np.sin(y) * np.cos(r))
+
+
+def hull_scene():
+    """Convex volumes meeting through the hull pair test's slots (collision/narrow.func_hull_pair_test): a plank
+    mesh (0.6 x 0.08 x 0.08 m) dropped across two fixed ones at 70 degrees, ridges up (edge on edge), then a box
+    dropped flat across two fixed plank meshes (face on face), then five plank meshes and a box thrown onto a
+    plane, 150 steps each; and example-robot-data's Panda with self-collision holding a bent pose, 4 envs."""
+    plank = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir, "assets", "meshes", "plank.obj")
+    out = {}
+    for name, roll, top in (("ridge", 45.0, "mesh"), ("flat", 0.0, "box")):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.005))
+        for y in (-0.15, 0.15):
+            scene.add_entity(gs.morphs.Mesh(file=plank, pos=(0.0, y, 0.2), quat=_turn(0.0, roll), fixed=True))
+        z = 0.2 + (0.08 * np.sqrt(2.0) if roll else 0.08) + 0.01
+        morph = (gs.morphs.Mesh(file=plank, pos=(0.01, 0.02, z), quat=_turn(70.0, roll)) if top == "mesh" else
+                 gs.morphs.Box(size=(0.6, 0.08, 0.08), pos=(0.01, 0.02, z), quat=_turn(70.0, roll)))
+        body = scene.add_entity(morph)
+        scene.build()
+        traj = []
+        for _ in range(150):
+            scene.step()
+            traj.append(body.get_qpos())
+        out[f"{name}_qpos"] = torch.stack(traj)
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.005))
+    scene.add_entity(gs.morphs.Plane())
+    rng = np.random.default_rng(0)
+    bodies = []
+    for i in range(5):
+        q = rng.normal(size=4)
+        bodies.append(scene.add_entity(gs.morphs.Mesh(file=plank, pos=(0.05 * i, 0.03 * i, 0.15 + 0.12 * i),
+                                                      quat=tuple(q / np.linalg.norm(q)))))
+    bodies.append(scene.add_entity(gs.morphs.Box(size=(0.2, 0.1, 0.05), pos=(0.0, 0.0, 0.9))))
+    scene.build()
+    for _ in range(150):
+        scene.step()
+    out["pile_qpos"] = torch.cat([b.get_qpos() for b in bodies])
+    scene = gs.Scene(rigid_options=gs.options.RigidOptions(enable_self_collision=True))
+    scene.add_entity(gs.morphs.Plane())
+    urdf = find_robots_dir() / "panda_description" / "urdf" / "panda.urdf"
+    arm = scene.add_entity(gs.morphs.URDF(file=str(urdf), fixed=True))
+    scene.build(n_envs=4)
+    n = arm.n_dofs
+    q = np.zeros((4, n))
+    q[:, :7] = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]
+    q[:, 1] += np.linspace(0.0, 0.3, 4)
+    arm.set_dofs_kp(np.full(n, 100.0))
+    arm.set_dofs_kv(np.full(n, 10.0))
+    arm.set_dofs_position(q)
+    arm.control_dofs_position(q)
+    for _ in range(150):
+        scene.step()
+    out["panda_selfcol_qpos"] = arm.get_dofs_position()
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=None, help="also write the lines to this file")
-    ap.add_argument("--scenes", default="contact,anymal,coupling,mpm,coupling_nograd", help="comma-separated subset")
+    ap.add_argument("--scenes", default="contact,anymal,coupling,mpm,coupling_nograd,hull",
+                    help="comma-separated subset")
     ap.add_argument("--precision", default="64", choices=("32", "64"))
     ap.add_argument("--npz", default=None, help="also save the tensors to this .npz file; --compare the npz of "
                     "another tree prints how far each tensor moved (for a change that moves rounding only)")
@@ -173,7 +235,7 @@ def main():
     lines, arrays = [], {}
     for name in args.scenes.split(","):
         tensors = {"contact": contact_scene, "anymal": anymal_scene, "coupling": coupling_scene, "mpm": mpm_scene,
-                   "coupling_nograd": coupling_nograd_scene}[name]()
+                   "coupling_nograd": coupling_nograd_scene, "hull": hull_scene}[name]()
         hashes = []
         for k, v in tensors.items():
             h = _digest(v)

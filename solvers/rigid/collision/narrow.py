@@ -181,7 +181,7 @@ def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
                 dY = c.geom_kdop[X, k] + nw.dot(dx)
                 least = ti.cast(1e30, c.dtype)
                 if ti.static(c.has_hulledge):  # the corners of Y's volume: the plane parts the two volumes
-                    least = func_corners_beyond(c, Y, nY, dY)
+                    least = func_corners_beyond(c, Y, nY, dY, thr)
                 else:
                     for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
                         if c.slot_ga[i_s] == Y:
@@ -576,12 +576,17 @@ def func_is_hull_pair(c: ti.template(), ga, gb):
 
 
 @ti.func
-def func_corners_beyond(c: ti.template(), Y, nY, dY):
+def func_corners_beyond(c: ti.template(), Y, nY, dY, stop):
     """The least distance beyond the plane nY . x = dY (in geom Y's frame) of Y's volume's corners
-    (collision.polytope_hull): >= 0 where the plane parts Y from the side it bounds."""
+    (collision.polytope_hull): >= 0 where the plane parts Y from the side it bounds. Exact where it is at least
+    `stop`; else the corners are left at the first one below `stop`, and the value returned is below it too (the
+    callers only ask whether a plane beats `stop`: func_gap_mesh_planes its threshold, func_hull_face_sep the best
+    plane so far, so that most planes are left after a few corners)."""
     least = ti.cast(1e30, c.dtype)
-    for m in range(c.hull_n[Y, 1]):
+    m = 0
+    while m < c.hull_n[Y, 1] and least >= stop:
         least = ti.min(least, nY.dot(c.hull_c[Y, m]) - dY)
+        m += 1
     return least
 
 
@@ -596,7 +601,7 @@ def func_hull_face_sep(c: ti.template(), X, Y, xX, RX, xY, RY):
         nw = func_mv(RX, c.hull_pn[X, k])
         nY = func_mtv(RY, nw)
         dY = c.hull_pd[X, k] + nw.dot(dx)
-        least = func_corners_beyond(c, Y, nY, dY)
+        least = func_corners_beyond(c, Y, nY, dY, best)
         if least > best:
             best = least
             kb = k
@@ -628,18 +633,23 @@ def func_hull_pair_test(c: ti.template(), i_b, i_p, ga, gb):
     best = ti.cast(-1e30, c.dtype)
     bi = 0
     bj = 0
+    # each of b's face normals against edge a's arc plane once (an edge's two faces are planes of hull_pn:
+    # hull_ef), not twice for each of b's edges
+    side = ti.Vector([0.0] * N_KDOP, dt=c.dtype)
     for i in range(c.hull_n[ga, 2]):
         p0 = func_mv(Rab, c.hull_e0[ga, i]) + tab
         da = func_mv(Rab, c.hull_e1[ga, i]) + tab - p0
         a1 = func_mv(Rab, c.hull_f1[ga, i])
         a2 = func_mv(Rab, c.hull_f2[ga, i])
         bxa = a2.cross(a1)
+        for f in range(c.hull_n[gb, 0]):
+            side[f] = -c.hull_pn[gb, f].dot(bxa)
         for j in range(c.hull_n[gb, 2]):
-            b1 = c.hull_f1[gb, j]
-            b2 = c.hull_f2[gb, j]
-            cba = -b1.dot(bxa)
-            dba = -b2.dot(bxa)
+            cba = side[c.hull_ef[gb, j, 0]]
+            dba = side[c.hull_ef[gb, j, 1]]
             if cba * dba < 0:
+                b1 = c.hull_f1[gb, j]
+                b2 = c.hull_f2[gb, j]
                 dxc = b2.cross(b1)
                 adc = a1.dot(dxc)
                 bdc = a2.dot(dxc)
