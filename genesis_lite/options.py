@@ -108,9 +108,9 @@ class RigidOptions(_Options):
     those too) and pairs of collision shapes that already overlap or touch with every joint at zero, as a
     robot's shapes often do where its parts meet (enable_neutral_collision=True keeps those; the test is a
     voxel-like grid of ~24 cells along each shape, collision.neutral_overlaps). Unlike Genesis, self-collision
-    is off by default: it makes a robot scene's step several times longer (Genesis's MJCF Panda over a plane
-    holding a bent pose: 3.6x at 1 env, 5.0-5.1x at 1,024 envs, most of it one pair of its meshes near each
-    other; benchmarks/results/self_collision.md). contact_stiffness (N/m per contact point) and
+    is off by default: it makes a robot scene's step longer (Genesis's MJCF Panda over a plane holding a bent
+    pose: 1.3x at 1 env, 1.6-1.9x at 1,024 envs; benchmarks/results/self_collision.md), and with gradients
+    every recorded step's contact system the dense one. contact_stiffness (N/m per contact point) and
     contact_damping (N s/m per contact point) set the penalty model (the stiffness scaled up for pairs
     heavier than 100 kg). Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
     by d, the constraint asks for the reference acceleration -b v - k imp d (b = 2 / (0.95 tc),

@@ -62,7 +62,7 @@ from .geoms import (BOXEDGE_TOL, CYL_RIM_OTHER, CYL_RIM_PLANE, GEOM_BOX, GEOM_CA
                     GEOM_MESH, GEOM_PLANE, GEOM_SPHERE, KDOP_DIRS, N_BOXFACE, N_HULL_CORNERS, N_HULL_EDGES, N_HULLFACE, N_KDOP,
                     SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_HULLFACE, SLOT_POINT, SLOT_SEGSEG, ContactBuildError,
                     GeomTable, build_geoms, build_slots, candidate_pairs, geom_box_columns, geom_hull, geom_rotations,
-                    link_is_dynamic, sample_points)
+                    link_is_dynamic, sample_points, sdf_distance_ratio)
 from .narrow import NO_ADJOINT, func_broad_phase, func_geom_pose, func_slot_geometry
 from .sdf import TINY, func_sdf_any, func_sdf_of, func_segment_closest
 

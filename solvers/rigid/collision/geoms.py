@@ -230,6 +230,63 @@ def polytope_hull(kn: np.ndarray, kd: np.ndarray):
     return planes, np.array(C).reshape(-1, 3), E, np.array(faces, dtype=np.int32).reshape(-1, 2)
 
 
+def sdf_distance_ratio(planes: np.ndarray, corners: np.ndarray, edges: np.ndarray) -> float:
+    """kappa of a convex volume (polytope_hull's planes, corners and edges): its SDF outside, the largest plane
+    distance (sdf.func_sdf_kdop), is at least kappa times a point's distance to the volume. A point p whose
+    nearest point of the volume is q lies along u = (p - q) / |p - q| in q's normal cone, and its largest
+    plane distance is at least |p - q| times the largest n . u over the planes through q: 1 on a face, at
+    least cos(half the turn) across an edge, and at a corner the least over the corner's cone of the largest
+    n . u of its planes (_cone_least_max). A box's is 1 / sqrt(3). Lets the broad phase part two meshes whose
+    distance one side's face plane bounds while no plane of the other side parts the first's corners
+    (narrow.func_gap_mesh_planes): their points lie at least kappa times that distance outside."""
+    N, D = planes[:, :3], planes[:, 3]
+    tol = 1e-6 * max(float(np.abs(D).max()), 1e-9)  # planes within this of a corner count as through it
+    kappa = 1.0
+    if len(edges):
+        kappa = float(np.sqrt(np.clip(0.5 * (1.0 + np.einsum("ek,ek->e", edges[:, 2], edges[:, 3])), 0.0, 1.0)).min())
+    through = np.abs(corners @ N.T - D) <= tol  # (corners, planes)
+    for m in np.unique(through.sum(1)):  # the corners with m planes, at once
+        A = np.stack([N[row] for row in through[through.sum(1) == m]])
+        kappa = min(kappa, _cone_least_max(A))
+    return min(kappa, 1.0)
+
+
+def _cone_least_max(A: np.ndarray) -> float:
+    """The least over cones c and unit u in the cone of the rows of A[c] (a corner's m plane normals; A is (C, m,
+    3)) of max(A[c] u). The least of a largest of linear functions over a spherical polygon lies where three of
+    them are equal, or on a side of the polygon where two are, or at a generator (a linear function has no
+    minimum inside a region of the sphere, nor along a circle where two are equal: its stationary point there
+    is a maximum): those candidates, kept where inside the cone (every side's plane, by a small tolerance that
+    errs towards keeping; a pair of generators that is no side constrains nothing), and the least of max(A u)
+    over them."""
+    C, m, _ = A.shape
+    if m < 3:  # (a corner has three planes or more; an edge's two: its half turn)
+        return 1.0 if m < 2 else float(np.sqrt(np.clip(0.5 * (1.0 + (A[:, 0] * A[:, 1]).sum(1)), 0.0, 1.0)).min())
+    unit = lambda x: x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-300)
+    cands, sides = [A], []
+    pairs = list(itertools.combinations(range(m), 2))
+    for a, b in pairs:
+        w = np.cross(A[:, a], A[:, b])
+        ok = np.linalg.norm(w, axis=1) > 1e-12
+        w = unit(w)
+        s = np.einsum("cmk,ck->cm", A, w)
+        pos, neg = (s >= -1e-9).all(1), (s <= 1e-9).all(1)
+        sides.append(np.where((ok & (pos | neg))[:, None], np.where(pos[:, None], w, -w), 0.0))
+        for i, j in pairs:  # where A[i] u = A[j] u along that side's circle
+            d = unit(np.cross(w, A[:, i] - A[:, j]))
+            cands += [d[:, None], -d[:, None]]
+    for tri in itertools.combinations(range(m), 3):
+        M = A[:, list(tri)]
+        ok = np.abs(np.linalg.det(M)) > 1e-12
+        u = np.linalg.solve(np.where(ok[:, None, None], M, np.eye(3)), np.ones((C, 3, 1)))[..., 0]
+        cands.append(np.where(ok[:, None], unit(u), A[:, :1][:, 0])[:, None])
+    U = np.concatenate(cands, 1)  # (C, candidates, 3)
+    S = np.stack(sides, 1)  # (C, sides, 3)
+    inside = (np.einsum("cuk,csk->cus", U, S) >= -1e-7).all(2)
+    f = np.einsum("cuk,cmk->cum", U, A).max(2)
+    return float(np.where(inside, f, np.inf).min())
+
+
 def geom_hull(geoms: "GeomTable", g: int):
     """polytope_hull of geom g, a mesh (its planes) or a box (its six faces), in the geom frame."""
     if geoms.type[g] == GEOM_BOX:

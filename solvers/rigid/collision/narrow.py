@@ -107,7 +107,7 @@ def func_broad_phase(s: ti.template(), i_b, e, src, h):
                     Ra = c.geom_xR[i_b, ga]
                     Rb = c.geom_xR[i_b, gb]
                     gap = ti.max(gap, func_gap_obbs(c, i_b, ga, gb, Ra, Rb))
-                    if ti.static(GEOM_MESH in c.sdf_types):
+                    if ti.static(c.has_hulledge):  # (two meshes are a hull-edge pair: geoms.hull_edge_pair)
                         if gap - h * closing < c.margin and c.geom_type[ga] == GEOM_MESH and c.geom_type[gb] == GEOM_MESH:
                             gap = ti.max(gap, func_gap_mesh_planes(c, i_b, i_p, ga, gb, Ra, Rb, c.margin + h * closing))
         c.pair_active[i_b, i_p] = ti.select(gap - h * closing < c.margin, 1, 0)
@@ -149,49 +149,54 @@ def func_gap_obbs(c: ti.template(), i_b, ga, gb, Ra, Rb):
 
 @ti.func
 def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
-    """Whether mesh pair i_p is apart by at least thr: a value >= thr if it is, else a lower bound of
-    every signed distance its slots will find (below thr). For each side, the largest over the SDF side's
-    planes (geoms.hull_planes) of the least plane distance of the other side's slot points (minus their
-    radii), and the smaller of the two sides. A point's SDF outside the planes is its largest plane
-    distance (sdf.func_sdf_kdop), so a bound above the margin leaves each point outside by at least as
-    much. The oriented boxes bound the planes' intersection, which reaches up to centimetres past a hull
-    at its corners; this test sees the hull points themselves (the Panda's link 5 beside link 7: boxes
-    overlapping by 17 mm, points 1.8 mm outside the planes at the least).
-    Only whether the bound reaches thr decides (func_broad_phase), so a side stops at the first plane
-    that parts it by thr, starting from the one that did in the pair's last test (pair_hint), and the
-    second side is tested only where the first is apart: the same pair_active as the largest over all
-    planes and both sides, at a plane or two a side instead of 26 (a robot's own links beside each other
-    at every step: Genesis's MJCF Panda with self-collision)."""
-    out = ti.cast(1e30, c.dtype)
-    for side in ti.static(range(2)):
-        X = gb if side == 0 else ga  # the SDF side
-        Y = ga if side == 0 else gb  # the point side
-        RX = Rb if side == 0 else Ra
-        RY = Ra if side == 0 else Rb
-        if out >= thr:
-            dx = c.geom_xpos[i_b, X] - c.geom_xpos[i_b, Y]
-            best = ti.cast(-1e30, c.dtype)
-            k0 = c.pair_hint[i_b, i_p, side]
-            j = 0
-            while j < N_KDOP and best < thr:
-                k = (k0 + j) % N_KDOP
-                nw = func_mv(RX, c.geom_kdop_dir[X, k])
-                # the plane in the point side's frame: n . p <= d there
-                nY = func_mtv(RY, nw)
-                dY = c.geom_kdop[X, k] + nw.dot(dx)
-                least = ti.cast(1e30, c.dtype)
-                if ti.static(c.has_hulledge):  # the corners of Y's volume: the plane parts the two volumes
-                    least = func_corners_beyond(c, Y, nY, dY, thr)
-                else:
-                    for i_s in range(c.pair_s0[i_p], c.pair_s0[i_p + 1]):
-                        if c.slot_ga[i_s] == Y:
-                            least = ti.min(least, nY.dot(c.slot_p[i_s]) - dY - c.slot_r[i_s])
-                best = ti.max(best, least)
-                if least >= thr:
-                    c.pair_hint[i_b, i_p, side] = k
-                j += 1
-            out = ti.min(out, best)
+    """Whether mesh pair i_p is apart by at least thr (> 0: the margin and the closing sweep): a value >= thr
+    if it is, below thr if not. What its slots will find: a point slot, one side's corner against the other
+    side's SDF, the largest of that side's plane distances (sdf.func_sdf_kdop); the edge and face slots the
+    separating-axis test's planes (func_hull_pair_test). A side's bound (func_mesh_plane_side) is the largest
+    over the SDF side's planes of the least plane distance of the other side's corners: the corners' SDF is at
+    least that, and, where positive, the two volumes are at least that far apart. Where the first side's
+    planes do not part the volumes by thr (a plane of each face of a rounded link, none flat against the
+    link beside it), the second side's plane may, by thr / kappa (the first side's collision.
+    sdf_distance_ratio): then the first side's corners are that far from its volume and their SDF at least
+    thr. The Panda's link 5 beside link 7 in a bent pose: 20 mm apart by link 5's planes, none of link 7's
+    parting link 5's corners (-0.2 mm); thr 0.1 mm.
+    The oriented boxes bound the planes' intersection, which reaches up to centimetres past a hull at its
+    corners; this test sees the volumes' corners themselves (link 5 beside link 7: boxes overlapping by 17
+    mm). Only whether the value reaches thr decides (func_broad_phase), so a side stops at the first plane
+    that parts it by what it must, starting from the one that did in the pair's last test (pair_hint), and
+    the second side is tested only where it must be: at a plane or two a side instead of 26 (a robot's own
+    links beside each other at every step: Genesis's MJCF Panda with self-collision)."""
+    out = func_mesh_plane_side(c, i_b, i_p, 0, gb, ga, Rb, Ra, thr)
+    if out >= thr:
+        # the second side's corners against the first's SDF: at least kappa_a times the first side's bound
+        if c.hull_kappa[ga] * out < thr:
+            out = ti.min(out, func_mesh_plane_side(c, i_b, i_p, 1, ga, gb, Ra, Rb, thr))
+    else:
+        need = thr / ti.max(c.hull_kappa[gb], 1e-6)
+        if func_mesh_plane_side(c, i_b, i_p, 1, ga, gb, Ra, Rb, need) >= need:
+            out = thr
     return out
+
+
+@ti.func
+def func_mesh_plane_side(c: ti.template(), i_b, i_p, side, X, Y, RX, RY, stop):
+    """The largest over geom X's planes of the least distance of geom Y's volume's corners beyond it (>= stop
+    where a plane parts them by stop; else a value below stop), from the plane that did in the pair's last
+    test (pair_hint[i_b, i_p, side])."""
+    dx = c.geom_xpos[i_b, X] - c.geom_xpos[i_b, Y]
+    best = ti.cast(-1e30, c.dtype)
+    k0 = c.pair_hint[i_b, i_p, side]
+    j = 0
+    while j < N_KDOP and best < stop:
+        k = (k0 + j) % N_KDOP
+        nw = func_mv(RX, c.geom_kdop_dir[X, k])
+        # the plane in Y's frame: n . p <= d there
+        least = func_corners_beyond(c, Y, func_mtv(RY, nw), c.geom_kdop[X, k] + nw.dot(dx), stop)
+        best = ti.max(best, least)
+        if least >= stop:
+            c.pair_hint[i_b, i_p, side] = k
+        j += 1
+    return best
 
 
 @ti.func

@@ -3,7 +3,7 @@ flags its kernels are specialised on and the capacities its fields need."""
 import numpy as np
 
 from ..collision import (SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE, SLOT_SEGSEG, build_geoms, build_slots,
-                         candidate_pairs, geom_hull, link_is_dynamic)
+                         candidate_pairs, geom_hull, link_is_dynamic, sdf_distance_ratio)
 from ..flatten import JTYPE
 from .law import LOAD_SHIFT, MARGIN_WIDTHS
 
@@ -69,6 +69,8 @@ class ContactPlan:
         # is in many such pairs: 180 volumes for the 18 geoms of a self-colliding Panda beside a cube)
         hull_geoms = sorted({g for x in slots if x[1] == SLOT_HULLEDGE for g in x[2:4]})
         self.hulls = {g: geom_hull(geoms, g) for g in hull_geoms}
+        # each volume's SDF-to-distance ratio (collision.sdf_distance_ratio), for the broad phase's mesh pairs
+        self.hull_kappa = {g: sdf_distance_ratio(*self.hulls[g][:3]) for g in hull_geoms}
         self.sdf_types = tuple(sorted({int(geoms.type[x[3]]) for x in slots}))
         self.entity_geom_start = list(geoms.entity_start)
         self.entity_geom_count = list(geoms.entity_count)

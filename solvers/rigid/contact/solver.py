@@ -127,6 +127,7 @@ class ContactSolver:
         self.hull_e0, self.hull_e1 = V3((Gh, N_HULL_EDGES), False), V3((Gh, N_HULL_EDGES), False)
         self.hull_f1, self.hull_f2 = V3((Gh, N_HULL_EDGES), False), V3((Gh, N_HULL_EDGES), False)
         self.hull_n = I((Gh, 3))
+        self.hull_kappa = F(Gh, False)  # its SDF outside over the distance, at least (collision.sdf_distance_ratio)
         self.hull_ef = I((Gh, N_HULL_EDGES, 2))  # the planes of an edge's two faces (indices into hull_pn)
         self.pair_hull = I((B, Pn) if self.has_hulledge else 1)
         # face on face: the crossings of the incident face's edges with the reference face's rim that the pair's
@@ -328,13 +329,16 @@ class ContactSolver:
                 hn[g] = len(planes), len(corners), len(edges)
                 hp[g, : len(planes)], hc[g, : len(corners)], he[g, : len(edges)] = planes, corners, edges
                 hf[g, : len(edges)] = faces
-            self.kernel_load_hulls(c(hp, npf), c(hc, npf), c(he, npf), hn, hf)
+            hk = np.ones(G)
+            hk[list(plan.hull_kappa)] = list(plan.hull_kappa.values())
+            self.kernel_load_hulls(c(hp, npf), c(hc, npf), c(he, npf), hn, hf, c(hk, npf))
 
     @ti.kernel
     def kernel_load_hulls(self, hp: ti.types.ndarray(), hc: ti.types.ndarray(), he: ti.types.ndarray(),
-                          hn: ti.types.ndarray(), hf: ti.types.ndarray()):
+                          hn: ti.types.ndarray(), hf: ti.types.ndarray(), hk: ti.types.ndarray()):
         """The convex volumes of the hull-edge pairs' geoms into the hull_* fields."""
         for g in range(hn.shape[0]):
+            self.hull_kappa[g] = hk[g]
             for k in ti.static(range(3)):
                 self.hull_n[g, k] = hn[g, k]
             for m in range(N_HULL_EDGES):
