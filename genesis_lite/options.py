@@ -110,7 +110,7 @@ class RigidOptions(_Options):
     voxel-like grid of ~24 cells along each shape, collision.neutral_overlaps). Unlike Genesis, self-collision
     is off by default: it makes a robot scene's step longer (Genesis's MJCF Panda over a plane holding a bent
     pose: 1.3x at 1 env, 1.6-1.9x at 1,024 envs; with its hand pressed onto its forearm, 21-22 of its own
-    pairs touching, 11-12x; benchmarks/results/self_collision.md), and with gradients its contact kernels and
+    pairs touching, 10-12x; benchmarks/results/self_collision.md), and with gradients its contact kernels and
     their adjoints compile as soon as any own pair can touch (the README's main example: 58 s cold, 15 s
     without). contact_stiffness (N/m per contact point) and
     contact_damping (N s/m per contact point) set the penalty model (the stiffness scaled up for pairs

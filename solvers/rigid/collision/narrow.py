@@ -165,13 +165,20 @@ def func_gap_mesh_planes(c: ti.template(), i_b, i_p, ga, gb, Ra, Rb, thr):
     mm). Only whether the value reaches thr decides (func_broad_phase), so a side stops at the first plane
     that parts it by what it must, starting from the one that did in the pair's last test (pair_hint), and
     the second side is tested only where it must be: at a plane or two a side instead of 26 (a robot's own
-    links beside each other at every step: Genesis's MJCF Panda with self-collision)."""
+    links beside each other at every step: Genesis's MJCF Panda with self-collision). Each decision asks
+    whether some plane parts by a given amount, never how much the one found first does, so that the hint
+    (the plane tried first) decides nothing."""
     out = func_mesh_plane_side(c, i_b, i_p, 0, gb, ga, Rb, Ra, thr)
     if out >= thr:
-        # the second side's corners against the first's SDF: at least kappa_a times the first side's bound
-        if c.hull_kappa[ga] * out < thr:
-            out = ti.min(out, func_mesh_plane_side(c, i_b, i_p, 1, ga, gb, Ra, Rb, thr))
-    else:
+        # gb's corners against ga's SDF: a plane of gb parting by thr / kappa of ga is enough (the one found
+        # may be it), else a plane of ga parting them by thr
+        need = thr / ti.max(c.hull_kappa[ga], 1e-6)
+        if out < need:
+            out = func_mesh_plane_side(c, i_b, i_p, 1, ga, gb, Ra, Rb, thr)
+            if out < thr:  # no plane of ga does: another plane of gb may part by need
+                if func_mesh_plane_side(c, i_b, i_p, 0, gb, ga, Rb, Ra, need) >= need:
+                    out = thr
+    else:  # no plane of gb parts ga's corners by thr: one of ga's by thr / kappa of gb may
         need = thr / ti.max(c.hull_kappa[gb], 1e-6)
         if func_mesh_plane_side(c, i_b, i_p, 1, ga, gb, Ra, Rb, need) >= need:
             out = thr
