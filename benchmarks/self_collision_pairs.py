@@ -104,7 +104,8 @@ def main():
     ap.add_argument("--poses", default="bent,folded", help="comma-separated, of " + ", ".join(POSES))
     args = ap.parse_args()
     mine = ours()
-    cost = {(pose, n): step_cost(n, steps, pose) for pose in args.poses.split(",") for n, steps in ((1, 400), (1024, 20))}
+    cost = {(pose, n): step_cost(n, steps, pose)
+            for pose in args.poses.split(",") for n, steps in ((1, 400), (1024, 20))}
     theirs = {key: {"n_geom_pairs": "-", "link_pairs": []} for key in ROBOTS}
     if args.genesis_python:
         done = subprocess.run([args.genesis_python, "-c", GENESIS_SIDE, json.dumps(ROBOTS)], capture_output=True,

@@ -125,7 +125,8 @@ def test_a_volume_s_sdf_outside_is_at_least_kappa_times_the_distance(robots_dir)
     cone's sides), whose nearest point of the volume is that corner or middle (so their distance is known);
     and 300 random points around the volume, their distance by a QP (SLSQP). The least ratio over them is >=
     kappa and within 2 % of it (sampling approaches the least from above). A box's is 1 / sqrt(3) (its
-    corner's diagonal). Measured 2026-12-04: example-robot-data's Panda's volumes 0.57-0.68 (Genesis's MJCF Panda's 0.50-0.69)."""
+    corner's diagonal). Measured 2026-12-04: example-robot-data's Panda's volumes 0.57-0.68 (Genesis's MJCF
+    Panda's 0.50-0.69)."""
     from scipy.optimize import minimize
     from solvers.rigid.collision.geoms import polytope_hull, sdf_distance_ratio
 
@@ -140,7 +141,8 @@ def test_a_volume_s_sdf_outside_is_at_least_kappa_times_the_distance(robots_dir)
         kn, kd = hull_planes(H)
         planes, C, E, _ = polytope_hull(kn, kd)
         kappa = sdf_distance_ratio(planes, C, E)
-        N, D = np.unique(np.c_[kn, kd], axis=0)[:, :3], np.unique(np.c_[kn, kd], axis=0)[:, 3]
+        U = np.unique(np.c_[kn, kd], axis=0)  # hull_planes' planes, each once
+        N, D = U[:, :3], U[:, 3]
         X = HalfspaceIntersection(np.c_[N, -D], H.mean(0)).intersections
         size = float(np.ptp(X, 0).max())
         least = np.inf

@@ -241,14 +241,18 @@ def sdf_distance_ratio(planes: np.ndarray, corners: np.ndarray, edges: np.ndarra
     (narrow.func_gap_mesh_planes): their points lie at least kappa times that distance outside."""
     N, D = planes[:, :3], planes[:, 3]
     tol = 1e-6 * max(float(np.abs(D).max()), 1e-9)  # planes within this of a corner count as through it
-    kappa = 1.0
-    if len(edges):
-        kappa = float(np.sqrt(np.clip(0.5 * (1.0 + np.einsum("ek,ek->e", edges[:, 2], edges[:, 3])), 0.0, 1.0)).min())
+    kappa = _half_turn_cos(edges[:, 2], edges[:, 3]) if len(edges) else 1.0
     through = np.abs(corners @ N.T - D) <= tol  # (corners, planes)
     for m in np.unique(through.sum(1)):  # the corners with m planes, at once
         A = np.stack([N[row] for row in through[through.sum(1) == m]])
         kappa = min(kappa, _cone_least_max(A))
     return min(kappa, 1.0)
+
+
+def _half_turn_cos(n1: np.ndarray, n2: np.ndarray) -> float:
+    """The least over rows of cos(half the angle between n1 and n2) (unit normals (k, 3)): the least of max(n1 u,
+    n2 u) over unit u between them."""
+    return float(np.sqrt(np.clip(0.5 * (1.0 + np.einsum("ek,ek->e", n1, n2)), 0.0, 1.0)).min())
 
 
 def _cone_least_max(A: np.ndarray) -> float:
@@ -261,7 +265,7 @@ def _cone_least_max(A: np.ndarray) -> float:
     over them."""
     C, m, _ = A.shape
     if m < 3:  # (a corner has three planes or more; an edge's two: its half turn)
-        return 1.0 if m < 2 else float(np.sqrt(np.clip(0.5 * (1.0 + (A[:, 0] * A[:, 1]).sum(1)), 0.0, 1.0)).min())
+        return 1.0 if m < 2 else _half_turn_cos(A[:, 0], A[:, 1])
     unit = lambda x: x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-300)
     cands, sides = [A], []
     pairs = list(itertools.combinations(range(m), 2))
