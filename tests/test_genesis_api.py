@@ -3,7 +3,8 @@ writes them, each checked against what the name means rather than against our ow
 - control_dofs_position_velocity: the PD law with both targets, on a joint whose motion is known in
   closed form (no gravity, one inertia);
 - set_mass_shift / set_COM_shift / set_links_inertial_mass: the model's values plus the shift, seen in the
-  total mass and in the static torque gravity puts on a joint;
+  total mass and in the static torque gravity puts on a joint; a shift below minus the model mass gives
+  Genesis's negative mass while the mass matrix stays positive definite (closed form), refused otherwise;
 - a URDF with PyBullet's `<?xml version="0.0" ?>` header (Genesis's plane.urdf) loads;
 - entity.set_mass / link.set_mass (mass and inertia scaled together, fixed links left alone) and
   rigid_solver.links_info, against the mass matrix's closed form sum(I + m x^2);
@@ -25,6 +26,7 @@ import re
 import tempfile
 import time
 import uuid
+import warnings
 
 import numpy as np
 import pytest
@@ -112,6 +114,59 @@ def test_mass_and_com_shifts_act_as_in_genesis(arm_path):
     np.testing.assert_allclose(arm.get_links_mass([1, 2]).numpy(), [3.0, 1.0], atol=1e-12)
 
 
+def test_a_mass_shift_below_the_model_mass_gives_genesis_s_negative_mass_while_the_equations_hold(arm_path):
+    """Genesis's set_mass_shift takes any shift (its domain_randomization example draws -0.5 .. 0.5 kg for
+    every link of a Go2, whose calves weigh 0.265 kg): the link then has a negative mass. So does ours, with a
+    warning, while the joint-space mass matrix (armature included) stays positive definite; where it would
+    not, the shift (or a later COM shift) is refused and nothing changes. Checked against the closed form
+    at q = 0 (links along x, axes along y): M = [[Iu + mu xu^2 + If + mf xf^2 + a, If + mf 0.2 xf],
+    [., If + mf 0.2^2 + a]] (xf = 0.8 the forearm's COM from the shoulder, a = 0.1 Genesis's armature), and
+    the first step from rest with no control, M qdd = g [mu xu + mf xf, mf 0.2]."""
+    scene, arm = _arm_scene(arm_path)
+    g, a = 9.81, 0.1
+
+    def closed_form(mu, mf, x_el=0.2):
+        xf = 0.6 + x_el
+        M = np.array([[0.05 + mu * 0.3 ** 2 + 0.02 + mf * xf ** 2 + a, 0.02 + mf * x_el * xf],
+                      [0.02 + mf * x_el * xf, 0.02 + mf * x_el ** 2 + a]])
+        return M, g * np.array([mu * 0.3 + mf * xf, mf * x_el])
+
+    with pytest.warns(GenesisWarning, match=r"link 'fore' has a mass of -0.2 kg after set_mass_shift"):
+        arm.set_mass_shift([-1.2], links_idx_local=[2])
+    np.testing.assert_allclose(arm.get_links_mass([2]).numpy(), [-0.2], atol=1e-12)
+    M, tau = closed_form(2.0, -0.2)
+    assert np.linalg.eigvalsh(M).min() > 0
+    np.testing.assert_allclose(arm.get_mass_mat().numpy(), M, rtol=1e-9)
+    arm.set_dofs_position([0.0, 0.0])
+    arm.set_dofs_velocity([0.0, 0.0])
+    scene.step()
+    np.testing.assert_allclose(arm.get_dofs_acc().numpy(), np.linalg.solve(M, tau), rtol=1e-6)
+    assert arm.get_dofs_acc()[1].item() < 0  # the forearm's negative weight turns it up (qdd < 0: +x to +z)
+
+    # -0.5 kg: det M = 0.03 * 0.1 - 0.06^2 < 0, refused, the -0.2 kg kept
+    assert np.linalg.eigvalsh(closed_form(2.0, -0.5)[0]).min() < 0
+    with pytest.raises(gs.GenesisException, match=r"link 'fore' has a mass of -0.5 kg after set_mass_shift.*"
+                                                   r"not positive definite"):
+        arm.set_mass_shift([-1.5], links_idx_local=[2])
+    np.testing.assert_allclose(arm.get_links_mass([2]).numpy(), [-0.2], atol=1e-12)
+    # the forearm's COM moved out to 1 m from the elbow: its M entry 0.02 - 0.2 + 0.1 < 0, refused as well
+    assert np.linalg.eigvalsh(closed_form(2.0, -0.2, x_el=1.0)[0]).min() < 0
+    with pytest.raises(gs.GenesisException, match=r"after set_links_COM.*not positive definite"):
+        arm.set_COM_shift([[0.8, 0.0, 0.0]], links_idx_local=[2])
+    np.testing.assert_allclose(arm.get_mass_mat().numpy(), M, rtol=1e-9)
+    # -0.4 kg holds with the elbow's armature (det 0.094 * 0.104 - 0.044^2 > 0), not without it (0.094 * 0.004)
+    with pytest.warns(GenesisWarning, match=r"link 'fore' has a mass of -0.4 kg"):
+        arm.set_mass_shift([-1.4], links_idx_local=[2])
+    with pytest.raises(gs.GenesisException, match=r"after set_dofs_armature.*not positive definite"):
+        arm.set_dofs_armature([0.1, 0.0])
+    np.testing.assert_allclose(arm.get_mass_mat().numpy(), closed_form(2.0, -0.4)[0], rtol=1e-9)
+    # a shift that leaves every mass positive again: no warning, the model's matrix plus the shift
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        arm.set_mass_shift([0.5], links_idx_local=[2])
+    np.testing.assert_allclose(arm.get_mass_mat().numpy(), closed_form(2.0, 1.5)[0], rtol=1e-9)
+
+
 def test_set_mass_scales_links_as_genesis_and_links_info_reads_them(arm_path):
     """Genesis's RigidLink.set_mass scales the link's inertia with its mass (a uniformly denser body) and
     RigidEntity.set_mass scales every link that moves by mass / get_mass(); a link fixed to the world is
@@ -146,9 +201,6 @@ def test_set_mass_scales_links_as_genesis_and_links_info_reads_them(arm_path):
         info.inertial_mass[1] = 1.0
     with pytest.raises(gs.GenesisException, match="not available"):
         info.parent_idx  # noqa: B018
-    # a mass shift below minus the model mass (Genesis takes it: a negative mass) is refused, naming the link
-    with pytest.raises(gs.GenesisException, match="link 'upper' a negative mass: model mass 2 kg"):
-        arm.set_mass_shift([-2.5], links_idx_local=[1])
 
 
 def test_a_link_s_pose_and_velocity_as_genesis_s_rigid_link_gives_them(arm_path):

@@ -161,19 +161,31 @@ class RigidSim:
         from the model's masses and inertias (what Genesis computes its dofs_invweight from), kept."""
         cache = self.__dict__.setdefault("_mass0", {})
         if ent.name not in cache:
-            n = ent.n_dofs
             ls = slice(ent._link_start, ent._link_start + ent.n_links)
-            mass = self.param_base["mass"][:1, ls].double()
-            inertia = self.param_base["inertia"][:1, ls].double()
-            jacs, quat = self._com_jacobians_at_qpos0(ent)
-            M = torch.zeros(1, n, n, dtype=torch.float64)
-            for i, J in enumerate(jacs):
-                R = _quat_to_R(quat[:, i])
-                I_w = R @ inertia[:, i] @ R.transpose(-1, -2)
-                M = M + mass[:, i, None, None] * J[:, :3].transpose(-1, -2) @ J[:, :3]
-                M = M + J[:, 3:].transpose(-1, -2) @ I_w @ J[:, 3:]
-            cache[ent.name] = M
+            cache[ent.name] = self.mass_matrix_at_qpos0(ent, *(self.param_base[k][:1, ls].double()
+                                                               for k in ("mass", "com", "inertia")))
         return cache[ent.name]
+
+    def mass_matrix_at_qpos0(self, ent, mass, com, inertia):
+        """(B, n, n) float64: `ent`'s joint-space mass matrix without armature at its initial configuration,
+        from its links' masses (B, n_links), centres of mass in the link frames (B, n_links, 3) and inertias
+        about them in link axes (B, n_links, 3, 3), float64."""
+        cache = self.__dict__.setdefault("_origin_jac0", {})
+        if ent.name not in cache:  # the links' origins' Jacobians and orientations
+            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
+            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
+            fk = ent.forward_kinematics(q)
+            cache[ent.name] = ([ent._jacobian_at(q, i, fk=fk) for i in range(ent.n_links)], fk[1])
+        jacs, quat = cache[ent.name]
+        M = mass.new_zeros(mass.shape[0], ent.n_dofs, ent.n_dofs)
+        for i, J in enumerate(jacs):
+            R = _quat_to_R(quat[:, i])
+            Jw = J[:, 3:].expand(mass.shape[0], -1, -1)
+            r = (R @ com[:, i, :, None]).expand(-1, -1, ent.n_dofs)  # the COM from the origin, world axes
+            Jv = J[:, :3] + torch.cross(Jw, r, dim=1)  # v + w x r at the centre of mass
+            M = M + mass[:, i, None, None] * Jv.transpose(-1, -2) @ Jv
+            M = M + Jw.transpose(-1, -2) @ (R @ inertia[:, i] @ R.transpose(-1, -2)) @ Jw
+        return M
 
     def _inverse_mass_at_qpos0(self, ent, armature):
         """(M0 + diag(armature))^-1 (armature (B, ent.n_dofs), differentiable in it; M0 mass_at_qpos0), or None

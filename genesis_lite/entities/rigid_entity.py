@@ -764,6 +764,8 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
             labels = [self._dof_label(int(i)) for i in (d - self._dof_start).cpu()]
             self._check_sign(name, vals, envs, labels, [False] * len(d),
                              hint or f"A negative {name} feeds energy into the system; pass values >= 0.")
+        if name == "armature":
+            self._check_mass_matrix(envs, "set_dofs_armature", name, vals, d)
         self._sim.set_param(name, vals, envs, d)
 
     def set_dofs_kp(self, kp, dofs_idx_local=None, envs_idx=None):
@@ -876,12 +878,15 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
         vals = self._values(inertia, envs, len(ls), "inertia", (3, 3))
         self._check_inertia(vals, envs, ls)
+        self._check_mass_matrix(envs, "set_links_inertia", "inertia", vals, ls)
         self._sim.set_param("inertia", vals, envs, ls)
 
     def set_links_COM(self, com, links_idx_local=None, envs_idx=None):
         """Link centre of mass in the link frame (m), (n, 3)."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        self._sim.set_param("com", self._values(com, envs, len(ls), "com", (3,)), envs, ls)
+        vals = self._values(com, envs, len(ls), "com", (3,))
+        self._check_mass_matrix(envs, "set_links_COM", "com", vals, ls)
+        self._sim.set_param("com", vals, envs, ls)
 
     def _link_is_fixed(self, i_local: int) -> bool:
         """Whether local link i is fixed to the world: it and its ancestors have joints without dofs."""
@@ -923,22 +928,54 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
 
     def set_mass_shift(self, mass_shift, links_idx_local=None, envs_idx=None):
         """Genesis's domain randomisation: each link's mass becomes its model mass plus `mass_shift` (kg).
-        Differentiable in the shift."""
+        Differentiable in the shift. A shift below minus the model mass gives the link a negative mass, as
+        Genesis's does (its domain_randomization example draws -0.5 .. 0.5 kg for a Go2's 0.265 kg calves):
+        taken with a warning while the entity's joint-space mass matrix at its initial configuration,
+        armature included, stays positive definite; refused where it would not."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
         shift = self._values(mass_shift, envs, len(ls), "mass_shift")
         base = self._base_param("mass", envs, ls)
-        neg = (base + shift).detach() < 0
-        if bool(neg.any()):
-            e, k = [int(i) for i in torch.nonzero(neg)[0]]
-            env = f" in env {int(envs[e])}" if self._scene.n_envs > 0 else ""
+        mass = base + shift
+        if bool((mass.detach() < 0).any()):  # Genesis's meaning: the model's mass plus the shift, whatever it is
+            self._check_mass_matrix(envs, "set_mass_shift", "mass", mass, ls, warn=True)
+            self._sim.set_param("mass", mass, envs, ls)
+        else:
+            self.set_links_mass(self._unbatch(mass), (ls - self._link_start).tolist(), envs_idx)
+
+    def _check_mass_matrix(self, envs, call, name, vals, idx, warn=False):
+        """Where links of this entity have a negative mass (Genesis's set_mass_shift takes any shift) once
+        parameter `name` (mass, com, inertia or armature) of links or dofs `idx` takes `vals` in envs `envs`:
+        raise unless the joint-space mass matrix at the initial configuration, armature included, stays
+        positive definite in every env (it is then what Genesis integrates; a step's factorisation does not
+        check it), and with `warn` say that such links are not physical bodies."""
+        links = slice(self._link_start, self._link_start + self.n_links)
+        dofs = slice(self._dof_start, self._dof_start + self.n_dofs)
+        p = {k: self._sim.params[k].detach()[envs][:, dofs if k == "armature" else links].double().clone()
+             for k in ("mass", "com", "inertia", "armature")}
+        p[name][:, idx - (self._dof_start if name == "armature" else self._link_start)] = vals.detach().double()
+        if not bool((p["mass"] < 0).any()):
+            return
+        M = self._sim.mass_matrix_at_qpos0(self, p["mass"], p["com"], p["inertia"])
+        _, info = torch.linalg.cholesky_ex(M + torch.diag_embed(p["armature"]))
+        indefinite = bool((info != 0).any())
+        e = int(torch.nonzero(info != 0)[0, 0]) if indefinite else int(p["mass"].min(1).values.argmin())
+        k = int(p["mass"][e].argmin())
+        env = f" in env {int(envs[e])}" if self._scene.n_envs > 0 else ""
+        what = f"entity '{self.name}': link '{self.links[k].name}' has a mass of {p['mass'][e, k].item():.4g} kg{env}"
+        if indefinite:
             raise GenesisException(
-                f"entity '{self.name}': set_mass_shift gives link '{self.links[int(ls[k]) - self._link_start].name}' "
-                f"a negative mass{env}: model mass {base[e, k].item():.4g} kg + shift {shift[e, k].item():.4g} kg. "
-                "Genesis takes such a shift without a word (the link then has a negative mass); genesis_lite refuses "
-                "it. Draw shifts above minus each link's model mass (e.g. a relative shift times "
-                "entity.get_links_mass()).")
-        self.set_links_mass(self._unbatch(self._base_param("mass", envs, ls) + shift),
-                            (ls - self._link_start).tolist(), envs_idx)
+                f"{what} after {call}, and the entity's joint-space mass matrix at its initial configuration "
+                "(armature included) is then not positive definite: its equations of motion mean nothing. Genesis "
+                "takes such masses without a word. Draw mass shifts above minus each link's model mass (e.g. a "
+                "relative shift times entity.get_links_mass()), or give the joints armature (set_dofs_armature).")
+        if warn:
+            warnings.warn(
+                f"{what} after {call} (the least of the entity's {int((p['mass'] < 0).sum())} negative link masses "
+                "over the envs). Genesis takes such "
+                "masses, and so does genesis_lite while the joint-space mass matrix, armature included, stays "
+                "positive definite (it is, at the initial configuration): gravity then lifts such a link, and a "
+                "push accelerates it towards the pusher. For physical bodies draw shifts above minus each link's "
+                "model mass (e.g. a relative shift times entity.get_links_mass()).", GenesisWarning, stacklevel=3)
 
     def set_COM_shift(self, com_shift, links_idx_local=None, envs_idx=None):
         """Genesis's domain randomisation: each link's centre of mass becomes the model's plus `com_shift`
