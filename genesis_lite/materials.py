@@ -236,19 +236,16 @@ class Tool:
 
 class _OutOfScopeMaterial:
     """A material of a Genesis solver genesis_lite does not have: it can be created (so a script's set-up
-    runs) and is refused, with what to use instead, when an entity is made of it."""
+    runs), and an entity or emitter made of it is left out of the simulation with a warning that says what
+    to use instead (entities/out_of_scope.py)."""
 
     solver, instead = "", ""
 
     def __init__(self, **kwargs):
         self.__dict__.update(kwargs)
 
-    def refuse(self, what: str):
-        from .errors import GenesisException
-
-        raise GenesisException(
-            f"{what}: gs.materials.{self.solver}.{type(self).__name__} needs Genesis's {self.solver} solver, which is "
-            f"out of genesis_lite's scope (rigid bodies and MPM only). {self.instead}")
+    def describe(self) -> str:
+        return f"gs.materials.{self.solver}.{type(self).__name__}"
 
 
 def _out_of_scope_family(solver, instead, names):

@@ -452,8 +452,8 @@ class CoacdOptions(_Options):
 
 class _OutOfScopeOptions:
     """Options of a Genesis solver genesis_lite does not have (SPH, PBD, FEM, SF): accepted with any fields,
-    so a script that sets them up runs its in-scope part; an entity made of that solver's material is
-    refused at add_entity (gs.materials.SPH / PBD / FEM)."""
+    so a script that sets them up runs its in-scope part; an entity made of that solver's material
+    (gs.materials.SPH / PBD / FEM) is left out of the simulation with a warning (entities/out_of_scope.py)."""
 
     solver = ""
 

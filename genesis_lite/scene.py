@@ -14,7 +14,7 @@ import torch
 from . import materials as gmat
 from . import morphs as gm
 from . import surfaces as gs_surfaces
-from .errors import GenesisException, ImportOrderWarning
+from .errors import GenesisException, GenesisWarning, ImportOrderWarning
 from .nan_watch import NaNWatch
 from .options import CouplerOptions, MPMOptions, RigidOptions, SimOptions, ViewerOptions, VisOptions
 from .validation import validate_model
@@ -124,7 +124,8 @@ class Scene:
         self.entities: List = []
         self.rigid_entities: List = []
         self.mpm_entities: List = []
-        self._emitters: List = []
+        self._emitters: List = []  # the simulated ones (add_emitter's stand-ins for SPH / PBD: _all_emitters)
+        self._all_emitters: List = []
         self._cameras: List = []
         self._built = False
         self._rigid = None
@@ -230,9 +231,7 @@ class Scene:
         if not isinstance(morph, gm.Morph):
             raise TypeError(f"add_entity expects a gs.morphs.* instance, got {type(morph).__name__}")
         material = material if material is not None else gmat.Rigid()
-        if isinstance(material, gmat._OutOfScopeMaterial):
-            material.refuse("scene.add_entity")
-        if not isinstance(material, (gmat.Rigid, gmat.MPM.Base, gmat.Tool)):
+        if not isinstance(material, (gmat.Rigid, gmat.MPM.Base, gmat.Tool, gmat._OutOfScopeMaterial)):
             raise TypeError(f"add_entity: material must be gs.materials.Rigid, gs.materials.MPM.* or "
                             f"gs.materials.Tool, got {type(material).__name__}")
         if vis_mode is not None and not isinstance(vis_mode, str):
@@ -252,6 +251,8 @@ class Scene:
         elif name in taken:
             raise GenesisException(f"scene.add_entity(name={name!r}): the scene already has an entity of that name "
                                    "(scene.get_entity(name=) finds one entity per name): give another name")
+        if isinstance(material, gmat._OutOfScopeMaterial):
+            return self._add_out_of_scope("scene.add_entity", morph, material, name, surface, vis_mode)
         if isinstance(material, gmat.MPM.Base):
             ent = self._add_mpm_entity(morph, material, name)
         else:
@@ -270,6 +271,19 @@ class Scene:
         ent.surface = surface  # read by cameras (colour, vis_mode)
         ent.vis_mode = vis_mode
         ent._uid = UID.unique({e.uid.short() for e in self.entities})
+        self.entities.append(ent)
+        return ent
+
+    def _add_out_of_scope(self, what, morph, material, name, surface, vis_mode=None):
+        """An entity of an SPH / PBD / FEM material: kept in scene.entities (Genesis's indices, names and
+        uids), left out of the simulation with a warning (entities/out_of_scope.py)."""
+        from .entities.out_of_scope import OutOfScopeEntity, warn_left_out
+        from .utils.uid import UID
+
+        warn_left_out(what, material, name)
+        ent = OutOfScopeEntity(self, len(self.entities), morph, material, name,
+                               UID.unique({e.uid.short() for e in self.entities}), what)
+        ent.surface, ent.vis_mode = surface, vis_mode
         self.entities.append(ent)
         return ent
 
@@ -300,9 +314,7 @@ class Scene:
                 "differentiable mode): emission changes which particles exist between steps, outside the step's "
                 "gradient. Build this scene with SimOptions(requires_grad=False), or give the material its initial "
                 "shape with scene.add_entity(morph, material=gs.materials.MPM.*) instead.")
-        if isinstance(material, gmat._OutOfScopeMaterial):
-            material.refuse("scene.add_emitter")
-        if not isinstance(material, gmat.MPM.Base):
+        if not isinstance(material, (gmat.MPM.Base, gmat._OutOfScopeMaterial)):
             raise TypeError(f"scene.add_emitter: material must be a gs.materials.MPM.* material (Liquid, Sand, "
                             f"Elastic, ElastoPlastic), got {type(material).__name__}")
         if not (isinstance(max_particles, (int, np.integer)) and not isinstance(max_particles, bool)
@@ -326,6 +338,13 @@ class Scene:
             name = f"emitter_{k}"
         elif not isinstance(name, str) or not name or name in taken:
             raise GenesisException(f"scene.add_emitter(name={name!r}): give a new non-empty name (or None)")
+        if isinstance(material, gmat._OutOfScopeMaterial):
+            from .entities.out_of_scope import OutOfScopeEmitter
+
+            emitter = OutOfScopeEmitter(self._add_out_of_scope("scene.add_emitter", None, material, name, surface),
+                                        max_particles)
+            self._all_emitters.append(emitter)
+            return emitter
         n = int(max_particles)
         ent = MPMEntity(self, len(self.entities), None, material, name, np.tile(np.asarray(NOWHERE), (n, 1)),
                         float(self.mpm_options.particle_size) ** 3)  # Genesis's particle volume: p_size^3
@@ -337,12 +356,13 @@ class Scene:
         self.entities.append(ent)
         self.mpm_entities.append(ent)
         self._emitters.append(emitter)
+        self._all_emitters.append(emitter)
         return emitter
 
     @property
     def emitters(self):
         """The scene's emitters (Genesis's scene.emitters), in the order they were added."""
-        return list(self._emitters)
+        return list(self._all_emitters)
 
     def add_camera(self, res=(320, 320), pos=(0.5, 2.5, 3.5), lookat=(0.5, 0.5, 0.5), up=(0.0, 0.0, 1.0), fov=30,
                    GUI=False, **kwargs):
@@ -386,9 +406,9 @@ class Scene:
             elif self.rigid_entities:
                 logger.info("scene: rigid and MPM entities are simulated side by side but do not interact "
                             "(CouplerOptions(rigid_mpm=False))")
-        elif self._mpm_options_given:
-            raise GenesisException("scene: mpm_options were given but the scene has no MPM entity; add an entity made "
-                                   "of a gs.materials.MPM.* material, or drop mpm_options")
+        elif self._mpm_options_given:  # Genesis takes them (water_wheel passes them on its SPH path too)
+            warnings.warn("scene: mpm_options were given but the scene has no MPM entity, so they are unused (an "
+                          "entity made of a gs.materials.MPM.* material uses them)", GenesisWarning, stacklevel=2)
         self._simulator = Simulator(self._rigid, self._mpm, self._coupler, self.sim_options)
         self._nan = NaNWatch(self, self.sim_options.nan_policy)
         self._simulator.nan_watch = self._nan

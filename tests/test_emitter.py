@@ -20,7 +20,7 @@ import pytest
 import torch
 
 import genesis_lite as gs
-from genesis_lite.errors import GenesisException
+from genesis_lite.errors import GenesisException, GenesisWarning
 
 G = 9.81
 NOWHERE = torch.tensor([2333333.0, 6666666.0, 5201314.0], dtype=torch.float64)  # Genesis's gu.nowhere()
@@ -327,16 +327,14 @@ def test_bad_input_is_refused_with_a_message():
     assert em.high_water == 0 and em.next_particle == 0  # nothing was emitted by the refused calls
 
 
-def test_emitters_refuse_gradients_and_other_solvers():
-    """As in Genesis: no emitter in a differentiable scene; only MPM materials here (SPH / PBD are out
-    of genesis_lite's scope)."""
+def test_emitters_refuse_gradients_and_other_materials():
+    """As in Genesis: no emitter in a differentiable scene; MPM materials here (an SPH / PBD one: the test
+    below)."""
     scene = gs.Scene(sim_options=gs.options.SimOptions(requires_grad=True),
                      mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5)))
     with pytest.raises(GenesisException, match="not differentiable.*requires_grad=False"):
         scene.add_emitter(material=gs.materials.MPM.Liquid())
     scene = gs.Scene(mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5)))
-    with pytest.raises(GenesisException, match="SPH"):
-        scene.add_emitter(material=gs.materials.SPH.Liquid())
     with pytest.raises(TypeError, match="MPM"):
         scene.add_emitter(material=gs.materials.Rigid())
     with pytest.raises(GenesisException, match="max_particles"):
@@ -369,3 +367,37 @@ def test_a_camera_draws_only_the_emitted_particles():
     # a 10 cm ball 0.85 m away in a 40 degree view of 64 px: about 10 px across (11 with the particles' radius)
     assert 8 <= cols.max() - cols.min() + 1 <= 14 and 8 <= rows.max() - rows.min() + 1 <= 14
     assert len(rows) > 0.6 * np.pi / 4 * (cols.max() - cols.min() + 1) ** 2  # a filled disc, not dots
+
+
+def test_an_sph_emitter_is_left_out_with_a_warning_and_emits_nothing():
+    """water_wheel's default: an SPH liquid's emitter. Out of genesis_lite's scope: add_emitter warns that it is
+    left out, emit() adds nothing (after build, as any emitter), the scene steps as without it (a sphere
+    falling beside it, to the bit), and the emitter's entity raises when read."""
+    def run(with_emitter):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=4e-3),
+                         mpm_options=gs.options.MPMOptions(lower_bound=(0, 0, 0), upper_bound=(0.5, 0.5, 0.5)),
+                         sph_options=gs.options.SPHOptions(particle_size=0.02))
+        em = None
+        if with_emitter:
+            with pytest.warns(GenesisWarning, match=r"scene.add_emitter: gs.materials.SPH.Liquid needs Genesis's SPH "
+                                                    r"solver.*left out of the simulation.*MPM.Liquid"):
+                em = scene.add_emitter(material=gs.materials.SPH.Liquid(sampler="regular"), max_particles=1000)
+            with pytest.raises(GenesisException, match="before scene.build"):
+                em.emit(pos=(0.25, 0.25, 0.4), direction=(0, 0, -1), speed=1.0, droplet_shape="circle",
+                        droplet_size=0.05)
+        ball = scene.add_entity(gs.morphs.Sphere(radius=0.05, pos=(0.25, 0.25, 0.3)))
+        scene.build()
+        zs = []
+        for _ in range(30):
+            if em is not None:
+                em.emit(pos=(0.25, 0.25, 0.4), direction=(0, 0, -1), speed=1.0, droplet_shape="circle",
+                        droplet_size=0.05)
+            scene.step()
+            zs.append(ball.get_pos().clone())
+        return scene, em, torch.stack(zs)
+
+    scene, em, zs = run(True)
+    assert scene.emitters == [em] and em.entity in scene.entities and em.max_particles == 1000
+    with pytest.raises(GenesisException, match=r"'emitter_0' \(gs.materials.SPH.Liquid\) has no 'get_particles_pos'"):
+        em.entity.get_particles_pos()
+    assert torch.equal(zs, run(False)[2])

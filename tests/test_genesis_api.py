@@ -340,14 +340,42 @@ def test_hard_coupling_boundary_and_state_names():
     assert len(state.solvers_state) == 1 and state.solvers_state[0] is state.solvers[0]
 
 
-def test_out_of_scope_solvers_are_accepted_in_set_up_and_refused_on_use():
-    """water_wheel's default path sets up SPH: its options are accepted, an SPH entity says what to use."""
-    scene = gs.Scene(sph_options=gs.options.SPHOptions(lower_bound=(-1, -1, 0), particle_size=0.01),
-                     pbd_options=gs.options.PBDOptions(), show_viewer=False)
-    with pytest.raises(gs.GenesisException, match="SPH solver, which is out of genesis_lite's scope.*MPM.Liquid"):
-        scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), material=gs.materials.SPH.Liquid(rho=1000))
-    with pytest.raises(gs.GenesisException, match="FEM"):
-        scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), material=gs.materials.FEM.Elastic())
+def test_an_out_of_scope_solver_s_entity_is_left_out_with_a_warning_and_the_rest_runs_unchanged():
+    """water_wheel's default path sets up SPH: its options are accepted; an SPH, PBD or FEM entity is left out
+    of the simulation with a warning that says what to use, keeps its place in scene.entities (the script's
+    indices and names), and raises, naming itself, when read; the rest of the scene steps to the bit as
+    without it."""
+    def run(with_left_out):
+        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01),
+                         sph_options=gs.options.SPHOptions(lower_bound=(-1, -1, 0), particle_size=0.01),
+                         pbd_options=gs.options.PBDOptions(), show_viewer=False)
+        scene.add_entity(gs.morphs.Plane())
+        left = []
+        if with_left_out:
+            with pytest.warns(GenesisWarning, match=r"scene.add_entity: gs.materials.SPH.Liquid needs Genesis's SPH "
+                                                    r"solver, which is out of genesis_lite's scope.*'water' is left "
+                                                    r"out of the simulation.*MPM.Liquid"):
+                left.append(scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1), pos=(0.3, 0, 0.2)),
+                                             material=gs.materials.SPH.Liquid(rho=1000), name="water"))
+            with pytest.warns(GenesisWarning, match=r"gs.materials.FEM.Elastic.*left out"):
+                left.append(scene.add_entity(gs.morphs.Box(size=(0.1, 0.1, 0.1)), material=gs.materials.FEM.Elastic()))
+        box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.5), euler=(10, 20, 30)))
+        scene.build(n_envs=2)
+        zs = []
+        for _ in range(60):
+            scene.step()
+            zs.append(box.get_qpos().clone())
+        return scene, left, box, torch.stack(zs)
+
+    scene, (water, fem), box, zs = run(True)
+    assert scene.entities.index(water) == 1 and scene.entities[2] is fem and scene.entities[3] is box
+    assert scene.get_entity(name="water") is water and fem.name in scene.entity_names
+    with pytest.raises(gs.GenesisException, match=r"entity 'water' \(gs.materials.SPH.Liquid\) has no "
+                                                  r"'get_particles_pos': genesis_lite left it out.*MPM.Liquid"):
+        water.get_particles_pos()
+    assert not hasattr(water, "get_particles_pos")  # an AttributeError too: probes by hasattr say no
+    _, _, _, zs0 = run(False)
+    assert torch.equal(zs, zs0) and float(zs[-1, 0, 2]) < 0.2  # the box fell onto the plane, as without them
     with pytest.raises(TypeError, match="unexpected arguments"):
         gs.Scene(sph_optoins=1)
 

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 import genesis_lite as gs
-from genesis_lite.errors import GenesisException
+from genesis_lite.errors import GenesisException, GenesisWarning
 
 F64 = dict(dtype=torch.float64)
 G = 9.81
@@ -624,11 +624,13 @@ def test_mesh_entity_is_filled_with_its_volume(tmp_path):
     assert abs(ball.n_particles * ball._vol - m.volume) < 0.05 * m.volume
 
 
-def test_mpm_options_without_mpm_entity_is_an_error():
+def test_mpm_options_without_mpm_entity_are_unused_with_a_warning():
+    """Genesis takes them (its water_wheel passes them on its SPH path); a warning says they are unused."""
     scene = _scene()
     scene.add_entity(gs.morphs.Plane())
-    with pytest.raises(GenesisException, match="no MPM entity"):
+    with pytest.warns(GenesisWarning, match="mpm_options were given but the scene has no MPM entity"):
         scene.build()
+    scene.step()
 
 
 def test_material_tensor_of_the_wrong_length_is_an_error():
