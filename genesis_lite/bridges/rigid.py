@@ -143,18 +143,29 @@ class RigidSim:
         return [ent for ent in entities
                 if ent.n_dofs and np.isfinite(lim[ent._dof_start:ent._dof_start + ent.n_dofs]).any()]
 
-    def _com_jacobians_at_qpos0(self, ent):
+    def _origin_jacobians_at_qpos0(self, ent):
         """([(1, 6, n) per link], link quaternions (1, n_links, 4)), float64, kept: the Jacobians of `ent`'s links'
-        centres of mass (the COM's velocity, the link's rate) and the links' orientations at its initial
-        configuration, with the model's centres of mass (mass_at_qpos0's and contact_link_weights')."""
-        cache = self.__dict__.setdefault("_com_jac0", {})
+        origins (the origin's velocity, the link's rate) and the links' orientations at its initial
+        configuration."""
+        cache = self.__dict__.setdefault("_origin_jac0", {})
         if ent.name not in cache:
             q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
             q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
-            com = self.param_base["com"][0, ent._link_start:ent._link_start + ent.n_links].double()
             fk = ent.forward_kinematics(q)
-            cache[ent.name] = ([ent._jacobian_at(q, i, com[i], fk=fk) for i in range(ent.n_links)], fk[1])
+            cache[ent.name] = ([ent._jacobian_at(q, i, fk=fk) for i in range(ent.n_links)], fk[1])
         return cache[ent.name]
+
+    def _com_jacobians_at_qpos0(self, ent, com):
+        """[(B, 6, n) per link]: the Jacobians of `ent`'s links' centres of mass `com` (B, n_links, 3, in the link
+        frames) at its initial configuration: the COM's velocity v + w x r (r the COM from the origin, world
+        axes), the link's rate."""
+        jacs, quat = self._origin_jacobians_at_qpos0(ent)
+        out = []
+        for i, J in enumerate(jacs):
+            J = J.expand(com.shape[0], -1, -1)
+            r = (_quat_to_R(quat[:, i]) @ com[:, i, :, None]).expand(-1, -1, ent.n_dofs)
+            out.append(torch.cat([J[:, :3] + torch.cross(J[:, 3:], r, dim=1), J[:, 3:]], dim=1))
+        return out
 
     def mass_at_qpos0(self, ent):
         """(1, n, n) float64: `ent`'s joint-space mass matrix without armature at its initial configuration,
@@ -170,21 +181,12 @@ class RigidSim:
         """(B, n, n) float64: `ent`'s joint-space mass matrix without armature at its initial configuration,
         from its links' masses (B, n_links), centres of mass in the link frames (B, n_links, 3) and inertias
         about them in link axes (B, n_links, 3, 3), float64."""
-        cache = self.__dict__.setdefault("_origin_jac0", {})
-        if ent.name not in cache:  # the links' origins' Jacobians and orientations
-            q0 = torch.as_tensor(self.solver.flat.np_qpos0, dtype=torch.float64)
-            q = q0[ent._q_start:ent._q_start + ent.n_qs].reshape(1, -1)
-            fk = ent.forward_kinematics(q)
-            cache[ent.name] = ([ent._jacobian_at(q, i, fk=fk) for i in range(ent.n_links)], fk[1])
-        jacs, quat = cache[ent.name]
+        _, quat = self._origin_jacobians_at_qpos0(ent)
         M = mass.new_zeros(mass.shape[0], ent.n_dofs, ent.n_dofs)
-        for i, J in enumerate(jacs):
+        for i, J in enumerate(self._com_jacobians_at_qpos0(ent, com)):
             R = _quat_to_R(quat[:, i])
-            Jw = J[:, 3:].expand(mass.shape[0], -1, -1)
-            r = (R @ com[:, i, :, None]).expand(-1, -1, ent.n_dofs)  # the COM from the origin, world axes
-            Jv = J[:, :3] + torch.cross(Jw, r, dim=1)  # v + w x r at the centre of mass
-            M = M + mass[:, i, None, None] * Jv.transpose(-1, -2) @ Jv
-            M = M + Jw.transpose(-1, -2) @ (R @ inertia[:, i] @ R.transpose(-1, -2)) @ Jw
+            M = M + mass[:, i, None, None] * J[:, :3].transpose(-1, -2) @ J[:, :3]
+            M = M + J[:, 3:].transpose(-1, -2) @ (R @ inertia[:, i] @ R.transpose(-1, -2)) @ J[:, 3:]
         return M
 
     def _inverse_mass_at_qpos0(self, ent, armature):
@@ -241,8 +243,8 @@ class RigidSim:
             inv = self._inverse_mass_at_qpos0(ent, arm[:, d])
             if inv is None:
                 continue
-            jacs, _ = self._com_jacobians_at_qpos0(ent)
-            for i, J in enumerate(jacs):
+            com = self.param_base["com"][:1, ent._link_start:ent._link_start + ent.n_links].double()
+            for i, J in enumerate(self._com_jacobians_at_qpos0(ent, com)):
                 W[ent._link_start + i] = (J[:, :3] @ inv @ J[:, :3].transpose(-1, -2))[0].numpy()
                 own[ent._link_start + i] = 0
         return W, own
