@@ -386,7 +386,8 @@ def test_an_sph_emitter_is_left_out_with_a_warning_and_emits_nothing():
                 em.emit(pos=(0.25, 0.25, 0.4), direction=(0, 0, -1), speed=1.0, droplet_shape="circle",
                         droplet_size=0.05)
         ball = scene.add_entity(gs.morphs.Sphere(radius=0.05, pos=(0.25, 0.25, 0.3)))
-        scene.build()
+        with pytest.warns(GenesisWarning, match="mpm_options were given but the scene has no MPM entity"):
+            scene.build()
         zs = []
         for _ in range(30):
             if em is not None:

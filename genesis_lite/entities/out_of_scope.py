@@ -39,7 +39,7 @@ class OutOfScopeEntity:
         return self._scene._built
 
     def __getattr__(self, attr):
-        if attr.startswith("__"):
+        if attr.startswith("__") or "material" not in self.__dict__:  # (dunders; an object not yet initialised)
             raise AttributeError(attr)
         raise NotSimulatedError(
             f"entity '{self.name}' ({self.material.describe()}) has no '{attr}': genesis_lite left it out of the "
