@@ -848,7 +848,19 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
     def set_links_mass(self, mass, links_idx_local=None, envs_idx=None):
         """Link masses (kg)."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        vals = self._values(mass, envs, len(ls), "mass")
+        self._set_links_mass(self._values(mass, envs, len(ls), "mass"), envs, ls, "set_links_mass")
+
+    def _set_links_mass(self, vals, envs, ls, call):
+        """Masses `vals` (len(envs), len(ls)) of links `ls`: >= 0, and > 0 where a link moves without massive links
+        below it; set_mass_shift's may be negative (Genesis's meaning), then checked and warned about by
+        _check_mass_matrix, which also checks any mass set while the entity has negative ones."""
+        negative = call == "set_mass_shift" and bool((vals.detach() < 0).any())
+        if not negative:
+            self._check_link_masses(vals, envs, ls)
+        self._check_mass_matrix(envs, call, "mass", vals, ls, warn=negative)
+        self._sim.set_param("mass", vals, envs, ls)
+
+    def _check_link_masses(self, vals, envs, ls):
         local = (ls - self._link_start).cpu().tolist()
         labels = [f"link '{self.links[i].name}'" for i in local]
         self._check_sign("link masses", vals, envs, labels, [False] * len(local), "Masses are in kg.")
@@ -871,7 +883,6 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
                 f"'{self.links[i].name}' ({self.joints[i].type} joint){env}"
                 f"{'' if self.joints[i].type == 'free' else ', which has no massive link below it'}: its equations "
                 "of motion would be singular. Give it a positive mass (kg).")
-        self._sim.set_param("mass", vals, envs, ls)
 
     def set_links_inertia(self, inertia, links_idx_local=None, envs_idx=None):
         """Link rotational inertia about the COM in link axes, (n, 3, 3) in kg m^2."""
@@ -884,8 +895,10 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
     def set_links_COM(self, com, links_idx_local=None, envs_idx=None):
         """Link centre of mass in the link frame (m), (n, 3)."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        vals = self._values(com, envs, len(ls), "com", (3,))
-        self._check_mass_matrix(envs, "set_links_COM", "com", vals, ls)
+        self._set_links_COM(self._values(com, envs, len(ls), "com", (3,)), envs, ls, "set_links_COM")
+
+    def _set_links_COM(self, vals, envs, ls, call):
+        self._check_mass_matrix(envs, call, "com", vals, ls)
         self._sim.set_param("com", vals, envs, ls)
 
     def _link_is_fixed(self, i_local: int) -> bool:
@@ -917,10 +930,6 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
     def get_links_inertial_mass(self, links_idx_local=None, envs_idx=None):
         return self.get_links_mass(links_idx_local, envs_idx)
 
-    def _unbatch(self, t):
-        """(envs, ...) values as a setter takes them: without the env axis in an unbatched scene."""
-        return t if self._scene.n_envs > 0 else t[0]
-
     def _base_param(self, name, envs, idx):
         """The model's value of a parameter (before any setter), (len(envs), len(idx), ...)."""
         base = self._sim.param_base[name]
@@ -933,14 +942,18 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         taken with a warning while the entity's joint-space mass matrix at its initial configuration,
         armature included, stays positive definite; refused where it would not."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        shift = self._values(mass_shift, envs, len(ls), "mass_shift")
-        base = self._base_param("mass", envs, ls)
-        mass = base + shift
-        if bool((mass.detach() < 0).any()):  # Genesis's meaning: the model's mass plus the shift, whatever it is
-            self._check_mass_matrix(envs, "set_mass_shift", "mass", mass, ls, warn=True)
-            self._sim.set_param("mass", mass, envs, ls)
-        else:
-            self.set_links_mass(self._unbatch(mass), (ls - self._link_start).tolist(), envs_idx)
+        self._set_links_mass(self._shifted("mass", mass_shift, envs, ls), envs, ls, "set_mass_shift")
+
+    def _shifted(self, name, shift, envs, ls, trailing=()):
+        """The model's `name` of links `ls` plus `shift`, (len(envs), len(ls), *trailing); made again from the
+        shift in a new rollout (scene.reset) when the shift is a leaf that requires grad, as a setter's own
+        value is (_values), so that the leaf keeps receiving gradients."""
+        vals = self._values(shift, envs, len(ls), f"{name}_shift", trailing)
+        out = self._base_param(name, envs, ls) + vals
+        remake = getattr(vals, "_gs_remake", None)
+        if remake is not None:
+            out._gs_remake = lambda: self._base_param(name, envs, ls) + remake()
+        return out
 
     def _check_mass_matrix(self, envs, call, name, vals, idx, warn=False):
         """Where links of this entity have a negative mass (Genesis's set_mass_shift takes any shift) once
@@ -981,9 +994,7 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         """Genesis's domain randomisation: each link's centre of mass becomes the model's plus `com_shift`
         (m, in the link frame), (n, 3)."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        shift = self._values(com_shift, envs, len(ls), "com_shift", (3,))
-        self.set_links_COM(self._unbatch(self._base_param("com", envs, ls) + shift), (ls - self._link_start).tolist(),
-                           envs_idx)
+        self._set_links_COM(self._shifted("com", com_shift, envs, ls, (3,)), envs, ls, "set_COM_shift")
 
     def get_dofs_invweight(self, dofs_idx_local=None, envs_idx=None):
         """Genesis's dofs_invweight (1/kg, 1/(kg m^2)): the diagonal of the inverse joint-space mass matrix at
