@@ -606,3 +606,72 @@ def test_a_shift_from_a_leaf_keeps_its_gradient_over_new_rollouts():
     assert bool((grads[0].abs() > 1e-6).sum() >= 3)
     for g in grads[1:]:
         torch.testing.assert_close(g, grads[0], rtol=1e-12, atol=0)
+
+
+PUSH = (140.0, 30.0, 0.0, 0.2, 0.1, 0.5)  # N and N m on the free box's six dofs: it slides and turns
+
+
+@pytest.mark.parametrize("setter", ["set_friction", "set_friction_ratio", "entity.set_mass", "link.set_mass"])
+def test_a_setter_s_derived_value_keeps_a_leaf_s_gradient_in_every_rollout(setter):
+    """A setter that computes its value from the user's leaf (a scalar friction broadcast to every geom, a ratio
+    times the model's friction, the entity's mass shared out over its links, a link's mass with its inertia
+    scaled along) given the leaf once, before scene.reset(): each of three rollouts gives the leaf the central
+    finite difference of the loss (float64). Before grad/remake.py only a leaf passed straight to a setter was
+    made again at a reset, and these four gave no gradient at all (backward found nothing that required grad)."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True), show_viewer=False)
+    scene.add_entity(gs.morphs.Plane())  # friction 1.0: a contact takes the larger of its geoms' coefficients
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.3, 0.1), pos=(0, 0, 0.05)))
+    scene.build()
+    x0 = {"set_friction": 1.5, "set_friction_ratio": 1.5, "entity.set_mass": 2.0, "link.set_mass": 2.0}[setter]
+    apply = {"set_friction": lambda x: box.set_friction(x),
+             "set_friction_ratio": lambda x: box.set_friction_ratio(x if x.dim() == 1 else x.reshape(1)),
+             "entity.set_mass": lambda x: box.set_mass(x),
+             "link.set_mass": lambda x: box.links[0].set_mass(x)}[setter]
+
+    def rollout():
+        scene.reset()
+        box.control_dofs_force(torch.tensor(PUSH, dtype=torch.float64))
+        for _ in range(8):
+            scene.step()
+        pos = box.get_pos()
+        return pos[0] + pos[1] + box.get_quat()[3]
+
+    def loss_at(x):
+        with torch.no_grad():
+            apply(torch.tensor(x, dtype=torch.float64))
+            return rollout().item()
+
+    h = 1e-6 * x0
+    fd = (loss_at(x0 + h) - loss_at(x0 - h)) / (2 * h)
+    assert abs(fd) > 1e-3  # the setter moves the loss: the check can fail
+    leaf = torch.tensor([x0] if setter == "set_friction_ratio" else x0, dtype=torch.float64, requires_grad=True)
+    apply(leaf)
+    for _ in range(3):
+        leaf.grad = None
+        rollout().backward()
+        assert leaf.grad is not None
+        assert abs(leaf.grad.item() - fd) <= 1e-6 * abs(fd) + 1e-9, (leaf.grad.item(), fd)
+
+
+def test_a_value_computed_from_a_leaf_by_the_user_warns_at_the_reset_that_drops_its_gradient():
+    """A setter given the user's own expression of a leaf (leaf * 2) before scene.reset(): the reset cannot make
+    it again (only a leaf, or a setter's own derived value, carries a recipe), so it keeps the number and says,
+    naming the parameter and the user's line, that the leaf gets no gradient through it from then on."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True), show_viewer=False)
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.3, 0.1), pos=(0, 0, 1.0)))
+    scene.build()
+    leaf = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
+    box.set_links_mass((leaf * 2).reshape(1))
+    with pytest.warns(GenesisWarning, match="setter of 'mass'.*no gradient") as rec:
+        scene.reset()
+    assert any(w.filename == __file__ for w in rec)
+    assert box.get_mass().item() == 2.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", GenesisWarning)
+        scene.reset()  # once: the number is kept from the first reset on
+    box.set_links_mass(leaf.reshape(1) * 3)  # after the reset, in the rollout: the gradient is there
+    box.control_dofs_force(torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+    for _ in range(3):
+        scene.step()
+    box.get_pos()[0].backward()
+    assert leaf.grad is not None and leaf.grad.item() != 0.0

@@ -18,6 +18,7 @@ from solvers.mpm.solver import POOL as SOLVER_POOL, acquire as acquire_solver
 
 from ..errors import GenesisException
 from ..grad.indexing import index_put, raise_if_nan_grad
+from ..grad.remake import made_again
 from ..materials import MPM as _MPM_MATERIALS, sand_alpha
 
 Liquid = _MPM_MATERIALS.Liquid
@@ -225,9 +226,11 @@ class MPMSim:
             if not ops:
                 continue
             p = self.param_base[key]
-            for values, envs, idx in ops:
-                remake = getattr(values, "_gs_remake", None)
-                p = index_put(p, envs, idx, remake() if remake is not None else values.detach())
+            for k, (values, envs, idx) in enumerate(ops):
+                v, again = made_again(values, key)
+                if not again:
+                    ops[k] = (v, envs, idx)
+                p = index_put(p, envs, idx, v)
             self.values[key] = p
         self._params = None
         if self.param_ops["E"] or self.param_ops["nu"]:

@@ -26,6 +26,7 @@ from solvers.rigid.solver import RigidSolver
 from ..errors import GenesisException
 from ..grad.functions import OutputFunction
 from ..grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
+from ..grad.remake import made_again
 from ..utils.geom import quat_to_R as _quat_to_R
 
 # name -> (solver field, trailing shape, axis it is indexed by). The core's parameters travel packed in one
@@ -531,12 +532,13 @@ class RigidSim:
             if not ops:
                 continue
             p = self.param_base[name]
-            for values, envs, idx in ops:
-                # a value made from a leaf is made again, so the leaf keeps receiving gradients; a
-                # value computed in an earlier rollout keeps its value only (its graph belongs to
-                # that rollout and has been freed by its backward)
-                remake = getattr(values, "_gs_remake", None)
-                p = index_put(p, envs, idx, remake() if remake is not None else values.detach())
+            for k, (values, envs, idx) in enumerate(ops):
+                # a value made from a leaf is made again, so the leaf keeps receiving gradients; any other
+                # keeps its number only (its graph belongs to the rollout it came from: grad/remake.py)
+                v, again = made_again(values, name)
+                if not again:
+                    ops[k] = (v, envs, idx)
+                p = index_put(p, envs, idx, v)
             self.params[name] = p
             self._params_dirty.add(name)
         if self.param_ops["armature"] and self._limit_entities:

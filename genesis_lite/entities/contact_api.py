@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import GenesisException
+from ..grad.remake import derive
 from ..grad.tensor import wrap
 
 
@@ -42,7 +43,7 @@ class ContactMixin:
         envs = self._envs(envs_idx)
         n = self.n_geoms
         if isinstance(friction, torch.Tensor) and friction.dim() == 0:
-            friction = friction.reshape(1).expand(n)
+            friction = derive(lambda f: f.reshape(1).expand(n), friction)  # keeps a leaf's recipe (grad/remake.py)
         elif not isinstance(friction, torch.Tensor) and np.ndim(friction) == 0:
             friction = np.full(n, float(friction))
         vals = self._values(friction, envs, n, "friction")
@@ -75,14 +76,21 @@ class ContactMixin:
         cur = self.get_friction(envs_idx)
         cur = (cur if self._scene.n_envs > 0 else cur.reshape(1, -1)).detach().to(ratio.dtype)
         starts = np.cumsum([0] + [len(l.geoms) for l in self.model.links])
-        cols = [cur[:, k:k + 1] for k in range(self.n_geoms)]
-        for k, li in enumerate((ls - self._link_start).tolist()):
-            for gi in range(starts[li], starts[li + 1]):
-                cols[gi] = base[gi] * ratio[:, k:k + 1]
-        if not cols:
+        if self.n_geoms == 0:
             return
-        new = torch.cat(cols, -1)
-        self.set_friction(new if self._scene.n_envs > 0 else new[0], envs_idx)
+        links = (ls - self._link_start).tolist()
+        batched = self._scene.n_envs > 0
+
+        def frictions(r):
+            cols = [cur[:, k:k + 1] for k in range(self.n_geoms)]
+            for k, li in enumerate(links):
+                for gi in range(starts[li], starts[li + 1]):
+                    cols[gi] = base[gi] * r[:, k:k + 1]
+            new = torch.cat(cols, -1)
+            return new if batched else new[0]
+
+        # made again from the ratio in a new rollout (grad/remake.py)
+        self.set_friction(derive(frictions, ratio), envs_idx)
 
     def get_friction(self, envs_idx=None):
         """Friction coefficients of the entity's collision geoms, (n_geoms,) (batched: (n_envs, n_geoms))."""

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ..errors import GenesisException
+from ..grad.remake import derive
 from ..grad.tensor import wrap
 from ..utils.geom import quat_to_R
 
@@ -374,7 +375,7 @@ class GravityCompensationMixin:
         gs.materials.Rigid(gravity_compensation=...)): a number, or per env (n_envs,). Differentiable."""
         sim = self._sim
         envs = self._envs(envs_idx)
-        vals = self._gcomp_values(gc, envs)
+        vals = derive(lambda g: self._gcomp_values(g, envs), gc)  # made again in a new rollout (grad/remake.py)
         v = vals.detach()
         bad = (v < 0) | (v > 1)
         if bool(bad.any()):
@@ -382,8 +383,6 @@ class GravityCompensationMixin:
             env = f" in env {int(envs[e])}" if self._scene.n_envs > 0 else ""
             raise GenesisException(f"entity '{self.name}': gravity_compensation must lie in [0, 1] (the fraction of "
                                    f"gravity cancelled), got {v[e, 0].item()}{env}")
-        if torch.is_tensor(gc) and gc.requires_grad and gc.is_leaf:
-            vals._gs_remake = lambda: self._gcomp_values(gc, envs)
         links = torch.arange(self._link_start, self._link_start + self.n_links, device=vals.device)
         sim.enable_applied()
         sim.set_param("gravity_compensation", vals, envs, links)

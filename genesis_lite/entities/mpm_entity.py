@@ -13,6 +13,7 @@ import torch
 
 from ..errors import GenesisException
 from ..grad.indexing import index_put
+from ..grad.remake import recipe
 from ..grad.tensor import wrap
 from ..utils.geom import inv_transform_by_trans_quat
 from .rigid_entity import RigidEntity
@@ -245,8 +246,9 @@ class MPMEntity:
         vals = self._values(t.reshape(shape[:-len(trailing) or None] + (1,) + tuple(trailing))
                             if shape != tuple(trailing) else t.reshape((1,) + tuple(trailing)),
                             envs, 1, what, trailing).expand((len(envs), len(idx)) + tuple(trailing))
-        if isinstance(x, torch.Tensor) and x.requires_grad and x.is_leaf:
-            vals._gs_remake = lambda: self._per_particle(x, envs, idx, what, trailing)
+        again = recipe(x)
+        if again is not None:  # made again in a new rollout (grad/remake.py)
+            vals._gs_remake = lambda: self._per_particle(again(), envs, idx, what, trailing)
         return vals
 
     def set_particles_pos(self, pos, particles_idx_local=None, envs_idx=None):

@@ -17,6 +17,7 @@ from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 
 from ..errors import GenesisException, GenesisWarning, ZeroGainWarning
 from ..grad.indexing import index_put
+from ..grad.remake import derive, recipe
 from ..grad.tensor import wrap
 from ..utils.geom import _unit_quat_to_R as _quat_to_R
 from ..utils.geom import quat_to_xyz, xyz_to_quat
@@ -73,14 +74,15 @@ class RigidLink:
                           "mass has no effect; set_mass skipped (as in Genesis)", GenesisWarning, stacklevel=2)
             return
         ent = self.entity
-        m = torch.as_tensor(mass) if not torch.is_tensor(mass) else mass
-        m = m.reshape(*m.shape, 1)
-        old_m = ent.get_links_mass([self.idx_local], envs_idx).detach()
-        old_i = ent.get_links_inertia([self.idx_local], envs_idx).detach()
-        ent.set_links_mass(m, [self.idx_local], envs_idx)
-        new_m = ent.get_links_mass([self.idx_local], envs_idx)  # checked and broadcast by set_links_mass
-        ratio = new_m / old_m.clamp_min(1e-300)
-        ent.set_links_inertia(old_i * ratio[..., None, None], [self.idx_local], envs_idx)
+        envs, ls = ent._envs(envs_idx), ent._links([self.idx_local])
+        old_m = ent._sim.params["mass"].detach()[envs][:, ls]
+        old_i = ent._sim.params["inertia"].detach()[envs][:, ls]
+        # (a derived value keeps its recipe through the reshape: grad/remake.py)
+        m = derive(lambda x: (x if torch.is_tensor(x) else torch.as_tensor(x)).reshape(*np.shape(x), 1), mass)
+        new_m = ent._values(m, envs, 1, "mass")
+        ent._set_links_mass(new_m, envs, ls, "set_mass")
+        ent._set_links_inertia(derive(lambda v: old_i * (v / old_m.clamp_min(1e-300))[..., None, None], new_m),
+                               envs, ls, "set_mass")
 
 
 @dataclass
@@ -385,9 +387,11 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
             exp = f"{want[1:]}" + (f" or {want} (envs, ...)" if batched else "")
             raise GenesisException(f"{who}: {what} has shape {shape}; expected {exp}")
         _raise_if_not_finite(t, who, what, batched)
-        if isinstance(x, torch.Tensor) and x.requires_grad and x.is_leaf:
-            # lets a new rollout rebuild this value from the leaf, so the leaf keeps getting gradients
-            t._gs_remake = lambda: self._values(x, envs, n, what, trailing)
+        again = recipe(x)
+        if again is not None:
+            # a new rollout makes this value again from the leaf (or the leaf's derived value), so the leaf keeps
+            # getting gradients (grad/remake.py)
+            t._gs_remake = lambda: self._values(again(), envs, n, what, trailing)
         return t
 
     def _out(self, t):
@@ -887,9 +891,11 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
     def set_links_inertia(self, inertia, links_idx_local=None, envs_idx=None):
         """Link rotational inertia about the COM in link axes, (n, 3, 3) in kg m^2."""
         envs, ls = self._envs(envs_idx), self._links(links_idx_local)
-        vals = self._values(inertia, envs, len(ls), "inertia", (3, 3))
+        self._set_links_inertia(self._values(inertia, envs, len(ls), "inertia", (3, 3)), envs, ls, "set_links_inertia")
+
+    def _set_links_inertia(self, vals, envs, ls, call):
         self._check_inertia(vals, envs, ls)
-        self._check_mass_matrix(envs, "set_links_inertia", "inertia", vals, ls)
+        self._check_mass_matrix(envs, call, "inertia", vals, ls)
         self._sim.set_param("inertia", vals, envs, ls)
 
     def set_links_COM(self, com, links_idx_local=None, envs_idx=None):
@@ -913,15 +919,17 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         """Set the entity's mass (kg) as Genesis's RigidEntity.set_mass does: every link that is not fixed to
         the world gets its mass (and inertia) scaled by mass / get_mass(), through RigidLink.set_mass;
         links fixed to the world keep theirs (they do not move), so get_mass() afterwards differs from
-        `mass` by what those links lost or would have gained. A number, or per env (n_envs,)."""
+        `mass` by what those links lost or would have gained. A number, or per env (n_envs,). Differentiable in
+        `mass`; the link masses it scales are taken as the numbers they have at the call."""
         m = torch.as_tensor(mass, dtype=torch.float64) if not torch.is_tensor(mass) else mass
         if not bool(torch.isfinite(m.detach()).all()) or bool((m.detach() <= 0).any()):
             raise GenesisException(f"entity '{self.name}': set_mass({mass!r}): the mass must be a positive number (kg)")
-        total = self.get_mass(envs_idx)
-        ratio = m.to(total.dtype) / total
+        total = self.get_mass(envs_idx).detach()
         moving = [l for l in self.links if not self._link_is_fixed(l.idx_local)]
         for l in moving:
-            l.set_mass(l.get_mass(envs_idx) * ratio, envs_idx)
+            share = l.get_mass(envs_idx).detach() / total
+            l.set_mass(derive(lambda x, share=share: share * (x if torch.is_tensor(x) else m).to(share.dtype), mass),
+                       envs_idx)
 
     def set_links_inertial_mass(self, mass, links_idx_local=None, envs_idx=None):
         """Genesis's name of set_links_mass (kg): the mass alone, the inertia tensor is kept."""
@@ -948,12 +956,8 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         """The model's `name` of links `ls` plus `shift`, (len(envs), len(ls), *trailing); made again from the
         shift in a new rollout (scene.reset) when the shift is a leaf that requires grad, as a setter's own
         value is (_values), so that the leaf keeps receiving gradients."""
-        vals = self._values(shift, envs, len(ls), f"{name}_shift", trailing)
-        out = self._base_param(name, envs, ls) + vals
-        remake = getattr(vals, "_gs_remake", None)
-        if remake is not None:
-            out._gs_remake = lambda: self._base_param(name, envs, ls) + remake()
-        return out
+        base = self._base_param(name, envs, ls)
+        return derive(lambda v: base + v, self._values(shift, envs, len(ls), f"{name}_shift", trailing))
 
     def _check_mass_matrix(self, envs, call, name, vals, idx, warn=False):
         """Where links of this entity have a negative mass (Genesis's set_mass_shift takes any shift) once
