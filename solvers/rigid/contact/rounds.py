@@ -7,7 +7,7 @@ search, so the energy falls at every round, no set comes back, and the set is fi
 (2 to 5 in a tumbling pile's steps): at most NORMAL_ROUNDS. A law within its round-off of 0 counts as on
 either side (ROUND_OFF_*), so that noise alone does not call a round (it did not rescue float32's grasp
 of benchmarks/franka_cube_precision.py, whose forces are noise at that precision). Without gradients the rounds run
-in the fused step (func_normal_rounds, func_normal_round_listed); with gradients their search runs
+in the fused step (func_normal_round_listed, from solve.func_contact_solve_general's rounds); with gradients their search runs
 forward only (ContactSolver.kernel_normal_round) and each round's change of the system is a pass of its
 own (toggle_round), recorded with its adjoint."""
 import taichi as ti
@@ -169,21 +169,6 @@ def func_toggle_slot(s: ti.template(), i_b, i_s, r, bank: ti.template()):
         n = c.sl_n[i_b, i_s]
         func_bank_add(s, bank, i_b, i_s, c.sl_pos[i_b, i_s], sign * c.sl_Fn_normal[i_b, i_s] * n,
                       sign * c.sl_wn_normal[i_b, i_s] * n.outer_product(n))
-
-
-@ti.func
-def func_normal_rounds(s: ti.template(), i_b):
-    """Without gradients: the second solve (qacc_normal = A2^-1 force, from the start qacc_line) and
-    the normal rounds after it, each changing the system by its slots (through bank_relinearise, whose
-    sums the relinearise pass has already applied) and solving again."""
-    c = s.contact
-    r = 0
-    go = 1
-    while go == 1:
-        func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
-        func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
-        go = func_normal_round_listed(s, i_b, r)
-        r += go
 
 
 @ti.func

@@ -2,11 +2,13 @@
 linalg.py and the passes of passes.py in order; see the package docstring's steps 1 to 4."""
 import taichi as ti
 
-from ..inertia import func_factor_solve, func_static_factor, func_static_solve, func_static_store, func_static_vec
-from .linalg import ENV_CANDIDATES, ENV_NORMAL, func_any_solve, func_factor_into, func_factor_solve_dense, func_tree_env
+from ..inertia import (func_factor_solve, func_factor_to, func_static_factor, func_static_solve, func_static_store,
+                       func_static_vec)
+from .linalg import (ENV_CANDIDATES, ENV_FINAL, ENV_NORMAL, func_any_solve, func_dense_solve, func_factor_dense_to,
+                     func_factor_into, func_tree_env, func_tree_solve)
 from .passes import (BOUND_ROUNDS, func_coulomb_listed, func_friction_or_bound, func_keep_for_bound,
                      func_link_motion, func_relinearise_listed)
-from .rounds import func_normal_round_listed, func_normal_rounds
+from .rounds import func_normal_round_listed
 from .report import func_contact_report
 from ..actuation import func_limit_rounds_next
 
@@ -68,44 +70,93 @@ def func_contact_solve(s: ti.template(), i_b, e):
 
 @ti.func
 def func_contact_solve_general(s: ti.template(), i_b, e):
-    """func_contact_solve's steps with the factorisations of linalg.py (dense or tree: func_tree_env)."""
+    """func_contact_solve's steps with the factorisations of linalg.py (dense or tree: func_tree_env), as rounds
+    of one loop (the order of func_contact_solve_rounds, which the unrolled core runs): round 0 factors A1 and
+    solves into qacc_normal; round 1 (only when the relinearise pass changed something) A2, into qacc_normal,
+    and again after each normal round that changed the system; round 2 solves the Coulomb response
+    dqacc_coulomb with the last factor; round 3 factors A3 and solves into qacc[e], and again after each bound
+    round that changed the system and each joint-limit round (actuation.func_limit_release). func_round_solve
+    does each round's factor and solve, so the dense ones are compiled once, not three and four times."""
     c = s.contact
-    phase = 0
-    if c.n_on[i_b] > 0:
-        func_factor_into(s, i_b, c.factor_normal, ENV_NORMAL, c.qacc_normal)
-        func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
-        if func_relinearise_listed(s, i_b):
-            func_start_line(s, i_b, c.qacc_normal)
-            func_normal_rounds(s, i_b)
-        func_coulomb_listed(s, i_b)
-        func_solve_coulomb(s, i_b)
-        phase = 1
-    # the friction pass (phase 1), then the final solve, then bound rounds (phase 2) while one
-    # changes the system: one loop, so that the two passes share one copy of their sums and the
-    # final solve is compiled once
-    # then (phase 3) the final solve again while it releases a joint-limit constraint that pulls
-    # (actuation.func_limit_release; ContactSolver.factor_solve's order)
+    rnd = 0
     rounds = 0
+    normal_rounds = 0
     limit_round = 0
-    go = 1
-    while go == 1:
-        solve = 1
-        if phase < 3:
-            solve = func_friction_or_bound(s, i_b, phase)
-        go = 0
-        if solve == 1:
-            func_final_solve(s, i_b, e)
-            if phase < 3:
-                if (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
-                    rounds += 1
-                    func_keep_for_bound(s, i_b, e)
-                    phase = 2
-                    go = 1
-        if go == 0:
+    if c.n_on[i_b] == 0:
+        rnd = 3
+    while rnd < 4:
+        func_round_solve(s, i_b, e, rnd)
+        phase = 0
+        if rnd == 3:
+            rnd = 4
+            if limit_round > 0:  # a limit round's solve: no bound rounds after it
+                phase = 3
+            elif (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
+                rounds += 1
+                func_keep_for_bound(s, i_b, e)
+                phase = 2
+        elif rnd == 2:
+            phase = 1
+        else:
+            func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
+            nxt = 2
+            if rnd == 0:
+                if func_relinearise_listed(s, i_b):
+                    func_start_line(s, i_b, c.qacc_normal)
+                    nxt = 1
+            elif func_normal_round_listed(s, i_b, normal_rounds) == 1:
+                normal_rounds += 1
+                nxt = 1
+            if nxt == 2:
+                func_coulomb_listed(s, i_b)
+            rnd = nxt
+        if (phase == 1) | (phase == 2):
+            if func_friction_or_bound(s, i_b, phase) == 1:
+                rnd = 3
+        if rnd == 4:  # the final solution: solve again while it releases a limit constraint that pulls
             limit_round = func_limit_rounds_next(s, i_b, e, limit_round)
             if limit_round > 0:
-                phase = 3
-                go = 1
+                rnd = 3
+
+
+@ti.func
+def func_round_solve(s: ti.template(), i_b, e, rnd):
+    """Round rnd's factor and solve (func_contact_solve_general): the tree ones where func_tree_env says the
+    system is M's tree (into factor_normal, or inertia's final solve into mass_fac), else the dense ones, one
+    copy for every round: the factor into mass_fac over envelope ENV_NORMAL (rounds 0, 1; round 2 solves with
+    it) or ENV_FINAL (round 3), the solve in solve_tmp, copied to its round's field. (Nothing reads the
+    normal factor back in this path: the gradient path keeps it in factor_normal for its adjoints.)"""
+    c = s.contact
+    dense = False
+    if ti.static(c.dense):
+        dense = not func_tree_env(s, i_b)
+    if dense:
+        if ti.static(c.dense):
+            k = ti.select(rnd == 3, ENV_FINAL, ENV_NORMAL)
+            if rnd != 2:
+                func_factor_dense_to(s, i_b, s.mass_fac, k)
+            for i in range(s.n_dofs):
+                c.solve_tmp[0, i_b, i] = ti.select(rnd == 2, c.force_coulomb[i_b, i], s.force[i_b, i])
+            func_dense_solve(s, s.mass_fac, k, i_b, c.solve_tmp, 0)
+            for i in range(s.n_dofs):
+                y = c.solve_tmp[0, i_b, i]
+                if rnd == 3:
+                    s.qacc[e, i_b, i] = y
+                elif rnd == 2:
+                    c.dqacc_coulomb[0, i_b, i] = y
+                else:
+                    c.qacc_normal[0, i_b, i] = y
+    elif rnd == 3:
+        func_factor_solve(s, i_b, e)
+    elif rnd == 2:
+        for i in range(s.n_dofs):
+            c.dqacc_coulomb[0, i_b, i] = c.force_coulomb[i_b, i]
+        func_tree_solve(s, c.factor_normal, i_b, c.dqacc_coulomb, 0)
+    else:
+        func_factor_to(s, i_b, c.factor_normal)
+        for i in range(s.n_dofs):
+            c.qacc_normal[0, i_b, i] = s.force[i_b, i]
+        func_tree_solve(s, c.factor_normal, i_b, c.qacc_normal, 0)
 
 
 @ti.func
@@ -114,18 +165,6 @@ def func_start_line(s: ti.template(), i_b, x: ti.template()):
     c = s.contact
     for i in range(s.n_dofs):
         c.qacc_line[0, i_b, i] = x[0, i_b, i]
-
-
-@ti.func
-def func_final_solve(s: ti.template(), i_b, e):
-    """qacc[e] = A^-1 force for the system as it stands (the final solve, and each bound round's)."""
-    if ti.static(s.contact.dense):
-        if func_tree_env(s, i_b):
-            func_factor_solve(s, i_b, e)
-        else:
-            func_factor_solve_dense(s, i_b, e)
-    else:
-        func_factor_solve(s, i_b, e)
 
 
 @ti.func
