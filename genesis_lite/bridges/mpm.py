@@ -18,7 +18,7 @@ from solvers.mpm.solver import POOL as SOLVER_POOL, acquire as acquire_solver
 
 from ..errors import GenesisException
 from ..grad.indexing import index_put, raise_if_nan_grad
-from ..grad.remake import made_again
+from ..grad.remake import recomposed
 from ..materials import MPM as _MPM_MATERIALS, sand_alpha
 
 Liquid = _MPM_MATERIALS.Liquid
@@ -225,13 +225,7 @@ class MPMSim:
         for key, ops in self.param_ops.items():
             if not ops:
                 continue
-            p = self.param_base[key]
-            for k, (values, envs, idx) in enumerate(ops):
-                v, again = made_again(values, key)
-                if not again:
-                    ops[k] = (v, envs, idx)
-                p = index_put(p, envs, idx, v)
-            self.values[key] = p
+            self.values[key] = recomposed(self.param_base[key], ops, key)
         self._params = None
         if self.param_ops["E"] or self.param_ops["nu"]:
             self.check_time_step(self.values["E"], self.values["nu"], "the material parameters set")

@@ -26,7 +26,7 @@ from solvers.rigid.solver import RigidSolver
 from ..errors import GenesisException
 from ..grad.functions import OutputFunction
 from ..grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
-from ..grad.remake import made_again
+from ..grad.remake import recomposed
 from ..utils.geom import quat_to_R as _quat_to_R
 
 # name -> (solver field, trailing shape, axis it is indexed by). The core's parameters travel packed in one
@@ -531,15 +531,9 @@ class RigidSim:
         for name, ops in self.param_ops.items():
             if not ops:
                 continue
-            p = self.param_base[name]
-            for k, (values, envs, idx) in enumerate(ops):
-                # a value made from a leaf is made again, so the leaf keeps receiving gradients; any other
-                # keeps its number only (its graph belongs to the rollout it came from: grad/remake.py)
-                v, again = made_again(values, name)
-                if not again:
-                    ops[k] = (v, envs, idx)
-                p = index_put(p, envs, idx, v)
-            self.params[name] = p
+            # a value made from a leaf is made again, so the leaf keeps receiving gradients; any other keeps its
+            # number only (its graph belongs to the rollout it came from: grad/remake.py)
+            self.params[name] = recomposed(self.param_base[name], ops, name)
             self._params_dirty.add(name)
         if self.param_ops["armature"] and self._limit_entities:
             self.params["invweight"] = self._invweight(self.params["armature"])

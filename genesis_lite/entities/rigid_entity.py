@@ -928,8 +928,7 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
         moving = [l for l in self.links if not self._link_is_fixed(l.idx_local)]
         for l in moving:
             share = l.get_mass(envs_idx).detach() / total
-            l.set_mass(derive(lambda x, share=share: share * (x if torch.is_tensor(x) else m).to(share.dtype), mass),
-                       envs_idx)
+            l.set_mass(derive(lambda x, share=share: share * x.to(share.dtype), m), envs_idx)
 
     def set_links_inertial_mass(self, mass, links_idx_local=None, envs_idx=None):
         """Genesis's name of set_links_mass (kg): the mass alone, the inertia tensor is kept."""
@@ -954,8 +953,8 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
 
     def _shifted(self, name, shift, envs, ls, trailing=()):
         """The model's `name` of links `ls` plus `shift`, (len(envs), len(ls), *trailing); made again from the
-        shift in a new rollout (scene.reset) when the shift is a leaf that requires grad, as a setter's own
-        value is (_values), so that the leaf keeps receiving gradients."""
+        shift in a new rollout (scene.reset) when the shift carries a recipe (a leaf that requires grad, or a
+        value derived from one: grad/remake.py), so that the leaf keeps receiving gradients."""
         base = self._base_param(name, envs, ls)
         return derive(lambda v: base + v, self._values(shift, envs, len(ls), f"{name}_shift", trailing))
 

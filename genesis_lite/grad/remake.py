@@ -10,6 +10,8 @@ user's input (a ratio times the model's friction, a mass times a ratio, a scalar
 gets one from `derive`, whatever its input was (a leaf, or a value derived in turn)."""
 import torch
 
+from .indexing import index_put
+
 
 def recipe(x):
     """How to make x again in a new rollout: its own recipe where it carries one, x itself where it is a leaf
@@ -64,3 +66,16 @@ def made_again(values, name):
             "created with requires_grad=True), or call the setter again after each scene.reset().",
             GenesisWarning, stacklevel=level)
     return values.detach(), False
+
+
+def recomposed(base, ops, name):
+    """Parameter `name` for a new rollout: `base` with each setter call's values put in at (envs, idx), in call
+    order, each made again (made_again); a value that cannot be made again keeps its number from now on (its op
+    in `ops` is replaced, so its warning comes once)."""
+    p = base
+    for k, (values, envs, idx) in enumerate(ops):
+        v, again = made_again(values, name)
+        if not again:
+            ops[k] = (v, envs, idx)
+        p = index_put(p, envs, idx, v)
+    return p
