@@ -368,7 +368,7 @@ def _quadruped(urdf, n_envs, specialize):
 @pytest.mark.slow
 def test_specialized_tree_factorisation_gives_the_shared_kernels_results(urdf_path):
     """A specialised scene without gradients unrolls the factorisations and solves of its contact solve
-    over its dof tree (inertia.TreeSchedule, contact.func_contact_solve_rounds); the shared kernels loop
+    over its dof tree (inertia.TreeSchedule, contact.func_contact_rounds); the shared kernels loop
     over the tree on fields. Same operations in the same order, compiled differently, so the same
     results to rounding. ANYmal dropped onto the ground, its PD targets jumping by up to 0.5 rad every
     0.3 s per env (feet land, slide and lift off: every round of the contact solve runs), each step

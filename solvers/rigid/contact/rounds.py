@@ -7,7 +7,7 @@ search, so the energy falls at every round, no set comes back, and the set is fi
 (2 to 5 in a tumbling pile's steps): at most NORMAL_ROUNDS. A law within its round-off of 0 counts as on
 either side (ROUND_OFF_*), so that noise alone does not call a round (it did not rescue float32's grasp
 of benchmarks/franka_cube_precision.py, whose forces are noise at that precision). Without gradients the rounds run
-in the fused step (func_normal_round_listed, from solve.func_contact_solve_general's rounds); with gradients their search runs
+in the fused step (func_normal_round_listed, from solve.func_contact_rounds); with gradients their search runs
 forward only (ContactSolver.kernel_normal_round) and each round's change of the system is a pass of its
 own (toggle_round), recorded with its adjoint."""
 import taichi as ti

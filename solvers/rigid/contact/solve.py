@@ -50,33 +50,35 @@ def func_contact_solve(s: ti.template(), i_b, e):
     - the bound rounds stop at the first that changes no viscosity (it added exact zeros: solving
       again would give the same qacc), as on the gradient path (ContactSolver.factor_solve);
     - in a dense scene, an env whose listed slots couple no two moving links factors and solves M's tree
-      (linalg.func_tree_env), unrolled in a specialised core (func_contact_solve_rounds)."""
+      (linalg.func_tree_env), unrolled in a specialised core (func_round_unrolled)."""
     c = s.contact
     # a scene built for gradients never runs the fused step (RigidSolver._fused: op by op, through
     # ContactSolver.factor_solve, whose sequence of launches its adjoint replays)
     ti.static_assert(not s.requires_grad, "func_contact_solve is the fused step's, without gradients")
     if ti.static(s.unrolled and not c.dense):
-        func_contact_solve_rounds(s, i_b, e)
+        func_contact_rounds(s, i_b, e, func_round_unrolled, ti.Vector.zero(s.dtype, s.static_tree.n_lower))
     elif ti.static(s.unrolled):
         # a dense scene's env whose listed slots couple no two moving links (linalg.func_tree_env)
         if func_tree_env(s, i_b):
-            func_contact_solve_rounds(s, i_b, e)
+            func_contact_rounds(s, i_b, e, func_round_unrolled, ti.Vector.zero(s.dtype, s.static_tree.n_lower))
         else:
-            func_contact_solve_general(s, i_b, e)
+            func_contact_rounds(s, i_b, e, func_round_solve, ti.Vector.zero(s.dtype, 1))
     else:
-        func_contact_solve_general(s, i_b, e)
+        func_contact_rounds(s, i_b, e, func_round_solve, ti.Vector.zero(s.dtype, 1))
     func_contact_report(s, i_b, e)
 
 
 @ti.func
-def func_contact_solve_general(s: ti.template(), i_b, e):
-    """func_contact_solve's steps with the factorisations of linalg.py (dense or tree: func_tree_env), as rounds
-    of one loop (the order of func_contact_solve_rounds, which the unrolled core runs): round 0 factors A1 and
-    solves into qacc_normal; round 1 (only when the relinearise pass changed something) A2, into qacc_normal,
-    and again after each normal round that changed the system; round 2 solves the Coulomb response
-    dqacc_coulomb with the last factor; round 3 factors A3 and solves into qacc[e], and again after each bound
-    round that changed the system and each joint-limit round (actuation.func_limit_release). func_round_solve
-    does each round's factor and solve, so the dense ones are compiled once, not three and four times."""
+def func_contact_rounds(s: ti.template(), i_b, e, round_solve: ti.template(), L):
+    """func_contact_solve's steps as rounds of one loop, each round's factor and solve by round_solve
+    (func_round_solve: linalg.py's, dense or tree; func_round_unrolled: the unrolled tree of a specialised
+    core, its factor L carried from round to round): round 0 factors A1 and solves into qacc_normal;
+    round 1 (only when the relinearise pass changed something) A2, into qacc_normal, and again after each
+    normal round that changed the system; round 2 solves the Coulomb response dqacc_coulomb with the last
+    factor; round 3 factors A3 and solves into qacc[e], and again after each bound round that changed the
+    system and each joint-limit round (actuation.func_limit_release). So each factorisation and solve is
+    compiled once, not three and four times (the dense ones alone took ~4 s of LLVM code generation in every
+    process: two spheres on a plane, 7.6 -> 4.0 s to the first step from the kernel cache)."""
     c = s.contact
     rnd = 0
     rounds = 0
@@ -85,7 +87,7 @@ def func_contact_solve_general(s: ti.template(), i_b, e):
     if c.n_on[i_b] == 0:
         rnd = 3
     while rnd < 4:
-        func_round_solve(s, i_b, e, rnd)
+        L = round_solve(s, i_b, e, rnd, L)
         phase = 0
         if rnd == 3:
             rnd = 4
@@ -120,12 +122,15 @@ def func_contact_solve_general(s: ti.template(), i_b, e):
 
 
 @ti.func
-def func_round_solve(s: ti.template(), i_b, e, rnd):
-    """Round rnd's factor and solve (func_contact_solve_general): the tree ones where func_tree_env says the
-    system is M's tree (into factor_normal, or inertia's final solve into mass_fac), else the dense ones, one
-    copy for every round: the factor into mass_fac over envelope ENV_NORMAL (rounds 0, 1; round 2 solves with
-    it) or ENV_FINAL (round 3), the solve in solve_tmp, copied to its round's field. (Nothing reads the
-    normal factor back in this path: the gradient path keeps it in factor_normal for its adjoints.)"""
+def func_round_solve(s: ti.template(), i_b, e, rnd, L):
+    """Round rnd's factor and solve (func_contact_rounds; L passes through): the tree ones where func_tree_env
+    says the system is M's tree (into factor_normal, or inertia's final solve into mass_fac), else the dense
+    ones, one copy for every round: the factor into mass_fac over envelope ENV_NORMAL (rounds 0, 1; round 2
+    solves with it) or ENV_FINAL (round 3), the solve in solve_tmp, copied to its round's field. (Nothing
+    reads the normal factor back in this path: the gradient path keeps it in factor_normal for its adjoints.)
+    The tree branches call the tree forms directly, on purpose, not func_factor_into / func_solve_coulomb:
+    in a dense scene those would inline the dense forms again at every call, which is what this function
+    is for (each inlined copy is code-generated again in every process)."""
     c = s.contact
     dense = False
     if ti.static(c.dense):
@@ -157,6 +162,7 @@ def func_round_solve(s: ti.template(), i_b, e, rnd):
         for i in range(s.n_dofs):
             c.qacc_normal[0, i_b, i] = s.force[i_b, i]
         func_tree_solve(s, c.factor_normal, i_b, c.qacc_normal, 0)
+    return L
 
 
 @ti.func
@@ -168,62 +174,23 @@ def func_start_line(s: ti.template(), i_b, x: ti.template()):
 
 
 @ti.func
-def func_contact_solve_rounds(s: ti.template(), i_b, e):
-    """func_contact_solve's no-gradient path, final solve included, for a core that unrolls the tree
-    factorisation (inertia.TreeSchedule): its factorisations and solves are rounds of one loop, so the
-    unrolled factor and solve are compiled once, not three and four times (the kernel's compile time
-    grows by a third of what inlining each would cost). The factor stays a local between rounds:
-    round 0 factors A1 and solves into qacc_normal; round 1 (only when the relinearise pass changed
-    something) A2, into qacc_normal, and again after each normal round that changed the system; round 2 solves the Coulomb response dqacc_coulomb with the last
-    factor; round 3 factors A3 and solves into qacc[e], and again after each bound round that changed
-    the system (at most BOUND_ROUNDS)."""
+def func_round_unrolled(s: ti.template(), i_b, e, rnd, L):
+    """Round rnd's factor and solve (func_contact_rounds) for a core that unrolls the tree factorisation
+    (inertia.TreeSchedule): the factor stays a local between rounds (L, returned: round 2 solves with the
+    last one), and the solution goes to qacc_normal (rounds 0, 1), dqacc_coulomb (2) or qacc[e] (3)."""
     c = s.contact
-    L = ti.Vector.zero(s.dtype, s.static_tree.n_lower)
-    rnd = 0
-    rounds = 0
-    normal_rounds = 0
-    limit_round = 0
-    if c.n_on[i_b] == 0:
-        rnd = 3
-    while rnd < 4:
-        b = ti.Vector.zero(s.dtype, s.static_tree.n)
-        if rnd == 2:
-            b = func_static_vec(s, c.force_coulomb, i_b)
-        else:
-            L = func_static_factor(s, i_b)
-            b = func_static_vec(s, s.force, i_b)
-        y = func_static_solve(s, L, b)
-        phase = 0
-        if rnd == 3:
-            func_static_store(s, y, s.qacc, e, i_b)
-            rnd = 4
-            if limit_round > 0:  # a limit round's solve: no bound rounds after it (func_contact_solve's phase 3)
-                phase = 3
-            elif (c.n_on[i_b] > 0) & (rounds < BOUND_ROUNDS):
-                rounds += 1
-                func_keep_for_bound(s, i_b, e)
-                phase = 2
-        elif rnd == 2:
-            func_static_store(s, y, c.dqacc_coulomb, 0, i_b)
-            phase = 1
-        else:
-            func_static_store(s, y, c.qacc_normal, 0, i_b)
-            func_link_motion(s, c.qacc_normal, 0, i_b, c.link_w_normal, c.link_v_normal)
-            nxt = 2
-            if rnd == 0:
-                if func_relinearise_listed(s, i_b):
-                    func_start_line(s, i_b, c.qacc_normal)
-                    nxt = 1
-            elif func_normal_round_listed(s, i_b, normal_rounds) == 1:
-                normal_rounds += 1
-                nxt = 1
-            if nxt == 2:
-                func_coulomb_listed(s, i_b)
-            rnd = nxt
-        if (phase == 1) | (phase == 2):
-            if func_friction_or_bound(s, i_b, phase) == 1:
-                rnd = 3
-        if rnd == 4:  # the final solution: solve again while it releases a limit constraint that pulls
-            limit_round = func_limit_rounds_next(s, i_b, e, limit_round)
-            if limit_round > 0:
-                rnd = 3
+    F = L
+    b = ti.Vector.zero(s.dtype, s.static_tree.n)
+    if rnd == 2:
+        b = func_static_vec(s, c.force_coulomb, i_b)
+    else:
+        F = func_static_factor(s, i_b)
+        b = func_static_vec(s, s.force, i_b)
+    y = func_static_solve(s, F, b)
+    if rnd == 3:
+        func_static_store(s, y, s.qacc, e, i_b)
+    elif rnd == 2:
+        func_static_store(s, y, c.dqacc_coulomb, 0, i_b)
+    else:
+        func_static_store(s, y, c.qacc_normal, 0, i_b)
+    return F
