@@ -656,7 +656,8 @@ def bound_round(n_lp: int):
     (BOUND_REBUILD) before its adjoint."""
     # each sum one stage (one top-level loop over envs), as in the passes: with tree, dof and project in
     # one stage, Taichi's adjoint of the round was wrong (a gradient off by a factor 37, against finite
-    # differences)
+    # differences): Taichi 1.7.4 runs the adjoints of sibling loops of one loop body in their forward order
+    # (tests/sibling_loops.py; tests/test_autodiff_rules.py checks every stage it differentiates)
     sums = tuple(bank_stage(op, "bound") for op in (func_bank_tree, func_bank_dof, func_bank_project))
     if n_lp > 0:
         sums += (bank_stage(func_bank_cross, "bound"),)

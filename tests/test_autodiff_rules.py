@@ -1,0 +1,156 @@
+"""The loop shape Taichi 1.7.4 differentiates wrongly, shown on a small kernel, and a guard that no stage
+whose adjoint Taichi computes has it (tests/sibling_loops.py says what the shape is and how it is found)."""
+import numpy as np
+import pytest
+import taichi as ti
+
+from sibling_loops import loop_count, scan
+
+B, N = 2, 5
+
+
+@pytest.fixture
+def fields():
+    # (gs.init, float64, by conftest.py)
+    f = ti.types.f64
+    x, p, q = (ti.field(f, shape=(B, N), needs_grad=True) for _ in range(3))
+    loss = ti.field(f, shape=(), needs_grad=True)
+    x.from_numpy(np.random.default_rng(3).standard_normal((B, N)))
+    return x, p, q, loss
+
+
+@ti.func
+def _first(x: ti.template(), p: ti.template(), b):
+    for i in range(N):
+        p[b, i] = ti.sin(x[b, i])
+
+
+@ti.func
+def _second(p: ti.template(), q: ti.template(), b):
+    for i in range(N):
+        q[b, i] = p[b, i] * p[b, i]
+
+
+@ti.func
+def _both(x: ti.template(), p: ti.template(), q: ti.template(), b):
+    """Two sibling loops, the second reading what the first writes: the shape Taichi gets wrong."""
+    _first(x, p, b)
+    _second(p, q, b)
+
+
+@ti.func
+def _both_locals(x: ti.template(), q: ti.template(), b):
+    """Two sibling loops sharing a local only: differentiated correctly."""
+    s = 0.0
+    for i in range(N):
+        s += ti.sin(x[b, i])
+    for i in range(N):
+        q[b, i] = s * (i + 1)
+
+
+@ti.kernel
+def _one_body(x: ti.template(), p: ti.template(), q: ti.template()):
+    for b in range(B):
+        _both(x, p, q, b)
+
+
+@ti.kernel
+def _two_loops(x: ti.template(), p: ti.template(), q: ti.template()):
+    for b in range(B):
+        _first(x, p, b)
+    for b in range(B):
+        _second(p, q, b)
+
+
+@ti.kernel
+def _weighted(q: ti.template(), loss: ti.template()):
+    for b, i in q:
+        loss[None] += q[b, i] * (i + 1)
+
+
+def _grad(kernel, x, p, q, loss):
+    for f in (x, p, q, loss):
+        f.grad.fill(0)
+    loss.fill(0)
+    kernel(x, p, q)
+    _weighted(q, loss)
+    loss.grad[None] = 1.0
+    _weighted.grad(q, loss)
+    kernel.grad(x, p, q)
+    return x.grad.to_numpy()
+
+
+def test_taichi_loses_the_gradient_between_sibling_loops_of_one_body(fields):
+    """loss = sum_i (i + 1) sin(x_i)^2: d/dx_i = 2 (i + 1) sin(x_i) cos(x_i), all through p. As two top-level
+    loops Taichi gives it; as two loops of one loop body (a stage's loops inside the loop over envs) it gives
+    0, silently. If a later Taichi gives the right number here, the rule of sibling_loops.py can go."""
+    x = fields[0].to_numpy()
+    exact = 2 * (np.arange(N) + 1) * np.sin(x) * np.cos(x)
+    assert np.abs(exact).max() > 0.1
+    np.testing.assert_allclose(_grad(_two_loops, *fields), exact, rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(_grad(_one_body, *fields), np.zeros_like(x))
+
+
+def test_the_scan_flags_that_shape_and_nothing_Taichi_differentiates_correctly():
+    found = scan(_both)
+    assert len(found) == 1 and found[0][2] == ("p",), found
+    assert "_first" in found[0][0] and "_second" in found[0][1]
+    assert scan(_both_locals) == []
+    assert scan(_first) == [] and scan(_second) == []
+    # a kernel's own top-level loops are separate tasks (correct); inside its loop over b they are siblings
+    assert scan(_two_loops, inside_loop=False) == []
+    assert len(scan(_one_body, inside_loop=False)) == 1
+
+
+def test_the_scan_flags_the_bound_round_that_once_gave_a_gradient_37_times_off():
+    """passes.bound_round runs the bank's sums up the tree, onto the dofs and projected as three stages:
+    as one stage, its gradient was off by a factor 37 against finite differences (passes.py). The scan finds
+    that shape in the one-stage form, following the calls into banks.py."""
+    from solvers.rigid.contact.banks import func_bank_dof, func_bank_project, func_bank_tree
+
+    @ti.func
+    def sums_in_one_stage(s: ti.template(), b: ti.template(), i_b):
+        func_bank_tree(s, b, i_b)
+        func_bank_dof(s, b, i_b)
+        func_bank_project(s, b, i_b)
+
+    found = scan(sums_in_one_stage)
+    assert found and all("banks.py:func_bank_" in a and "banks.py:func_bank_" in b for a, b, _ in found), found
+    for one in (func_bank_tree, func_bank_dof, func_bank_project):
+        assert scan(one) == []
+
+
+def _differentiated_stages():
+    """Every stage whose adjoint Taichi computes: the rigid dynamics' (with the applied and external
+    wrenches'), the contact stages and passes (ContactSolver.solve_grad: the relinearise, Coulomb and friction
+    passes, the toggle and bound rounds; their rebuilds run forward only and are checked too), integration, and
+    the MPM constitutive stage. The broad phase writes integers and has no adjoint run (collision.NO_ADJOINT)."""
+    from solvers.mpm.solver import MPMSolver
+    from solvers.rigid import external
+    from solvers.rigid.collision import NO_ADJOINT
+    from solvers.rigid.contact import passes, rounds, slots
+    from solvers.rigid.core import DYNAMICS, func_applied_wrench
+    from solvers.rigid.integrate import INTEGRATE
+
+    lists = [DYNAMICS, (func_applied_wrench, external.func_external_dof), slots.CONTACT_STAGES, slots.CROSS_STAGES,
+             passes.RELINEARISE_PASS_CROSS, passes.COULOMB_PASS, passes.FRICTION_PASS_CROSS, passes.BOUND_REBUILD,
+             passes.bound_round(1), rounds.TOGGLE_REBUILD, rounds.toggle_round(1), INTEGRATE,
+             (MPMSolver.func_constitutive_ad,)]
+    stages = []
+    for lst in lists:
+        stages += [f for f in lst if f not in NO_ADJOINT and f not in stages]
+    return stages
+
+
+def test_no_stage_whose_adjoint_taichi_computes_has_sibling_loops_sharing_a_field():
+    stages = _differentiated_stages()
+    assert len(stages) > 60  # 70 today
+    assert sum(loop_count(f) for f in stages) > 60  # the loops it read, their calls followed (74 today)
+    found = {}
+    for stage in stages:
+        pairs = scan(stage)
+        if pairs:
+            found[stage] = pairs
+    assert not found, ("sibling loops in one loop body where a later one reads a field an earlier one writes: "
+                       "Taichi 1.7.4 drops the gradient through that field (tests/sibling_loops.py). Split the "
+                       f"stage into stages (each one loop over envs). {found}")
