@@ -4,14 +4,14 @@ writes. Taichi's reverse mode runs the adjoints of such sibling loops in their f
 loop's adjoint adds to the field's adjoint after the earlier loop's adjoint has read it: every gradient
 through that field is lost (tests/test_autodiff_rules.py shows it on a kernel of eight lines). Top-level
 loops of a kernel, statically unrolled loops, a statement and a loop, and loops sharing only locals are
-differentiated correctly. The project's rule (DESIGN.md): a stage whose adjoint Taichi computes has at
-most one dynamic loop per level that writes what a later one reads; split it into stages otherwise.
+differentiated correctly. The rule here: in a stage whose adjoint Taichi computes, no loop reads a field
+that an earlier sibling loop writes; such a stage is split into stages (each its own loop over envs).
 
 `scan(func)` reads a Taichi function's source, follows the Taichi functions it calls (by the function's
 globals and closure), and returns the offending pairs. Field names are the subscripted attribute's name
 (`s.link_pos[i_b, i]` -> link_pos; a template parameter takes its argument's), so two fields of one name
-on different objects count as one: it can flag too much, never too little for what it can read. Calls it
-cannot resolve (methods) are skipped."""
+on different objects count as one: it can flag too much, never too little for what it can read. A call it
+cannot resolve (a method of another object, a function kept in a variable) is skipped."""
 from __future__ import annotations
 
 import ast
@@ -55,7 +55,7 @@ class _Reader:
             line0 = fn.__code__.co_firstlineno - 1
             names = dict(fn.__globals__)
             names.update(inspect.getclosurevars(fn).nonlocals)
-            if "." in fn.__qualname__:  # a method: `self.func_x(...)` resolves on its class
+            if "." in fn.__qualname__ and "<locals>" not in fn.__qualname__:  # a method: self.f(...) on its class
                 names["self"] = names.get(fn.__qualname__.split(".")[0])
             self.parsed[fn] = (node, names, f"{fn.__code__.co_filename.rsplit('/', 1)[-1]}:{fn.__name__}", line0)
         return self.parsed[fn]
