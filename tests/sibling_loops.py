@@ -174,13 +174,18 @@ def _pairs(loops, found):
         _pairs(lp.children, found)
 
 
-def scan(func, inside_loop=True):
-    """[(earlier loop, later loop, shared fields)] of func; inside_loop: func's own top level runs inside a
-    loop (a stage, called in the loop over envs), else only its loops' bodies are checked (a kernel)."""
+def _top_loops(func):
+    """The dynamic loops at func's top level, with their nested ones (calls followed)."""
     reader = _Reader()
     node, names, where, line0 = reader.parse(func)
     env = {a.arg: a.arg for a in node.args.args}  # its own parameters are fields by their names
-    loops = reader.loops(node.body, env, names, where, line0, (), 0)
+    return reader.loops(node.body, env, names, where, line0, (), 0)
+
+
+def scan(func, inside_loop=True):
+    """[(earlier loop, later loop, shared fields)] of func; inside_loop: func's own top level runs inside a
+    loop (a stage, called in the loop over envs), else only its loops' bodies are checked (a kernel)."""
+    loops = _top_loops(func)
     found = []
     if inside_loop:
         _pairs(loops, found)
@@ -192,11 +197,8 @@ def scan(func, inside_loop=True):
 
 def loop_count(func):
     """How many dynamic loops the scan reads in func, its calls followed (what it checked)."""
-    reader = _Reader()
-    node, names, where, line0 = reader.parse(func)
-    loops = reader.loops(node.body, {a.arg: a.arg for a in node.args.args}, names, where, line0, (), 0)
 
     def count(ls):
         return sum(1 + count(lp.children) for lp in ls)
 
-    return count(loops)
+    return count(_top_loops(func))

@@ -13,8 +13,8 @@ own (toggle_round), recorded with its adjoint."""
 import taichi as ti
 
 from .banks import func_bank_add, func_bank_cross, func_bank_dof, func_bank_dof_vectors, func_bank_project, func_bank_tree
-from .linalg import ENV_NORMAL, func_factor_into, func_if_coupled, func_tree_env
-from .passes import (ROUND_OFF_F32, ROUND_OFF_F64, bank_clear_stage, bank_stage, func_link_motion, func_rel_motion,
+from .linalg import func_if_coupled, func_tree_env
+from .passes import (ROUND_OFF_F32, ROUND_OFF_F64, bank_clear_stage, bank_stage, func_rel_motion,
                      func_relinearise_clear, func_relinearise_clear_pairs, func_relinearise_cross,
                      func_relinearise_dof, func_relinearise_project, func_relinearise_tree, func_round_slot,
                      func_round_span)
