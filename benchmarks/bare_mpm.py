@@ -15,17 +15,24 @@ no particle state history, no checks: the cost of the physics alone.
 (33^3 nodes, same cell) and a cube of edge 0.4 m centred at (0.25, 0.25, 0.25) (40^3 = 64,000 particles).
 
 Prints one JSON line: particle-substeps/s (median over repeats of `steps` steps after a warm-up), the
-particle count and the CPU threads Taichi ran with (`cpu_max_num_threads`).
+particle count and the CPU threads Taichi ran with (`cpu_max_num_threads`). Taichi's worker threads are placed
+as gs.init places genesis_lite's (each on a core of its own where they span the cores; GS_PIN_THREADS=0: left
+to the scheduler; solvers/taichi_compat/threads.py), so that the two engines differ in their kernels only.
 """
 
 import argparse
 import json
 import os
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import taichi as ti
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from solvers.taichi_compat import threads as threads_compat  # noqa: E402
 
 
 def main():
@@ -41,8 +48,11 @@ def main():
     steps = args.steps or (20 if args.quick else 50)
     repeats = args.repeats or (3 if args.quick else 5)
     f = ti.f64 if args.precision == "64" else ti.f32
+    before = threads_compat.thread_ids()
     ti.init(arch=ti.cpu, default_fp=f, cpu_max_num_threads=args.threads, offline_cache=True, log_level=ti.ERROR,
             kernel_profiler=bool(os.environ.get("BARE_PROFILE")))
+    pinning = threads_compat.place_workers(True, threads_compat.switch_env(), threads_compat.thread_ids() - before,
+                                           args.threads)["why"]
 
     spacing = 0.01
     side, centre, res = (40, (0.25, 0.25, 0.25), 33) if args.scene == "filled" else \
@@ -137,7 +147,7 @@ def main():
     if os.environ.get("BARE_PROFILE"):
         ti.profiler.print_kernel_profiler_info("count")
     print(json.dumps({"engine": "bare", "scene": args.scene, "precision": args.precision, "n_particles": n, "threads": args.threads,
-                      "steps": steps, "repeats": repeats, "rate": n * 10 * steps / med, "step_ms": 1e3 * med / steps,
+                      "pinning": pinning, "steps": steps, "repeats": repeats, "rate": n * 10 * steps / med, "step_ms": 1e3 * med / steps,
                       "runs_s": secs, "z_mean": float(pos[:, 2].mean())}))
 
 

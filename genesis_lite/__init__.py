@@ -32,6 +32,7 @@ taichi_compat.install_speedups()
 # sys.modules (inspect.getframeinfo), a scan that torch's ~2,000 modules make several times longer.
 import solvers.rigid.solver  # noqa: E402,F401  (isort: skip)
 from solvers.taichi_compat import adstack, checked_runtime  # noqa: E402  (isort: skip)
+from solvers.taichi_compat import threads as threads_compat  # noqa: E402  (isort: skip)
 import torch  # noqa: E402
 
 from . import materials, morphs, options, surfaces, utils
@@ -57,6 +58,8 @@ np_float = np.float32
 ti_float = None
 backend = None
 cpu_threads = None  # CPU threads of this process (Taichi's and torch's); None until init() on gs.cpu
+# what init() did with Taichi's CPU worker threads (threads_compat.pin_workers' answer); None before init()
+thread_pinning = None
 _initialized = False
 
 
@@ -126,7 +129,7 @@ def _remove_stale_cache_lock(folder) -> None:
 
 
 def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=False, taichi_speedups=None,
-         num_threads=None, performance_mode=False, assets_dir=None, **taichi_kwargs):
+         num_threads=None, performance_mode=False, assets_dir=None, pin_threads=None, **taichi_kwargs):
     """Initialise Taichi on `backend` (gs.cpu or gs.gpu, which is Taichi's CUDA backend) with
     floats of `precision` bits ("32" or "64"). One call per process; later calls with the same
     arguments are no-ops and different ones raise. `taichi_speedups=False` runs on Taichi's own
@@ -134,12 +137,15 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     arguments go to `ti.init`. `num_threads` (gs.cpu) is the CPU threads of this process, for
     Taichi's kernels (`cpu_max_num_threads`) and torch (`torch.set_num_threads`) alike; by default
     every core, except under torchrun with N processes on the node, where each gets cores // N
-    (`default_num_threads`; GS_NUM_THREADS overrides); `gs.cpu_threads` says what it got. Seeds and
+    (`default_num_threads`; GS_NUM_THREADS overrides); `gs.cpu_threads` says what it got. Taichi's CPU
+    worker threads are each kept on a core of their own where the process's threads span its cores (or
+    its rank's share of them): `pin_threads` (GS_PIN_THREADS) False never, True also with fewer threads
+    than cores (solvers/taichi_compat/threads.py; `gs.thread_pinning` says what was done). Seeds and
     the environments a rank simulates are the script's business: see
     examples/distributed_identification.py and README's "Several processes". `assets_dir` is a
     folder that morphs' relative file names are looked up in (genesis_lite/loaders/assets.py: like
     the GS_ASSETS_DIR variable; a Genesis install's assets are found without it)."""
-    global device, tc_float, np_float, ti_float, _initialized, _init_args, cpu_threads
+    global device, tc_float, np_float, ti_float, _initialized, _init_args, cpu_threads, thread_pinning
     import taichi as ti
 
     # Genesis's performance_mode trades its compile time for run time; genesis_lite chooses per scene
@@ -158,6 +164,12 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
         args += (("taichi_speedups", bool(taichi_speedups)),)
     if num_threads is not None:
         args += (("num_threads", num_threads),)
+    if pin_threads is None:
+        pin_threads = threads_compat.switch_env()
+    if pin_threads is not None and not isinstance(pin_threads, bool):
+        raise ValueError(f"gs.init(pin_threads={pin_threads!r}): use True, False or None")
+    if pin_threads is not None:
+        args += (("pin_threads", pin_threads),)
     if _initialized:
         if args != _init_args:
             raise GenesisException(f"gs.init was already called with backend={_init_args[0]!r}, precision={_init_args[1]!r}, "
@@ -220,11 +232,15 @@ def init(backend=cpu, precision="32", seed=None, logging_level="warning", debug=
     _remove_stale_cache_lock(os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or kw.get("offline_cache_file_path")
                              or taichi_compat.default_offline_cache_path())
     _freeze_imports()
+    before = threads_compat.thread_ids()
     try:
         ti.init(**kw)
     finally:
         if env_cache is not None:
             os.environ["TI_OFFLINE_CACHE_FILE_PATH"] = env_cache
+    thread_pinning = threads_compat.place_workers(arch == ti.cpu, pin_threads, threads_compat.thread_ids() - before,
+                                                  threads or os.cpu_count() or 1)
+    logger.info("Taichi's CPU worker threads: %s", thread_pinning)
     if seed is not None:
         torch.manual_seed(seed)
         np.random.seed(seed)

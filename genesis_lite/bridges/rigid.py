@@ -428,7 +428,6 @@ class RigidSim:
             self.solver.write_state(0, self._c(torch.cat([q, v], -1)))
 
     def _upload(self):
-        s = self.solver
         if not self._state_on_device:
             self._write_state(*self.get_state())
             self._state_on_device = True

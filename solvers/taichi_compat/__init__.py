@@ -7,6 +7,8 @@
 - `checked_runtime`: a copy of Taichi's LLVM runtime whose autodiff-stack operations check their
   bounds, for the test suite and for GS_CHECK_AD_STACK=1 (Taichi 1.7.4 checks them in no mode).
 - `compile_options`: Taichi's advanced IR optimisation switched around forward and adjoint launches.
+- `threads`: Taichi's CPU worker threads (started by ti.init, woken by every parallel launch) each kept on
+  a core of its own by gs.init where the process's threads span its cores (GS_PIN_THREADS=0: never).
 - `config()`, `inside_kernel()`, `subscript()`: the compile configuration in force and the two
   `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need;
   `default_offline_cache_path()`: Taichi's default kernel-cache folder (gs.init clears a stale lock there).
