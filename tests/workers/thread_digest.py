@@ -1,24 +1,15 @@
 """Worker for tests/test_threads.py: what gs.init did with Taichi's CPU worker threads, which threads ran a
 parallel kernel of ~0.2 s and on which core, and sha256 digests of a batched contact rollout (32 envs:
 parallel loops over envs) and of an MPM rollout; prints one JSON line."""
-import hashlib
 import json
 import os
 
 import numpy as np
 import taichi as ti
 import torch
+from grad_digest import F64, digest  # (this folder is the script's: first on sys.path)
 
 import genesis_lite as gs
-
-F64 = dict(dtype=torch.float64)
-
-
-def digest(*tensors):
-    h = hashlib.sha256()
-    for t in tensors:
-        h.update(t.detach().contiguous().numpy().tobytes())
-    return h.hexdigest()
 
 
 def stat(tid):
