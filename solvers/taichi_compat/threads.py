@@ -82,7 +82,9 @@ def find_workers(candidates, launches: int = PROBE_LAUNCHES) -> list:
     """Of the thread ids `candidates` (those ti.init started), the ones woken by the launches of a small
     parallel kernel (at least every other one: a worker still awake when the next launch comes does not
     sleep in between; the other threads of ti.init do not wake at all), sorted; [] when they cannot be
-    told (no /proc)."""
+    told (no /proc: then nothing is launched)."""
+    if not candidates:
+        return []
     import numpy as np
     import taichi as ti
 
@@ -106,30 +108,32 @@ def find_workers(candidates, launches: int = PROBE_LAUNCHES) -> list:
 
 
 def pin_workers(candidates, n_threads: int, force: bool = False) -> dict:
-    """Keep each of Taichi's CPU workers (found among `candidates`, the threads ti.init started) on a core of
-    its own where `target_cores` allows. Returns {"workers": [...], "cores": [...] or None, "why": str}."""
+    """Keep each of Taichi's n_threads CPU workers (found among `candidates`, the threads ti.init started) on a
+    core of its own where `target_cores` allows; the workers are looked for only then. Returns {"workers":
+    [...], "cores": [...] or None, "why": str}."""
     if not hasattr(os, "sched_setaffinity"):
         return {"workers": [], "cores": None, "why": "no per-thread CPU affinity on this OS"}
-    workers = find_workers(candidates)
-    if len(workers) != n_threads:
-        return {"workers": workers, "cores": None,
-                "why": f"found {len(workers)} worker threads, expected {n_threads}"}
     try:
         local_size = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     except ValueError:
         local_size, local_rank = 1, 0
-    cores = target_cores(sorted(os.sched_getaffinity(0)), len(workers), local_rank, local_size, force)
+    mask = os.sched_getaffinity(0)
+    cores = target_cores(sorted(mask), n_threads, local_rank, local_size, force)
     if cores is None:
+        return {"workers": [], "cores": None,
+                "why": f"{n_threads} worker thread(s) on {len(mask)} core(s): left to the scheduler"}
+    workers = find_workers(candidates)
+    if len(workers) != n_threads:
         return {"workers": workers, "cores": None,
-                "why": f"{len(workers)} worker thread(s) on {len(os.sched_getaffinity(0))} core(s): left to the scheduler"}
+                "why": f"found {len(workers)} worker threads, expected {n_threads}"}
     try:
         for tid, core in zip(workers, cores):
             os.sched_setaffinity(tid, {core})
     except OSError as e:  # a thread gone, or a container that forbids it: leave every worker as it was
         for tid in workers:
             try:
-                os.sched_setaffinity(tid, os.sched_getaffinity(0))
+                os.sched_setaffinity(tid, mask)
             except OSError:
                 pass
         return {"workers": workers, "cores": None, "why": f"could not set a thread's CPU affinity: {e}"}
