@@ -5,6 +5,8 @@ import pytest
 import taichi as ti
 
 from sibling_loops import loop_count, scan
+from solvers import taichi_compat
+from solvers.rigid.math3d import func_add
 
 B, N = 2, 5
 
@@ -154,3 +156,63 @@ def test_no_stage_whose_adjoint_taichi_computes_has_sibling_loops_sharing_a_fiel
     assert not found, ("sibling loops in one loop body where a later one reads a field an earlier one writes: "
                        "Taichi 1.7.4 drops the gradient through that field (tests/sibling_loops.py). Split the "
                        f"stage into stages (each one loop over envs). {found}")
+
+
+# ---- plain read-modify-writes in primal kernels (solvers/rigid/math3d.plain_updates)
+
+class _GradCore:
+    """What math3d.func_add reads of a stage's `s`: a core with gradients."""
+    requires_grad = True
+
+
+@ti.kernel
+def _sum_rows(s: ti.template(), x: ti.template(), acc: ti.template()):
+    for b in range(B):
+        for i in range(N):
+            func_add(s, acc, b, 0, ti.sin(x[b, i]))
+
+
+@ti.kernel
+def _primal_two_adjoint_three(x: ti.template(), acc: ti.template()):
+    for b in range(B):
+        if ti.static(taichi_compat.compiling_adjoint()):
+            acc[b, 0] = 3.0 * x[b, 0]
+        else:
+            acc[b, 0] = 2.0 * x[b, 0]
+
+
+def _rows_grad(run, x, acc):
+    """x.grad of loss = sum_b (b + 1) acc[b, 0] after run() (forward then, by the caller, the adjoint)."""
+    x.grad.fill(0)
+    acc.fill(0)
+    acc.grad.fill(0)
+    run(False)
+    value = acc.to_numpy()[:, 0].copy()
+    for b in range(B):
+        acc.grad[b, 0] = b + 1.0
+    run(True)
+    return value, x.grad.to_numpy()
+
+
+def test_compiling_adjoint_tells_a_primal_kernel_from_its_adjoint(fields):
+    """A primal kernel and its adjoint (`.grad`) compile separately from one source, each in its own mode:
+    what a ti.static branch on taichi_compat.compiling_adjoint() emits in the primal is never differentiated."""
+    x, acc = fields[0], fields[1]
+    run = lambda adjoint: (_primal_two_adjoint_three.grad if adjoint else _primal_two_adjoint_three)(x, acc)  # noqa: E731
+    value, grad = _rows_grad(run, x, acc)
+    x0 = x.to_numpy()[:, 0]
+    np.testing.assert_array_equal(value, 2.0 * x0)
+    np.testing.assert_array_equal(grad[:, 0], 3.0 * (np.arange(B) + 1.0))
+    assert taichi_compat.compiling_adjoint()  # outside a kernel: unknown, so True (the `+=` form)
+
+
+def test_func_add_is_plain_in_the_primal_and_differentiable_in_the_adjoint(fields):
+    """func_add on a core with gradients: the primal kernel's plain read-modify-write gives the sum, and the
+    adjoint (`+=` there) the exact gradient (b + 1) cos(x)."""
+    x, acc = fields[0], fields[1]
+    xs = x.to_numpy()
+    exact = (np.arange(B) + 1.0)[:, None] * np.cos(xs)
+    run = lambda adjoint: (_sum_rows.grad if adjoint else _sum_rows)(_GradCore, x, acc)  # noqa: E731
+    value, grad = _rows_grad(run, x, acc)
+    np.testing.assert_allclose(value, np.sin(xs).sum(axis=1), rtol=1e-14)
+    np.testing.assert_allclose(grad, exact, rtol=1e-13, atol=1e-13)

@@ -9,11 +9,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from solvers.taichi_compat.threads import switch_env, target_cores
 
 WORKER = Path(__file__).parent / "workers" / "thread_digest.py"
+GRAD_WORKER = Path(__file__).parent / "workers" / "grad_digest.py"
 
 
 def test_cores_chosen_only_where_no_two_processes_can_pile_up():
@@ -91,3 +93,28 @@ def test_default_init_pins_the_workers_and_changes_no_number():
     # where the threads run changes no number
     assert pinned["contact"] == off["contact"]
     assert pinned["mpm"] == off["mpm"]
+
+
+def _digest32(threads):
+    env = dict(os.environ)
+    env.pop("GS_NUM_THREADS", None)
+    if threads:
+        env["GS_NUM_THREADS"] = str(threads)
+    done = subprocess.run([sys.executable, str(GRAD_WORKER), "envs32"], env=env, capture_output=True, text=True,
+                          timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_few_threads_run_the_env_loops_serially_with_the_same_gradients():
+    """A 32-env scene (more than SERIAL_MAX_ENVS) runs its env loops serially with one Taichi thread or two
+    (core.runs_serially), in parallel loops with four (fresh processes, default options otherwise). Its contact
+    rollout's gradients and loss: the same to the bit on one thread and two (one serial code), those of the
+    parallel loops to rounding (another compiled code: 6.5e-14 of the largest, 12, when written)."""
+    runs = {n: _digest32(n) for n in (1, 2, 4)}
+    assert {n: r["cpu_threads"] for n, r in runs.items()} == {1: 1, 2: 2, 4: 4}
+    assert {n: r["serial"] for n, r in runs.items()} == {1: True, 2: True, 4: False}
+    serial, parallel = np.array(runs[1]["contact"]), np.array(runs[4]["contact"])
+    assert serial.size == 32 * 7 + 1 and np.abs(serial).max() > 1.0
+    np.testing.assert_array_equal(serial, np.array(runs[2]["contact"]))
+    np.testing.assert_allclose(parallel, serial, rtol=0, atol=1e-12 * np.abs(serial).max())

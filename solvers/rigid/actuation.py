@@ -27,7 +27,7 @@ velocity mode keeps its own control instead of being given the PD torque too.
 import taichi as ti
 
 from .kinematics import JOINT_FREE
-from .math3d import func_add, func_euler_xyz_quat, func_quat_log, func_quat_mul
+from .math3d import func_add2, func_euler_xyz_quat, func_quat_log, func_quat_mul
 
 CTRL_FORCE, CTRL_POSITION, CTRL_VELOCITY = 0, 1, 2
 FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh friction loss
@@ -265,8 +265,5 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         # limits and friction loss are constraints, not part of it
         s.dof_qf[i_b, i_d] = tau - damp * v - spring - s.bias[i_b, i_d]
         diag = s.dof_armature[i_b, i_d] + h * D + h * h * K + con_D
-        if ti.static(s.requires_grad):
-            s.mass_mat[i_b, i_d, i_d] += diag
-        else:  # see math3d.func_add
-            s.mass_mat[i_b, i_d, i_d] = s.mass_mat[i_b, i_d, i_d] + diag
+        func_add2(s, s.mass_mat, i_b, i_d, i_d, diag)
 

@@ -7,7 +7,7 @@ thrown tumbling at 40 rad/s went to NaN within 0.7 s at dt = 10 ms, in flight, a
 Euler; MuJoCo's implicitfast keeps it, but damps the tumbling; tests/test_integrators.py)."""
 import taichi as ti
 
-from .kinematics import func_link_joint_velocity, func_parent_slot
+from .kinematics import JOINT_FREE, func_link_joint_velocity, func_parent_slot, func_vec3
 from .math3d import func_add, func_cross_force, func_inertia_mul, func_mm, func_mv, func_skew
 
 # a link lighter than this (kg) gets no implicit gyroscopic moment (func_gyro_implicit: its centre of mass
@@ -46,32 +46,54 @@ def func_gyro_implicit(s: ti.template(), on, m, mc, J, w, h):
 @ti.func
 def func_link_forces(s: ti.template(), i_b, e, src, h):
     """Link accelerations with qacc = 0 (gravity as an upward world acceleration) and the forces they
-    need. A free joint contributes sum_k cdofd_k qd_k = (0, vb x wb)."""
+    need. A free joint contributes sum_k cdofd_k qd_k = (0, vb x wb). With gradients a branch on the joint:
+    a free joint's link is a root (model.py) and reads its six velocities, the others one (blended, the free
+    joint's reads and cross product were differentiated at every link: see kinematics.func_free_pose)."""
+    zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
     for i_l in range(s.n_links):
         p = s.link_parent[i_l]
         has_p = p >= 0
         pp = func_parent_slot(s, p)
-        d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
-        aw = ti.select(has_p, s.cacc_w[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)) + s.cdofd_w[i_b, d0] * qd
-        av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd + free * vb.cross(wb)
-        s.cacc_w[i_b, i_l] = aw
-        s.cacc_v[i_b, i_l] = av
-        m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]
-        n, f = func_inertia_mul(m, mc, J, aw, av)
-        wv, vv = s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l]
-        hn, hf = func_inertia_mul(m, mc, J, wv, vv)
-        cn, cf = func_cross_force(wv, vv, hn, hf)
         if ti.static(s.requires_grad):
-            # the free bodies' gyroscopic moments: the next stage (func_free_gyro)
-            s.cfrc_n[i_b, i_l] = n + cn
+            if s.link_jtype[i_l] == JOINT_FREE:
+                d0 = s.link_dof_start[i_l]
+                vb, wb = func_vec3(s.qvel, src, i_b, d0), func_vec3(s.qvel, src, i_b, d0 + 3)
+                func_link_force(s, i_b, i_l, zero, vb.cross(wb) - s.gravity[i_b], 1.0, h)
+            else:
+                d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
+                qd = s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+                aw = ti.select(has_p, s.cacc_w[i_b, pp], zero) + s.cdofd_w[i_b, d0] * qd
+                av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd
+                func_link_force(s, i_b, i_l, aw, av, 0.0, h)
         else:
-            # a free body's gyroscopic moment implicit with the implicit integrators (module docstring)
-            on = free * s.implicit_on * ti.cast(m > GYRO_MIN_MASS, s.dtype)
-            gy = ti.Vector.zero(s.dtype, 3)
-            if on > 0.0:
-                gy = func_gyro_implicit(s, on, m, mc, J, wv, h)
-            s.cfrc_n[i_b, i_l] = n + cn + gy
-        s.cfrc_f[i_b, i_l] = f + cf
+            d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
+            aw = ti.select(has_p, s.cacc_w[i_b, pp], zero) + s.cdofd_w[i_b, d0] * qd
+            av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd + free * vb.cross(wb)
+            func_link_force(s, i_b, i_l, aw, av, free, h)
+
+
+@ti.func
+def func_link_force(s: ti.template(), i_b, i_l, aw, av, free, h):
+    """Link i_l's acceleration (aw, av) stored and the force it needs with the velocity's (free: 1 for a free
+    joint's link)."""
+    s.cacc_w[i_b, i_l] = aw
+    s.cacc_v[i_b, i_l] = av
+    m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]
+    n, f = func_inertia_mul(m, mc, J, aw, av)
+    wv, vv = s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l]
+    hn, hf = func_inertia_mul(m, mc, J, wv, vv)
+    cn, cf = func_cross_force(wv, vv, hn, hf)
+    if ti.static(s.requires_grad):
+        # the free bodies' gyroscopic moments: the next stage (func_free_gyro)
+        s.cfrc_n[i_b, i_l] = n + cn
+    else:
+        # a free body's gyroscopic moment implicit with the implicit integrators (module docstring)
+        on = free * s.implicit_on * ti.cast(m > GYRO_MIN_MASS, s.dtype)
+        gy = ti.Vector.zero(s.dtype, 3)
+        if on > 0.0:
+            gy = func_gyro_implicit(s, on, m, mc, J, wv, h)
+        s.cfrc_n[i_b, i_l] = n + cn + gy
+    s.cfrc_f[i_b, i_l] = f + cf
 
 
 @ti.func
@@ -86,7 +108,7 @@ def func_free_gyro(s: ti.template(), i_b, e, src, h):
             i_l = s.free_link[t]
             m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]
             on = s.implicit_on * ti.cast(m > GYRO_MIN_MASS, s.dtype)
-            s.cfrc_n[i_b, i_l] += func_gyro_implicit(s, on, m, mc, J, s.cvel_w[i_b, i_l], h)
+            func_add(s, s.cfrc_n, i_b, i_l, func_gyro_implicit(s, on, m, mc, J, s.cvel_w[i_b, i_l], h))
 
 
 @ti.func

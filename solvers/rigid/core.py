@@ -30,12 +30,36 @@ from .contact import func_contact_solve, func_factor_solve_dense, func_solve_gra
 from .external import AppliedWrench, func_applied_wrench
 from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
 from .integrate import INTEGRATE
-from .kinematics import KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_world_inertia
+from .kinematics import (KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_free_pose,
+                         func_world_inertia)
 from .layout import ZeroPlan, func_zero_plan, place_env_major
 from .schedule import OP_DYN, OP_SOLVE, SPAN_BITS, SPAN_MASK
 
 # parallel dispatch of a Taichi CPU kernel costs ~70 us here against ~12 us serial: few envs run serially
 SERIAL_MAX_ENVS = 16
+# on the CPU with at most two threads, up to this many (a core's env capacity): see runs_serially
+SERIAL_MAX_ENVS_TWO_THREADS = 512
+
+
+def runs_serially(cap_envs: int) -> bool:
+    """Whether a core of env capacity cap_envs runs its env loops serially (on the launching thread): up to
+    SERIAL_MAX_ENVS envs anywhere; on the CPU with one Taichi thread (GS_NUM_THREADS=1, a torchrun rank's
+    share of a 2-core machine) at any env count; with two, up to SERIAL_MAX_ENVS_TWO_THREADS. A serial loop
+    compiles `+=` on fields (Taichi's adjoints are made of them) to plain adds, a parallel one to
+    compare-and-swap loops even on one thread, and skips the pool's dispatch. Measured on this project's
+    2-core machine (benchmarks/results/grad.md, 2026-12-05), float64, a process of two threads: the Panda's
+    100-step rollout with gradients, forward + backward, serial against parallel: 182 against 354 ms at 64
+    envs, 510 against 812 at 256, 915 against 1,230 at 512, but 1,715-1,721 against 1,397-1,421 at 1,024;
+    without gradients, 200 steps, 136 against 165 ms at 512 envs and 496 against 428 at 1,024 (ANYmal on the
+    ground, 100 steps: 747 against 765 ms at 512, 1,906 against 1,269 at 1,024); one thread, 1,024 envs, the
+    rollout with gradients: 331-344 against 436-459 ms forward, 1,426-1,513 against 2,130-2,180 backward. The gradients are the same to the bit either way
+    (tests/test_threads.py). More threads than two: not measured, the old threshold kept."""
+    if cap_envs <= SERIAL_MAX_ENVS:
+        return True
+    cfg = taichi_compat.config()
+    if cfg.arch not in (ti.x64, ti.arm64):
+        return False
+    return cfg.cpu_max_num_threads == 1 or (cfg.cpu_max_num_threads == 2 and cap_envs <= SERIAL_MAX_ENVS_TWO_THREADS)
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_free_rot_errors, func_generalized_force)
 # stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (taichi_compat.compile_options.AdjointCompile)
 PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:3]
@@ -124,7 +148,7 @@ class RigidCore:
         self.unrolled = self.static_tree is not None and not g
         self.dtype = f
         self.requires_grad = g
-        self.serial = B <= SERIAL_MAX_ENVS
+        self.serial = runs_serially(B)
         self.cap_envs, self.cap_elems = B, N
         self.n_slots, self.n_evals = S, E
         self.scene_cfg = [0] * (N_CFG_I + N_CFG_F)
@@ -507,7 +531,7 @@ class RigidCore:
     @ti.kernel
     def kernel_mass_matrix(self, src: ti.i32):
         """M (without armature or implicit terms) at qpos[src]."""
-        for stage in ti.static((func_forward_kinematics, func_dof_subspace, func_world_inertia) + INERTIA):
+        for stage in ti.static((func_free_pose, func_forward_kinematics, func_dof_subspace, func_world_inertia) + INERTIA):
             if ti.static(self.serial):
                 ti.loop_config(serialize=True)
             for i_b in range(self.cap_envs):

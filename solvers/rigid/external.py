@@ -27,8 +27,8 @@ contacts does.
 import numpy as np
 import taichi as ti
 
-from .contact.banks import func_acc
 from .kinematics import func_link_origin
+from .math3d import func_add
 
 
 @ti.data_oriented
@@ -127,8 +127,8 @@ def func_applied_wrench(s: ti.template(), i_b, e, src, h):
         f_ext = f - (gc * s.link_mass[i_b, i_l]) * g
         t_ext = (a.moment[i_b, i_l] + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(f)
                  - gc * s.link_h[i_b, i_l].cross(g))
-        func_acc(s, s.cfrc_n, i_b, i_l, -t_ext)
-        func_acc(s, s.cfrc_f, i_b, i_l, -f_ext)
+        func_add(s, s.cfrc_n, i_b, i_l, -t_ext)
+        func_add(s, s.cfrc_f, i_b, i_l, -f_ext)
 
 
 @ti.func
@@ -140,5 +140,5 @@ def func_external_dof(s: ti.template(), i_b, e, src, h):
         for l in range(s.n_links):
             # straight into the field: a local sum over a run-time loop crashes Taichi's reverse mode
             c = ti.cast(x.carries[l, ld], s.dtype)
-            func_acc(s, s.force, i_b, i_d, c * (s.cdof_w[i_b, i_d].dot(x.ext_t[i_b, sub, l])
+            func_add(s, s.force, i_b, i_d, c * (s.cdof_w[i_b, i_d].dot(x.ext_t[i_b, sub, l])
                                                 + s.cdof_v[i_b, i_d].dot(x.ext_f[i_b, sub, l])))

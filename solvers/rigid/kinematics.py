@@ -51,20 +51,14 @@ def func_link_joint_velocity(s: ti.template(), i_b, src, i_l):
 @ti.func
 def func_joint_pose(s: ti.template(), i_b, src, jt, qs, axis, jpos, jquat):
     """The pose (pos, quat) a link's joint gives it from the joint frame's pose (jpos, jquat) and
-    qpos[src]. With gradients every joint type's formula is evaluated and blended (single assignment,
-    reads at clamped indices, see above); without, only the link's own."""
+    qpos[src]. With gradients the fixed, revolute and prismatic joints' formulas are evaluated and blended
+    (single assignment, reads at clamped indices, see above; a free joint's link is func_free_pose's);
+    without, only the link's own."""
     if ti.static(s.requires_grad):
         q1 = s.qpos[src, i_b, ti.min(qs, s.qpos_len - 1)]
         rev = ti.cast(jt == JOINT_REVOLUTE, s.dtype)
         pri = ti.cast(jt == JOINT_PRISMATIC, s.dtype)
-        moving_quat = func_quat_mul(jquat, func_axis_angle_quat(axis, q1 * rev))
-        moving_pos = jpos + func_quat_rotate(jquat, axis * (q1 * pri))
-        qf = ti.max(ti.min(qs, s.qpos_len - 7), 0)
-        free_pos = func_vec3(s.qpos, src, i_b, qf)
-        fq = ti.Vector([s.qpos[src, i_b, qf + 3], s.qpos[src, i_b, qf + 4], s.qpos[src, i_b, qf + 5], s.qpos[src, i_b, qf + 6]])
-        free_quat = fq / ti.sqrt(ti.max(fq.dot(fq), 1e-30))
-        is_free = jt == JOINT_FREE
-        return ti.select(is_free, free_pos, moving_pos), ti.select(is_free, free_quat, moving_quat)
+        return jpos + func_quat_rotate(jquat, axis * (q1 * pri)), func_quat_mul(jquat, func_axis_angle_quat(axis, q1 * rev))
     else:
         pos = jpos
         quat = jquat
@@ -74,9 +68,7 @@ def func_joint_pose(s: ti.template(), i_b, src, jt, qs, axis, jpos, jquat):
             pos = jpos + func_quat_rotate(jquat, axis * s.qpos[src, i_b, qs])
         elif jt == JOINT_FREE:
             pos = func_vec3(s.qpos, src, i_b, qs)
-            fq = ti.Vector([s.qpos[src, i_b, qs + 3], s.qpos[src, i_b, qs + 4], s.qpos[src, i_b, qs + 5],
-                            s.qpos[src, i_b, qs + 6]])
-            quat = fq / ti.sqrt(ti.max(fq.dot(fq), 1e-30))
+            quat = func_free_quat(s, i_b, src, qs)
         return pos, quat
 
 
@@ -111,22 +103,58 @@ def func_parent_slot(s: ti.template(), p):
 
 
 @ti.func
+def func_free_quat(s: ti.template(), i_b, src, qs):
+    """A free joint's orientation: its four qs from qs + 3 on, normalised."""
+    fq = ti.Vector([s.qpos[src, i_b, qs + 3], s.qpos[src, i_b, qs + 4], s.qpos[src, i_b, qs + 5], s.qpos[src, i_b, qs + 6]])
+    return fq / ti.sqrt(ti.max(fq.dot(fq), 1e-30))
+
+
+@ti.func
+def func_free_pose(s: ti.template(), i_b, e, src, h):
+    """With gradients, the pose of each free joint's link, over the list of free joints (core.free_link),
+    ahead of func_forward_kinematics, which leaves those links out: such a link is a root (model.py), and its
+    pose is its qs (position, normalised quaternion). Blended into every link's formula instead (as until
+    2026-12-05), the free joint's seven reads and its normalisation were differentiated at every link of every
+    robot: a fixed-base Panda's backward took ~9 % longer (results/grad.md). Nothing without gradients
+    (func_joint_pose's branch: the same numbers)."""
+    if ti.static(s.requires_grad):
+        for t in range(s.n_free_links):
+            i_l = s.free_link[t]
+            qs = s.link_q_start[i_l]
+            quat = func_free_quat(s, i_b, src, qs)
+            s.link_pos[i_b, i_l] = func_vec3(s.qpos, src, i_b, qs)
+            s.link_quat[i_b, i_l] = quat
+            s.link_R[i_b, i_l] = func_quat_to_R(quat)
+
+
+@ti.func
+def func_link_pose(s: ti.template(), i_b, src, i_l):
+    """Link i_l's origin position and orientation (quat and R) from its parent's pose and qpos[src]."""
+    p = s.link_parent[i_l]
+    jt = s.link_jtype[i_l]
+    qs = s.link_q_start[i_l]
+    has_p = p >= 0
+    pp = func_parent_slot(s, p)
+    ppos = ti.select(has_p, s.link_pos[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype))
+    pquat = ti.select(has_p, s.link_quat[i_b, pp], ti.Vector([1.0, 0.0, 0.0, 0.0], dt=s.dtype))
+    jquat = func_quat_mul(pquat, s.link_jquat[i_l])
+    jpos = ppos + func_quat_rotate(pquat, s.link_jpos[i_l])
+    pos, quat = func_joint_pose(s, i_b, src, jt, qs, s.link_jaxis[i_l], jpos, jquat)
+    s.link_pos[i_b, i_l] = pos
+    s.link_quat[i_b, i_l] = quat
+    s.link_R[i_b, i_l] = func_quat_to_R(quat)
+
+
+@ti.func
 def func_forward_kinematics(s: ti.template(), i_b, e, src, h):
-    """Link origin positions and orientations (quat and R) from qpos[src]."""
+    """Link origin positions and orientations (quat and R) from qpos[src]; with gradients those of the
+    links of free joints are func_free_pose's."""
     for i_l in range(s.n_links):
-        p = s.link_parent[i_l]
-        jt = s.link_jtype[i_l]
-        qs = s.link_q_start[i_l]
-        has_p = p >= 0
-        pp = func_parent_slot(s, p)
-        ppos = ti.select(has_p, s.link_pos[i_b, pp], ti.Vector([0.0, 0.0, 0.0], dt=s.dtype))
-        pquat = ti.select(has_p, s.link_quat[i_b, pp], ti.Vector([1.0, 0.0, 0.0, 0.0], dt=s.dtype))
-        jquat = func_quat_mul(pquat, s.link_jquat[i_l])
-        jpos = ppos + func_quat_rotate(pquat, s.link_jpos[i_l])
-        pos, quat = func_joint_pose(s, i_b, src, jt, qs, s.link_jaxis[i_l], jpos, jquat)
-        s.link_pos[i_b, i_l] = pos
-        s.link_quat[i_b, i_l] = quat
-        s.link_R[i_b, i_l] = func_quat_to_R(quat)
+        if ti.static(s.requires_grad):
+            if s.link_jtype[i_l] != JOINT_FREE:
+                func_link_pose(s, i_b, src, i_l)
+        else:
+            func_link_pose(s, i_b, src, i_l)
 
 
 @ti.func
@@ -173,20 +201,43 @@ def func_dof_subspace(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
+def func_free_velocity(s: ti.template(), i_b, e, src, h):
+    """With gradients, the spatial velocity of each free joint's link (a root), over the list of free joints,
+    ahead of func_velocity, which leaves those links out (see func_free_pose): its six dofs are the base
+    origin's world velocity vb and the world angular velocity wb, cvel = (wb, vb + (p - o) x wb). Nothing
+    without gradients (func_velocity's branch)."""
+    if ti.static(s.requires_grad):
+        for t in range(s.n_free_links):
+            i_l = s.free_link[t]
+            d0 = s.link_dof_start[i_l]
+            wb = func_vec3(s.qvel, src, i_b, d0 + 3)
+            s.cvel_w[i_b, i_l] = wb
+            s.cvel_v[i_b, i_l] = func_vec3(s.qvel, src, i_b, d0) + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(wb)
+
+
+@ti.func
 def func_velocity(s: ti.template(), i_b, e, src, h):
     """Link spatial velocities (cvel, about the tree's origin o). A free joint's six dofs are the base origin's
-    world velocity vb and the world angular velocity wb: cvel = (wb, vb + (p - o) x wb)."""
+    world velocity vb and the world angular velocity wb: cvel = (wb, vb + (p - o) x wb) (with gradients
+    func_free_velocity's)."""
     for i_l in range(s.n_links):
         p = s.link_parent[i_l]
         has_p = p >= 0
         pp = func_parent_slot(s, p)
         zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
-        d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
-        w = ti.select(has_p, s.cvel_w[i_b, pp], zero)
-        v = ti.select(has_p, s.cvel_v[i_b, pp], zero)
-        s.cvel_w[i_b, i_l] = w + s.cdof_w[i_b, d0] * qd + free * wb
-        s.cvel_v[i_b, i_l] = v + s.cdof_v[i_b, d0] * qd + free * (vb + (s.link_pos[i_b, i_l]
-                                                                         - func_link_origin(s, i_b, i_l)).cross(wb))
+        if ti.static(s.requires_grad):
+            if s.link_jtype[i_l] != JOINT_FREE:
+                d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
+                qd = s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+                s.cvel_w[i_b, i_l] = ti.select(has_p, s.cvel_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * qd
+                s.cvel_v[i_b, i_l] = ti.select(has_p, s.cvel_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * qd
+        else:
+            d0, qd, free, vb, wb = func_link_joint_velocity(s, i_b, src, i_l)
+            w = ti.select(has_p, s.cvel_w[i_b, pp], zero)
+            v = ti.select(has_p, s.cvel_v[i_b, pp], zero)
+            s.cvel_w[i_b, i_l] = w + s.cdof_w[i_b, d0] * qd + free * wb
+            s.cvel_v[i_b, i_l] = v + s.cdof_v[i_b, d0] * qd + free * (vb + (s.link_pos[i_b, i_l]
+                                                                             - func_link_origin(s, i_b, i_l)).cross(wb))
 
 
 @ti.func
@@ -196,17 +247,29 @@ def func_dof_subspace_dot(s: ti.template(), i_b, e, src, h):
     for i_d in range(s.n_dofs):
         i_l = s.dof_link[i_d]
         is_free = s.link_jtype[i_l] == JOINT_FREE
-        ang = ti.cast(is_free and i_d - s.link_dof_start[i_l] >= 3, s.dtype)
-        df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
-        vb = func_vec3(s.qvel, src, i_b, df)
-        dw, dv = func_cross_motion(s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l], s.cdof_w[i_b, i_d], s.cdof_v[i_b, i_d])
-        s.cdofd_w[i_b, i_d] = ti.select(is_free, ti.Vector([0.0, 0.0, 0.0], dt=s.dtype), dw)
-        s.cdofd_v[i_b, i_d] = ti.select(is_free, ang * vb.cross(s.cdof_w[i_b, i_d]), dv)
+        if ti.static(s.requires_grad):
+            # a branch: the free joint's reads only at its dofs (see func_free_pose)
+            if is_free:
+                ang = ti.cast(i_d - s.link_dof_start[i_l] >= 3, s.dtype)
+                s.cdofd_w[i_b, i_d] = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
+                s.cdofd_v[i_b, i_d] = ang * func_vec3(s.qvel, src, i_b, s.link_dof_start[i_l]).cross(s.cdof_w[i_b, i_d])
+            else:
+                dw, dv = func_cross_motion(s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l], s.cdof_w[i_b, i_d], s.cdof_v[i_b, i_d])
+                s.cdofd_w[i_b, i_d] = dw
+                s.cdofd_v[i_b, i_d] = dv
+        else:
+            ang = ti.cast(is_free and i_d - s.link_dof_start[i_l] >= 3, s.dtype)
+            df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
+            vb = func_vec3(s.qvel, src, i_b, df)
+            dw, dv = func_cross_motion(s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l], s.cdof_w[i_b, i_d], s.cdof_v[i_b, i_d])
+            s.cdofd_w[i_b, i_d] = ti.select(is_free, ti.Vector([0.0, 0.0, 0.0], dt=s.dtype), dw)
+            s.cdofd_v[i_b, i_d] = ti.select(is_free, ang * vb.cross(s.cdof_w[i_b, i_d]), dv)
 
 
 # Each stage is one loop over elements for one env; kernels run every stage as its own top-level
 # loop over envs, the shape Taichi's reverse mode differentiates correctly (several inner loops in
 # one env loop lose gradients between them).
-KINEMATICS = (func_forward_kinematics, func_dof_subspace, func_velocity, func_dof_subspace_dot, func_world_inertia)
+KINEMATICS = (func_free_pose, func_forward_kinematics, func_dof_subspace, func_free_velocity, func_velocity,
+              func_dof_subspace_dot, func_world_inertia)
 # what the getters need (link poses and velocities)
-LINK_STATE = (func_forward_kinematics, func_dof_subspace, func_velocity)
+LINK_STATE = KINEMATICS[:5]

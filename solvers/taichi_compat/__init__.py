@@ -10,7 +10,8 @@
 - `threads`: Taichi's CPU worker threads (started by ti.init, woken by every parallel launch) each kept on
   a core of its own by gs.init where the process's threads span its cores (GS_PIN_THREADS=0: never).
 - `config()`, `inside_kernel()`, `subscript()`: the compile configuration in force and the two
-  `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need;
+  `taichi.lang.impl` calls the solvers' static-or-runtime size lookups need; `compiling_adjoint()`: whether
+  the kernel being compiled is one Taichi differentiates (its autodiff mode);
   `default_offline_cache_path()`: Taichi's default kernel-cache folder (gs.init clears a stale lock there).
 
 The speed-ups (`frontend`) are one switch: GS_TAICHI_SPEEDUPS=0 in the environment, or
@@ -88,6 +89,17 @@ from taichi.lang import impl as _impl  # noqa: E402
 config = _impl.current_cfg
 # whether Python is running inside a kernel's compilation (a size lookup then emits a field load)
 inside_kernel = _impl.inside_kernel
+
+
+def compiling_adjoint() -> bool:
+    """Inside a kernel's compilation: whether Taichi may differentiate what is being emitted, i.e. the kernel
+    is not a primal one (autodiff mode NONE). A primal kernel is never differentiated: its adjoint (`.grad`)
+    is another kernel, compiled anew from the same source in its own mode, so a stage may emit forms there
+    that Taichi's reverse mode could not take (a plain read-modify-write instead of `+=`). Unknown: True."""
+    from taichi.lang.enums import AutodiffMode
+
+    kernel = _impl.get_runtime().current_kernel
+    return kernel is None or getattr(kernel, "autodiff_mode", None) != AutodiffMode.NONE
 
 
 def subscript(field, *index):

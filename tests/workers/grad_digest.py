@@ -1,8 +1,11 @@
 """Worker for tests/test_determinism.py: the gradients of a contact scene (3 envs) and of a two-way
 coupled MPM scene, each rollout run and differentiated twice in this process; prints one JSON line
-{scene: [sha256 of the gradients and loss, first pass; second pass]}."""
+{scene: [sha256 of the gradients and loss, first pass; second pass]}. With the argument `envs32`, for
+tests/test_threads.py: the contact scene at 32 envs, once, and whether its env loops run serially
+({"cpu_threads", "serial", "contact": the gradients and the loss as numbers})."""
 import hashlib
 import json
+import sys
 
 import torch
 
@@ -18,17 +21,19 @@ def digest(*tensors):
     return h.hexdigest()
 
 
-def contact_scene():
+def contact_scene(n_envs=3, passes=2, digest=digest):
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=5e-3, requires_grad=True))
     scene.add_entity(gs.morphs.Plane())
     box = scene.add_entity(gs.morphs.Box(pos=(0, 0, 0.1), size=(0.2, 0.2, 0.2)))
     ball = scene.add_entity(gs.morphs.Sphere(pos=(0.05, 0.02, 0.35), radius=0.08))
-    scene.build(n_envs=3)
+    scene.build(n_envs=n_envs)
+    scale = [1.0, 0.5, -0.7] if n_envs == 3 else torch.linspace(1.0, -0.7, n_envs).tolist()
     out = []
-    for _ in range(2):
-        v = torch.tensor([0.5, 0.2, -0.3, 0.1, 0.2, 0.3], **F64) * torch.tensor([[1.0], [0.5], [-0.7]], **F64)
+    for _ in range(passes):
+        v = torch.tensor([0.5, 0.2, -0.3, 0.1, 0.2, 0.3], **F64) * torch.tensor(scale, **F64).reshape(n_envs, 1)
         v.requires_grad_(True)
-        mass = torch.tensor([1.3, 0.9, 1.1], **F64).reshape(3, 1).requires_grad_(True)
+        mass = torch.tensor([1.3, 0.9, 1.1] * (n_envs // 3) + [1.3, 0.9, 1.1][:n_envs % 3], **F64).reshape(n_envs, 1)
+        mass.requires_grad_(True)
         scene.reset()
         box.set_dofs_velocity(v)
         ball.set_links_mass(mass)
@@ -37,7 +42,7 @@ def contact_scene():
         loss = (box.get_pos() * torch.tensor([1.0, 2.0, 3.0], **F64)).sum() + (ball.get_pos() ** 2).sum()
         loss.backward()
         out.append(digest(v.grad, mass.grad, loss))
-    return out
+    return out if n_envs == 3 else (scene, out)
 
 
 def coupled_scene():
@@ -65,4 +70,11 @@ def coupled_scene():
 
 if __name__ == "__main__":
     gs.init(backend=gs.cpu, precision="64")
-    print(json.dumps({"contact": contact_scene(), "coupled": coupled_scene()}))
+    if sys.argv[1:] == ["envs32"]:
+        def values(*tensors):
+            return torch.cat([t.detach().reshape(-1) for t in tensors]).tolist()
+
+        scene, out = contact_scene(32, passes=1, digest=values)
+        print(json.dumps({"cpu_threads": gs.cpu_threads, "serial": scene.rigid_solver.core.serial, "contact": out[0]}))
+    else:
+        print(json.dumps({"contact": contact_scene(), "coupled": coupled_scene()}))

@@ -1,6 +1,6 @@
 """Worker for tests/test_threads.py: what gs.init did with Taichi's CPU worker threads, which threads ran a
-parallel kernel of ~0.2 s and on which core, and sha256 digests of a batched contact rollout (32 envs:
-parallel loops over envs) and of an MPM rollout; prints one JSON line."""
+parallel kernel of ~0.2 s and on which core, and sha256 digests of a batched contact rollout (1,024 envs:
+parallel loops over envs, core.runs_serially) and of an MPM rollout; prints one JSON line."""
 import json
 import os
 
@@ -52,9 +52,10 @@ def contact_rollout():
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=5e-3))
     scene.add_entity(gs.morphs.Plane())
     box = scene.add_entity(gs.morphs.Box(pos=(0, 0, 0.12), size=(0.2, 0.2, 0.2)))
-    scene.build(n_envs=32)
+    scene.build(n_envs=1024)
+    assert not scene.rigid_solver.core.serial
     rng = np.random.default_rng(3)
-    box.set_dofs_velocity(torch.tensor(rng.normal(0.0, 1.0, (32, 6)), **F64))
+    box.set_dofs_velocity(torch.tensor(rng.normal(0.0, 1.0, (1024, 6)), **F64))
     for _ in range(40):
         scene.step()
     return digest(box.get_pos(), box.get_quat(), box.get_dofs_velocity())

@@ -6,27 +6,7 @@ import taichi as ti
 
 from ..kinematics import func_link_origin
 from ..layout import FieldTree
-from ..math3d import func_mm, func_mtv, func_mv, func_skew
-
-
-@ti.func
-def func_acc(s: ti.template(), x: ti.template(), i_b, i, v):
-    """x[i_b, i] += v. Without gradients as a plain read-modify-write: one thread owns an env's
-    elements, and `+=` on a field inside the parallel env loop compiles to an f64 atomic (a
-    compare-and-swap loop, the main cost of these stages). With gradients `+=`, which Taichi's reverse
-    mode needs."""
-    if ti.static(s.requires_grad):
-        x[i_b, i] += v
-    else:
-        x[i_b, i] = x[i_b, i] + v
-
-
-@ti.func
-def func_acc2(s: ti.template(), x: ti.template(), i_b, i, j, v):
-    if ti.static(s.requires_grad):
-        x[i_b, i, j] += v
-    else:
-        x[i_b, i, j] = x[i_b, i, j] + v
+from ..math3d import func_add, func_add2, func_mm, func_mtv, func_mv, func_skew
 
 
 @ti.data_oriented
@@ -115,20 +95,20 @@ def func_bank_add(s: ti.template(), b: ti.template(), i_b, i_s, pos, F, W):
         Swwb = -func_mm(PWb, Pb)
     if c.link_dyn[la] == 1:
         b.link_touch[i_b, la] = 1
-        func_acc(s, b.link_ff, i_b, la, F)
-        func_acc(s, b.link_fn, i_b, la, ra.cross(F))
+        func_add(s, b.link_ff, i_b, la, F)
+        func_add(s, b.link_fn, i_b, la, ra.cross(F))
         if ti.static(b.matrices):
-            func_acc(s, b.link_Sww, i_b, la, Swwa)
-            func_acc(s, b.link_Swv, i_b, la, PWa)
-            func_acc(s, b.link_Svv, i_b, la, W)
+            func_add(s, b.link_Sww, i_b, la, Swwa)
+            func_add(s, b.link_Swv, i_b, la, PWa)
+            func_add(s, b.link_Svv, i_b, la, W)
     if c.link_dyn[lb] == 1:
         b.link_touch[i_b, lb] = 1
-        func_acc(s, b.link_ff, i_b, lb, -F)
-        func_acc(s, b.link_fn, i_b, lb, -rb.cross(F))
+        func_add(s, b.link_ff, i_b, lb, -F)
+        func_add(s, b.link_fn, i_b, lb, -rb.cross(F))
         if ti.static(b.matrices):
-            func_acc(s, b.link_Sww, i_b, lb, Swwb)
-            func_acc(s, b.link_Swv, i_b, lb, PWb)
-            func_acc(s, b.link_Svv, i_b, lb, W)
+            func_add(s, b.link_Sww, i_b, lb, Swwb)
+            func_add(s, b.link_Swv, i_b, lb, PWb)
+            func_add(s, b.link_Svv, i_b, lb, W)
     if ti.static(b.pairs):
         lp = c.slot_lp[i_s]
         if lp >= 0:
@@ -139,10 +119,10 @@ def func_bank_add(s: ti.template(), b: ti.template(), i_b, i_s, pos, F, W):
             low_a = la < lb
             P1 = ti.select(low_a, Pa, Pb)
             PW2 = ti.select(low_a, PWb, PWa)
-            func_acc(s, b.lp_Sww, i_b, lp, -func_mm(PW2, P1))
-            func_acc(s, b.lp_Swv, i_b, lp, PW2)
-            func_acc(s, b.lp_Svw, i_b, lp, ti.select(low_a, PWa, PWb))
-            func_acc(s, b.lp_Svv, i_b, lp, W)
+            func_add(s, b.lp_Sww, i_b, lp, -func_mm(PW2, P1))
+            func_add(s, b.lp_Swv, i_b, lp, PW2)
+            func_add(s, b.lp_Svw, i_b, lp, ti.select(low_a, PWa, PWb))
+            func_add(s, b.lp_Svv, i_b, lp, W)
 
 
 @ti.func
@@ -153,12 +133,12 @@ def func_bank_tree(s: ti.template(), b: ti.template(), i_b):
         p = s.link_parent[i_l]
         if (p >= 0) & (b.link_touch[i_b, i_l] == 1):
             b.link_touch[i_b, p] = 1
-            func_acc(s, b.link_ff, i_b, p, b.link_ff[i_b, i_l])
-            func_acc(s, b.link_fn, i_b, p, b.link_fn[i_b, i_l])
+            func_add(s, b.link_ff, i_b, p, b.link_ff[i_b, i_l])
+            func_add(s, b.link_fn, i_b, p, b.link_fn[i_b, i_l])
             if ti.static(b.matrices):
-                func_acc(s, b.link_Sww, i_b, p, b.link_Sww[i_b, i_l])
-                func_acc(s, b.link_Swv, i_b, p, b.link_Swv[i_b, i_l])
-                func_acc(s, b.link_Svv, i_b, p, b.link_Svv[i_b, i_l])
+                func_add(s, b.link_Sww, i_b, p, b.link_Sww[i_b, i_l])
+                func_add(s, b.link_Swv, i_b, p, b.link_Swv[i_b, i_l])
+                func_add(s, b.link_Svv, i_b, p, b.link_Svv[i_b, i_l])
 
 
 @ti.func
@@ -179,13 +159,13 @@ def func_bank_dof(s: ti.template(), b: ti.template(), i_b):
             b.dof_Sw[i_b, i] = ti.select(touch, func_mv(b.link_Sww[i_b, i_l], wi) + func_mv(Swv, vi), zero)
             b.dof_Sv[i_b, i] = ti.select(touch, func_mtv(Swv, wi) + func_mv(b.link_Svv[i_b, i_l], vi), zero)
         if touch:
-            func_acc(s, s.force, i_b, i, wi.dot(b.link_fn[i_b, i_l]) + vi.dot(b.link_ff[i_b, i_l]))
+            func_add(s, s.force, i_b, i, wi.dot(b.link_fn[i_b, i_l]) + vi.dot(b.link_ff[i_b, i_l]))
             if ti.static(not s.requires_grad):
                 Sw = func_mv(b.link_Sww[i_b, i_l], wi) + func_mv(Swv, vi)
                 Sv = func_mtv(Swv, wi) + func_mv(b.link_Svv[i_b, i_l], vi)
                 j = i
                 while j >= 0:
-                    func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(Sw) + s.cdof_v[i_b, j].dot(Sv))
+                    func_add2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(Sw) + s.cdof_v[i_b, j].dot(Sv))
                     j = s.dof_parent[j]
 
 
@@ -223,7 +203,7 @@ def func_bank_project(s: ti.template(), b: ti.template(), i_b):
             i = s.anc_i[t]
             j = s.anc_j[t]
             if b.link_touch[i_b, s.dof_link[i]] == 1:
-                func_acc2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(b.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(b.dof_Sv[i_b, i]))
+                func_add2(s, s.mass_mat, i_b, i, j, s.cdof_w[i_b, j].dot(b.dof_Sw[i_b, i]) + s.cdof_v[i_b, j].dot(b.dof_Sv[i_b, i]))
 
 
 @ti.func
@@ -256,4 +236,4 @@ def func_cross_term(s: ti.template(), b: ti.template(), i_b, t):
     vj = s.cdof_v[i_b, j]
     m = (wj.dot(func_mv(b.lp_Sww[i_b, lp], wi) + func_mv(Swv, vi))
          + vj.dot(func_mtv(b.lp_Svw[i_b, lp], wi) + func_mv(b.lp_Svv[i_b, lp], vi)))
-    func_acc2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)
+    func_add2(s, c.mass_cross, i_b, ti.max(i, j), ti.min(i, j), -c.cross_fac[t] * m)
