@@ -52,14 +52,18 @@ def runs_serially(cap_envs: int) -> bool:
     envs, 510 against 812 at 256, 915 against 1,230 at 512, but 1,715-1,721 against 1,397-1,421 at 1,024;
     without gradients, 200 steps, 136 against 165 ms at 512 envs and 496 against 428 at 1,024 (ANYmal on the
     ground, 100 steps: 747 against 765 ms at 512, 1,906 against 1,269 at 1,024); one thread, 1,024 envs, the
-    rollout with gradients: 331-344 against 436-459 ms forward, 1,426-1,513 against 2,130-2,180 backward. The gradients are the same to the bit either way
-    (tests/test_threads.py). More threads than two: not measured, the old threshold kept."""
+    rollout with gradients: 331-344 against 436-459 ms forward, 1,426-1,513 against 2,130-2,180 backward.
+    The two compiled codes give the same numbers to rounding (a 32-env contact rollout's gradients within
+    6.5e-14 of the largest, 12: tests/test_threads.py). More threads than two: not measured, the old
+    threshold kept."""
     if cap_envs <= SERIAL_MAX_ENVS:
         return True
     cfg = taichi_compat.config()
     if cfg.arch not in (ti.x64, ti.arm64):
         return False
     return cfg.cpu_max_num_threads == 1 or (cfg.cpu_max_num_threads == 2 and cap_envs <= SERIAL_MAX_ENVS_TWO_THREADS)
+
+
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_free_rot_errors, func_generalized_force)
 # stages whose float32 adjoints compile correctly without Taichi's advanced optimisation (taichi_compat.compile_options.AdjointCompile)
 PLAIN_ADJOINT = KINEMATICS + INERTIA[:2] + BIAS[:3]

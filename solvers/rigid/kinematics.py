@@ -4,6 +4,8 @@ Differentiated stages here and in the other stage modules are written in single-
 every local is assigned once and joint-type cases are blended with ti.select or 0/1 masks instead
 of if/else assignments. Taichi's reverse mode turns any local stored twice inside a loop into an
 "adstack", which made the gradient kernels take minutes to compile; in this form they take seconds.
+A branch whose every local is assigned once inside it is the same form: the joint-type branches around
+a link's stores with gradients keep the free joint's reads to free joints (func_free_pose).
 Reads at clamped indices feed only masked-out terms. A root link's (masked-out) parent reads go to
 the world slot (func_parent_slot), not to a link this stage writes later.
 """
