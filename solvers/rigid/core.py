@@ -50,8 +50,9 @@ def runs_serially(cap_envs: int) -> bool:
     2-core machine (benchmarks/results/grad.md, 2026-12-05), float64, a process of two threads: the Panda's
     100-step rollout with gradients, forward + backward, serial against parallel: 182 against 354 ms at 64
     envs, 510 against 812 at 256, 915 against 1,230 at 512, but 1,715-1,721 against 1,397-1,421 at 1,024;
-    without gradients, 200 steps, 136 against 165 ms at 512 envs and 496 against 428 at 1,024 (ANYmal on the
-    ground, 100 steps: 747 against 765 ms at 512, 1,906 against 1,269 at 1,024); one thread, 1,024 envs, the
+    without gradients, 165 against 206 ms at 256 envs (200 steps), 136 against 165 at 512 (100 steps), 496
+    against 428 at 1,024 (200 steps) (ANYmal on the ground, 100 steps: 747 against 765 ms at 512, 1,906
+    against 1,269 at 1,024); one thread, 1,024 envs, the
     rollout with gradients: 331-344 against 436-459 ms forward, 1,426-1,513 against 2,130-2,180 backward.
     The two compiled codes give the same numbers to rounding (a 32-env contact rollout's gradients within
     6.5e-14 of the largest, 12: tests/test_threads.py). More threads than two: not measured, the old
