@@ -95,10 +95,13 @@ def compiling_adjoint() -> bool:
     """Inside a kernel's compilation: whether Taichi may differentiate what is being emitted, i.e. the kernel
     is not a primal one (autodiff mode NONE). A primal kernel is never differentiated: its adjoint (`.grad`)
     is another kernel, compiled anew from the same source in its own mode, so a stage may emit forms there
-    that Taichi's reverse mode could not take (a plain read-modify-write instead of `+=`). Unknown: True."""
-    from taichi.lang.enums import AutodiffMode
-
-    kernel = _impl.get_runtime().current_kernel
+    that Taichi's reverse mode could not take (a plain read-modify-write instead of `+=`). Unknown (outside a
+    kernel, or another Taichi whose runtime says nothing of it): True, the form every kernel can take."""
+    try:
+        from taichi.lang.enums import AutodiffMode
+    except ImportError:
+        return True
+    kernel = getattr(_impl.get_runtime(), "current_kernel", None)
     return kernel is None or getattr(kernel, "autodiff_mode", None) != AutodiffMode.NONE
 
 
