@@ -55,11 +55,14 @@ def test_init_rejects_a_pin_threads_that_is_not_a_bool():
     assert "gs.init(pin_threads='yes'): use True, False or None" in done.stderr
 
 
-def _run(env_extra):
-    env = dict(os.environ, **env_extra)
+def _run(env_extra, worker=WORKER, *args):
+    """A worker's JSON line, run in a fresh process alone on the machine's cores (no GS_NUM_THREADS or torchrun
+    share inherited) with env_extra."""
+    env = dict(os.environ)
     env.pop("GS_NUM_THREADS", None)
     env.pop("LOCAL_WORLD_SIZE", None)
-    done = subprocess.run([sys.executable, str(WORKER)], env=env, capture_output=True, text=True, timeout=900)
+    env.update(env_extra)
+    done = subprocess.run([sys.executable, str(worker), *args], env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -95,23 +98,12 @@ def test_default_init_pins_the_workers_and_changes_no_number():
     assert pinned["mpm"] == off["mpm"]
 
 
-def _digest32(threads):
-    env = dict(os.environ)
-    env.pop("GS_NUM_THREADS", None)
-    if threads:
-        env["GS_NUM_THREADS"] = str(threads)
-    done = subprocess.run([sys.executable, str(GRAD_WORKER), "envs32"], env=env, capture_output=True, text=True,
-                          timeout=900)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
-
-
 def test_few_threads_run_the_env_loops_serially_with_the_same_gradients():
     """A 32-env scene (more than SERIAL_MAX_ENVS) runs its env loops serially with one Taichi thread or two
     (core.runs_serially), in parallel loops with four (fresh processes, default options otherwise). Its contact
     rollout's gradients and loss: the same to the bit on one thread and two (one serial code), those of the
     parallel loops to rounding (another compiled code: 6.5e-14 of the largest, 12, when written)."""
-    runs = {n: _digest32(n) for n in (1, 2, 4)}
+    runs = {n: _run({"GS_NUM_THREADS": str(n)}, GRAD_WORKER, "envs32") for n in (1, 2, 4)}
     assert {n: r["cpu_threads"] for n, r in runs.items()} == {1: 1, 2: 2, 4: 4}
     assert {n: r["serial"] for n, r in runs.items()} == {1: True, 2: True, 4: False}
     serial, parallel = np.array(runs[1]["contact"]), np.array(runs[4]["contact"])

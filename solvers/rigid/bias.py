@@ -7,7 +7,7 @@ thrown tumbling at 40 rad/s went to NaN within 0.7 s at dt = 10 ms, in flight, a
 Euler; MuJoCo's implicitfast keeps it, but damps the tumbling; tests/test_integrators.py)."""
 import taichi as ti
 
-from .kinematics import JOINT_FREE, func_link_joint_velocity, func_parent_slot, func_vec3
+from .kinematics import JOINT_FREE, func_free_twist, func_hinge_rate, func_link_joint_velocity, func_parent_slot
 from .math3d import func_add, func_cross_force, func_inertia_mul, func_mm, func_mv, func_skew
 
 # a link lighter than this (kg) gets no implicit gyroscopic moment (func_gyro_implicit: its centre of mass
@@ -56,12 +56,10 @@ def func_link_forces(s: ti.template(), i_b, e, src, h):
         pp = func_parent_slot(s, p)
         if ti.static(s.requires_grad):
             if s.link_jtype[i_l] == JOINT_FREE:
-                d0 = s.link_dof_start[i_l]
-                vb, wb = func_vec3(s.qvel, src, i_b, d0), func_vec3(s.qvel, src, i_b, d0 + 3)
+                vb, wb = func_free_twist(s, i_b, src, s.link_dof_start[i_l])
                 func_link_force(s, i_b, i_l, zero, vb.cross(wb) - s.gravity[i_b], 1.0, h)
             else:
-                d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
-                qd = s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+                d0, qd = func_hinge_rate(s, i_b, src, i_l)
                 aw = ti.select(has_p, s.cacc_w[i_b, pp], zero) + s.cdofd_w[i_b, d0] * qd
                 av = ti.select(has_p, s.cacc_v[i_b, pp], -s.gravity[i_b]) + s.cdofd_v[i_b, d0] * qd
                 func_link_force(s, i_b, i_l, aw, av, 0.0, h)

@@ -23,31 +23,37 @@ def func_vec3(x: ti.template(), a, b, i):
 
 
 @ti.func
+def func_free_twist(s: ti.template(), i_b, src, d0):
+    """A free joint's six velocities from its first dof d0: the base origin's world velocity vb and the world
+    angular velocity wb."""
+    return func_vec3(s.qvel, src, i_b, d0), func_vec3(s.qvel, src, i_b, d0 + 3)
+
+
+@ti.func
+def func_hinge_rate(s: ti.template(), i_b, src, i_l):
+    """With gradients, for a link whose joint is not free: (d0, qd) its dof (a clamped index) and velocity, qd
+    = 0 for a fixed joint (single assignment; a free joint's link is func_free_velocity's)."""
+    d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
+    return d0, s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+
+
+@ti.func
 def func_link_joint_velocity(s: ti.template(), i_b, src, i_l):
-    """The velocity a link's own joint contributes, for the two joint shapes that have dofs:
-    (d0, qd) the dof and velocity of a 1-dof joint (qd = 0 otherwise), and (free, vb, wb) a 0/1 mask
-    and the base-origin world velocity and world angular velocity of a free joint (zero otherwise).
-    Without gradients only the link's own joint type is read (branches are single-assignment's cost
-    only where Taichi's reverse mode needs it)."""
+    """Without gradients, the velocity a link's own joint contributes, for the two joint shapes that have dofs:
+    (d0, qd) the dof and velocity of a 1-dof joint (qd = 0 otherwise), and (free, vb, wb) a 0/1 mask and a free
+    joint's func_free_twist (zero otherwise); only the link's own joint type is read."""
     d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
     nd = s.link_ndof[i_l]
-    if ti.static(s.requires_grad):
-        qd = s.qvel[src, i_b, d0] * ti.cast(nd == 1, s.dtype)
-        free = ti.cast(nd == 6, s.dtype)
-        df = ti.max(ti.min(s.link_dof_start[i_l], s.qvel_len - 6), 0)
-        return d0, qd, free, func_vec3(s.qvel, src, i_b, df), func_vec3(s.qvel, src, i_b, df + 3)
-    else:
-        qd = ti.cast(0.0, s.dtype)
-        free = ti.cast(0.0, s.dtype)
-        vb = ti.Vector.zero(s.dtype, 3)
-        wb = ti.Vector.zero(s.dtype, 3)
-        if nd == 1:
-            qd = s.qvel[src, i_b, d0]
-        elif nd == 6:
-            free = 1.0
-            vb = func_vec3(s.qvel, src, i_b, d0)
-            wb = func_vec3(s.qvel, src, i_b, d0 + 3)
-        return d0, qd, free, vb, wb
+    qd = ti.cast(0.0, s.dtype)
+    free = ti.cast(0.0, s.dtype)
+    vb = ti.Vector.zero(s.dtype, 3)
+    wb = ti.Vector.zero(s.dtype, 3)
+    if nd == 1:
+        qd = s.qvel[src, i_b, d0]
+    elif nd == 6:
+        free = 1.0
+        vb, wb = func_free_twist(s, i_b, src, d0)
+    return d0, qd, free, vb, wb
 
 
 @ti.func
@@ -211,10 +217,9 @@ def func_free_velocity(s: ti.template(), i_b, e, src, h):
     if ti.static(s.requires_grad):
         for t in range(s.n_free_links):
             i_l = s.free_link[t]
-            d0 = s.link_dof_start[i_l]
-            wb = func_vec3(s.qvel, src, i_b, d0 + 3)
+            vb, wb = func_free_twist(s, i_b, src, s.link_dof_start[i_l])
             s.cvel_w[i_b, i_l] = wb
-            s.cvel_v[i_b, i_l] = func_vec3(s.qvel, src, i_b, d0) + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(wb)
+            s.cvel_v[i_b, i_l] = vb + (s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)).cross(wb)
 
 
 @ti.func
@@ -229,8 +234,7 @@ def func_velocity(s: ti.template(), i_b, e, src, h):
         zero = ti.Vector([0.0, 0.0, 0.0], dt=s.dtype)
         if ti.static(s.requires_grad):
             if s.link_jtype[i_l] != JOINT_FREE:
-                d0 = ti.min(s.link_dof_start[i_l], s.qvel_len - 1)
-                qd = s.qvel[src, i_b, d0] * ti.cast(s.link_ndof[i_l] == 1, s.dtype)
+                d0, qd = func_hinge_rate(s, i_b, src, i_l)
                 s.cvel_w[i_b, i_l] = ti.select(has_p, s.cvel_w[i_b, pp], zero) + s.cdof_w[i_b, d0] * qd
                 s.cvel_v[i_b, i_l] = ti.select(has_p, s.cvel_v[i_b, pp], zero) + s.cdof_v[i_b, d0] * qd
         else:
