@@ -17,7 +17,7 @@ import torch
 from solvers.mpm.solver import POOL as SOLVER_POOL, acquire as acquire_solver
 
 from ..errors import GenesisException
-from ..grad.indexing import index_put, raise_if_nan_grad
+from ..grad.indexing import all_finite, index_put, raise_if_nan_grad
 from ..grad.remake import recomposed
 from ..materials import MPM as _MPM_MATERIALS, sand_alpha
 
@@ -361,6 +361,8 @@ class MPMSim:
         """{env: description} of the envs with a particle whose x or v is not finite now (the scene's
         NaN watch, genesis_lite/nan_watch.py, names the step and decides what to do)."""
         x, v = (t.detach() for t in self.state()[:2])
+        if all_finite(x, v):
+            return {}
         bad = ~(torch.isfinite(x).all(-1) & torch.isfinite(v).all(-1))
         out = {}
         if not bool(bad.any()):

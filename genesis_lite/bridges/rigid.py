@@ -25,7 +25,7 @@ from solvers.rigid.solver import RigidSolver
 
 from ..errors import GenesisException
 from ..grad.functions import OutputFunction
-from ..grad.indexing import as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
+from ..grad.indexing import all_finite, as_slices, as_span, incoming_grads, index_put, raise_if_nan_grad
 from ..grad.remake import recomposed
 from ..utils.geom import quat_to_R as _quat_to_R
 
@@ -507,10 +507,18 @@ class RigidSim:
             out[envs[:, None], row, idx[None, :]] = values
         self.ctrl = out
         if mode is not None:
-            m = self.ctrl_mode.clone()
-            m[envs[:, None], idx[None, :]] = mode
-            if not torch.equal(m, self.ctrl_mode):
-                self.ctrl_mode = m
+            # a new tensor when a mode changes (a recorded step keeps the one it ran with: context()); with
+            # every env and a run of dofs, basic slicing: the advanced index took 132 us of a 1,024-env step
+            if full_envs and span is not None:
+                if not bool((self.ctrl_mode[:, span] == mode).all()):
+                    m = self.ctrl_mode.clone()
+                    m[:, span] = mode
+                    self.ctrl_mode = m
+            else:
+                m = self.ctrl_mode.clone()
+                m[envs[:, None], idx[None, :]] = mode
+                if not torch.equal(m, self.ctrl_mode):
+                    self.ctrl_mode = m
         self._ctrl_dirty = True
 
     def set_param(self, name, values, envs, idx):
@@ -589,6 +597,8 @@ class RigidSim:
         """{env: description} of the envs whose state is not finite now, naming the entity and the
         first non-finite entry (the scene's NaN watch, nan_watch.py, names the step and acts)."""
         q, v = (x.detach() for x in self.get_state())
+        if all_finite(q, v):
+            return {}
         bad_q, bad_v = ~torch.isfinite(q), ~torch.isfinite(v)
         bad = bad_q.any(-1) | bad_v.any(-1)
         out = {}

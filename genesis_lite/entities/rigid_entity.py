@@ -16,7 +16,7 @@ import torch
 from solvers.rigid.model import JOINT_NQ, JOINT_NV, EntityModel
 
 from ..errors import GenesisException, GenesisWarning, ZeroGainWarning
-from ..grad.indexing import index_put
+from ..grad.indexing import all_finite, index_put
 from ..grad.remake import derive, recipe
 from ..grad.tensor import wrap
 from ..utils.geom import _unit_quat_to_R as _quat_to_R
@@ -172,6 +172,8 @@ class RigidJoint:
 def _raise_if_not_finite(t, who, what, batched):
     """Refuse NaN / inf in a setter's values, whether or not they require grad (the check reads a
     detached view, so a finite value keeps its autograd history). `t` is (envs, n, ...)."""
+    if all_finite(t):
+        return
     bad = ~torch.isfinite(t.detach())
     if not bool(bad.any()):
         return

@@ -39,9 +39,11 @@ from .schedule import OP_DYN, OP_SOLVE, SPAN_BITS, SPAN_MASK
 SERIAL_MAX_ENVS = 16
 # on the CPU with at most two threads, up to this many (a core's env capacity): see runs_serially
 SERIAL_MAX_ENVS_TWO_THREADS = 512
+# the same for the light kernels (RigidCore.serial_light): state and control copies, the vjp, the integration
+SERIAL_MAX_ENVS_LIGHT = 2048
 
 
-def runs_serially(cap_envs: int) -> bool:
+def runs_serially(cap_envs: int, light: bool = False) -> bool:
     """Whether a core of env capacity cap_envs runs its env loops serially (on the launching thread): up to
     SERIAL_MAX_ENVS envs anywhere; on the CPU with one Taichi thread (GS_NUM_THREADS=1, a torchrun rank's
     share of a 2-core machine) at any env count; with two, up to SERIAL_MAX_ENVS_TWO_THREADS. A serial loop
@@ -56,13 +58,24 @@ def runs_serially(cap_envs: int) -> bool:
     rollout with gradients: 331-344 against 436-459 ms forward, 1,426-1,513 against 2,130-2,180 backward.
     The two compiled codes give the same numbers to rounding (a 32-env contact rollout's gradients within
     6.5e-14 of the largest, 12: tests/test_threads.py). More threads than two: not measured, the old
-    threshold kept."""
+    threshold kept.
+
+    `light`: for the kernels that copy an env's state or controls in or out, the vjp's scalar and the gradient
+    path's integration (a few numbers per dof; RigidCore.serial_light), serial with two threads up to
+    SERIAL_MAX_ENVS_LIGHT envs: a parallel loop's dispatch costs them more than their work. The Panda's rollout
+    with gradients, 100 steps, these kernels serial against parallel (2026-12-05, fresh processes alternated,
+    two sessions of two pairs, the same numbers to the bit): forward 256-275 against 277-321 ms at 1,024 envs,
+    427-503 against 479-542 at 2,048; backward 1,033-1,174 against 1,036-1,261 at 1,024, 2,019-2,431 against
+    2,109-2,401 at 2,048 (within the runs' spread); at 4,096 (one pair) 1,434 / 5,978 against 1,356 / 5,463 ms,
+    hence the cap. The same rollout without gradients (200 steps, the state read every step): within the
+    spread at 1,024 and 2,048 envs."""
     if cap_envs <= SERIAL_MAX_ENVS:
         return True
     cfg = taichi_compat.config()
     if cfg.arch not in (ti.x64, ti.arm64):
         return False
-    return cfg.cpu_max_num_threads == 1 or (cfg.cpu_max_num_threads == 2 and cap_envs <= SERIAL_MAX_ENVS_TWO_THREADS)
+    cap = SERIAL_MAX_ENVS_LIGHT if light else SERIAL_MAX_ENVS_TWO_THREADS
+    return cfg.cpu_max_num_threads == 1 or (cfg.cpu_max_num_threads == 2 and cap_envs <= cap)
 
 
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_free_rot_errors, func_generalized_force)
@@ -154,6 +167,7 @@ class RigidCore:
         self.dtype = f
         self.requires_grad = g
         self.serial = runs_serially(B)
+        self.serial_light = runs_serially(B, light=True)
         self.cap_envs, self.cap_elems = B, N
         self.n_slots, self.n_evals = S, E
         self.scene_cfg = [0] * (N_CFG_I + N_CFG_F)
@@ -460,7 +474,7 @@ class RigidCore:
     @ti.kernel
     def kernel_integrate(self, kind: ti.i32, e: ti.i32, base: ti.i32, src: ti.i32, dst: ti.i32, h: float):
         for stage in ti.static(INTEGRATE):
-            if ti.static(self.serial):
+            if ti.static(self.serial_light):
                 ti.loop_config(serialize=True)
             for i_b in range(self.cap_envs):
                 if i_b < self.n_envs:

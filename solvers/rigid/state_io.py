@@ -18,7 +18,7 @@ from .kinematics import func_point_velocity
 
 @ti.kernel
 def kernel_set_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
-    if ti.static(s.serial):
+    if ti.static(s.serial_light):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
         if i_b < s.n_envs:
@@ -31,7 +31,7 @@ def kernel_set_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
 @ti.kernel
 def kernel_get_state(s: ti.template(), slot: ti.i32, x: ti.types.ndarray()):
     """Read the state in `slot` and make it the current state (slot 0)."""
-    if ti.static(s.serial):
+    if ti.static(s.serial_light):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
         if i_b < s.n_envs:
@@ -49,7 +49,7 @@ def kernel_vjp(s: ti.template(), slot: ti.i32, g: ti.types.ndarray()):
     being the gradient torch hands the step's output state (packed like kernel_get_state). The
     scalar is the core's own, its adjoint seeded to 1 by kernel_clear_grads: the Tape's loss is a torch
     token no kernel reads (genesis_lite/simulator.py tape_loss)."""
-    if ti.static(s.serial):
+    if ti.static(s.serial_light):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
         if i_b < s.n_envs:
@@ -80,7 +80,7 @@ def kernel_get_grads(s: ti.template(), g: ti.types.ndarray()):
 
 @ti.kernel
 def kernel_set_ctrl(s: ti.template(), c: ti.types.ndarray()):
-    if ti.static(s.serial):
+    if ti.static(s.serial_light):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
         if i_b < s.n_envs:
@@ -92,7 +92,7 @@ def kernel_set_ctrl(s: ti.template(), c: ti.types.ndarray()):
 
 @ti.kernel
 def kernel_set_ctrl_mode(s: ti.template(), m: ti.types.ndarray()):
-    if ti.static(s.serial):
+    if ti.static(s.serial_light):
         ti.loop_config(serialize=True)
     for i_b in range(s.cap_envs):
         if i_b < s.n_envs:
