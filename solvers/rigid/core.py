@@ -28,7 +28,7 @@ from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_free_rot_errors, f
 from .bias import BIAS, func_free_gyro
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense, func_tree_env
 from .external import AppliedWrench, func_applied_wrench
-from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_solve_grad
+from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_inertia_adjoint, func_solve_grad
 from .integrate import INTEGRATE
 from .kinematics import (KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_free_pose,
                          func_world_inertia)
@@ -556,6 +556,15 @@ class RigidCore:
             for i_b in range(self.cap_envs):
                 if i_b < self.n_envs:
                     stage(self, i_b, 0, src, 0.0)
+
+    @ti.kernel
+    def kernel_inertia_adjoint(self):
+        """The written-out adjoint of the INERTIA stages (inertia.func_inertia_adjoint; solver.HAND_ADJOINTS)."""
+        if ti.static(self.serial):
+            ti.loop_config(serialize=True)
+        for i_b in range(self.cap_envs):
+            if i_b < self.n_envs:
+                func_inertia_adjoint(self, i_b)
 
     @ti.kernel
     def kernel_clear_grads(self):

@@ -81,6 +81,65 @@ def func_composite_inertia(s: ti.template(), i_b, e, src, h):
 
 
 @ti.func
+def func_inertia_adjoint(s: ti.template(), i_b):
+    """The adjoint of the four INERTIA stages of env i_b, written out (solver.HAND_ADJOINTS), with plain adds (an
+    env is one thread's; Taichi's adjoints of these stages, compare-and-swap adds in a parallel loop, took 294 +
+    410 + 409 + 410 us a step at 1,024 envs: benchmarks/results/grad.md). Each store's adjoint reads the stored
+    field's adjoint and zeroes it, as Taichi's does, and adds into the adjoints of what the stage read:
+    - func_mass_matrix, M[i, j] = cdof_w[j] . n[i] + cdof_v[j] . f[i]: n[i], f[i] and cdof[j] get g cdof[j] and
+      g (n[i], f[i]), g = M's adjoint (the diagonal's too: func_generalized_force's adds to it are read, not
+      stored, by its adjoint, which ran before);
+    - func_dof_momentum, (n, f) = I (w, v) = (J w + h x v, m v + w x h) with I = crb of the dof's link: m gets
+      f' . v, h gets f' x w + v x n', J gets n' w^T, w gets h x f' + J^T n', v gets m f' + n' x h;
+    - func_composite_inertia and func_link_inertia: crb[l] is the sum of the links' own inertias over l's
+      subtree, so link l's own (link_mass, link_h, link_J) gets G[l] = crb'[l] + G[parent], one pass in link
+      order (parents come first), G kept in crb's adjoints for the children, which are zeroed after."""
+    for t in range(s.n_anc):
+        i = s.anc_i[t]
+        j = s.anc_j[t]
+        g = s.mass_mat.grad[i_b, i, j]
+        s.mass_mat.grad[i_b, i, j] = ti.cast(0, s.dtype)
+        s.dof_n.grad[i_b, i] = s.dof_n.grad[i_b, i] + g * s.cdof_w[i_b, j]
+        s.dof_f.grad[i_b, i] = s.dof_f.grad[i_b, i] + g * s.cdof_v[i_b, j]
+        s.cdof_w.grad[i_b, j] = s.cdof_w.grad[i_b, j] + g * s.dof_n[i_b, i]
+        s.cdof_v.grad[i_b, j] = s.cdof_v.grad[i_b, j] + g * s.dof_f[i_b, i]
+    for i in range(s.n_dofs):
+        i_l = s.dof_link[i]
+        gn = s.dof_n.grad[i_b, i]
+        gf = s.dof_f.grad[i_b, i]
+        s.dof_n.grad[i_b, i] = ti.Vector.zero(s.dtype, 3)
+        s.dof_f.grad[i_b, i] = ti.Vector.zero(s.dtype, 3)
+        w = s.cdof_w[i_b, i]
+        v = s.cdof_v[i_b, i]
+        h = s.crb_h[i_b, i_l]
+        J = s.crb_J[i_b, i_l]
+        s.crb_m.grad[i_b, i_l] = s.crb_m.grad[i_b, i_l] + gf.dot(v)
+        s.crb_h.grad[i_b, i_l] = s.crb_h.grad[i_b, i_l] + gf.cross(w) + v.cross(gn)
+        s.crb_J.grad[i_b, i_l] = s.crb_J.grad[i_b, i_l] + gn.outer_product(w)
+        s.cdof_w.grad[i_b, i] = s.cdof_w.grad[i_b, i] + h.cross(gf) + J.transpose() @ gn
+        s.cdof_v.grad[i_b, i] = s.cdof_v.grad[i_b, i] + s.crb_m[i_b, i_l] * gf + gn.cross(h)
+    for i_l in range(s.n_links):
+        p = s.link_parent[i_l]
+        gm = s.crb_m.grad[i_b, i_l]
+        gh = s.crb_h.grad[i_b, i_l]
+        gJ = s.crb_J.grad[i_b, i_l]
+        if p >= 0:
+            gm += s.crb_m.grad[i_b, p]
+            gh += s.crb_h.grad[i_b, p]
+            gJ += s.crb_J.grad[i_b, p]
+            s.crb_m.grad[i_b, i_l] = gm
+            s.crb_h.grad[i_b, i_l] = gh
+            s.crb_J.grad[i_b, i_l] = gJ
+        s.link_mass.grad[i_b, i_l] = s.link_mass.grad[i_b, i_l] + gm
+        s.link_h.grad[i_b, i_l] = s.link_h.grad[i_b, i_l] + gh
+        s.link_J.grad[i_b, i_l] = s.link_J.grad[i_b, i_l] + gJ
+    for i_l in range(s.n_links):
+        s.crb_m.grad[i_b, i_l] = ti.cast(0, s.dtype)
+        s.crb_h.grad[i_b, i_l] = ti.Vector.zero(s.dtype, 3)
+        s.crb_J.grad[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+
+
+@ti.func
 def func_dof_momentum(s: ti.template(), i_b, e, src, h):
     """The spatial force (n, f) = I_c cdof_i of each dof i, I_c the composite inertia of its link: the
     column of M below it is its dot product with the ancestors' cdofs (computed once per dof, not once

@@ -10,7 +10,8 @@ whose forward runs each env's stages in turn in one loop over the envs (core.ker
 adjoint, registered with `ti.ad.grad_for`, recomputes the evaluation's scratch when a later one
 has overwritten it, runs the hand-written adjoint of the factor-solve and then Taichi's adjoint of the
 dynamics' stages as separate loops (kernel_dynamics_part, in the kernels of adjoint_groups: the same
-numbers); integration kernels are recorded as they are.
+numbers), but for the inertia stages, whose adjoint is written out (HAND_ADJOINTS); integration kernels are
+recorded as they are.
 
 A scene with collision pairs (or with external wrenches, external.py) runs its dynamics on a SceneCore
 (core.py) that adds those stages to the core's. The contact solver's fields are sized by a contact
@@ -41,7 +42,7 @@ from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIM
                    elem_capacity, env_capacity, with_applied)
 from .external import ExternalWrench
 from .flatten import FlatModel
-from .inertia import TreeSchedule
+from .inertia import INERTIA, TreeSchedule
 from .kinematics import JOINT_FREE, LINK_STATE
 from .model import EntityModel
 from .pool import POOL
@@ -56,13 +57,19 @@ SPECIALIZE_MIN_ENVS = 512
 # stages whose adjoint runs in the kernel of the stage before them (RigidSolver._evaluation_unit): the generalised
 # force, whose adjoint alone left ~1e-250 in an env outside the loss, and the free joints' rotation errors it reads
 MERGED_STAGES = (func_free_rot_errors, func_generalized_force)
+# runs of consecutive stages whose adjoint is written out, and the core's kernel that runs it, instead of Taichi's:
+# in a parallel loop Taichi's adjoints add with compare-and-swap loops, these with plain adds (the inertia stages:
+# 663 us a step at 1,024 envs against ~1,240, benchmarks/results/grad.md; tests/test_autodiff_rules.py holds
+# each against Taichi's adjoint of the same stages)
+HAND_ADJOINTS = {INERTIA: "kernel_inertia_adjoint"}
 
 
 def adjoint_groups(stages):
-    """The kernels that run the adjoint of a dynamics' stages, last first, as (k0, k1, plain): each the adjoint of
-    kernel_dynamics_part(k0, k1), stages k0..k1-1 as separate loops in one kernel, for a run of consecutive stages
+    """The kernels that run the adjoint of a dynamics' stages, last first, as (k0, k1, plain, hand): each the adjoint
+    of kernel_dynamics_part(k0, k1), stages k0..k1-1 as separate loops in one kernel, for a run of consecutive stages
     with an adjoint (NO_ADJOINT stages are left out) and the same PLAIN_ADJOINT flag (the compile option differs);
-    a MERGED_STAGES stage stays with the stage before it. The Panda's 15 stages take 4 kernels, not 13 (one per
+    a MERGED_STAGES stage stays with the stage before it. A run of HAND_ADJOINTS is a group of its own whose `hand`
+    names the core's kernel that runs its written-out adjoint (None for the others). The Panda's 15 stages take 4 kernels, not 13 (one per
     stage but the merged ones, as before 2026-12-02): the same gradients to the bit (trajectory_fingerprint.py),
     its 1-env backward of 100 steps 42.6-44.1 -> 32.4-34.3 ms (each launch costs ~10 us of Python and Taichi),
     1,024 envs 1357-1386 -> 1300-1312 ms, the same cold compile (a fresh process's first rollout 6.6 s against
@@ -72,16 +79,26 @@ def adjoint_groups(stages):
     Listed in reverse order, such a kernel's adjoint gives these groups' gradients (to the bit on the Panda alone,
     within 4e-14 relative over a plane), but no faster: 1,024 envs, backward one body / separate loops 0.986,
     median of 8 pairs in one process, 2026-12-04.)"""
+    def hand_at(k):
+        return next(((len(run), name) for run, name in HAND_ADJOINTS.items() if tuple(stages[k:k + len(run)]) == run),
+                    (0, None))
+
     groups, k, n = [], 0, len(stages)
     while k < n:
         if stages[k] in NO_ADJOINT:
             k += 1
             continue
+        m, name = hand_at(k)
+        if name is not None:
+            groups.append((k, k + m, True, name))
+            k += m
+            continue
         plain = stages[k] in PLAIN_ADJOINT
         j = k + 1
-        while j < n and stages[j] not in NO_ADJOINT and ((stages[j] in PLAIN_ADJOINT) == plain or stages[j] in MERGED_STAGES):
+        while (j < n and stages[j] not in NO_ADJOINT and hand_at(j)[1] is None
+               and ((stages[j] in PLAIN_ADJOINT) == plain or stages[j] in MERGED_STAGES)):
             j += 1
-        groups.append((k, j, all(f in PLAIN_ADJOINT for f in stages[k:j])))
+        groups.append((k, j, all(f in PLAIN_ADJOINT for f in stages[k:j]), None))
         k = j
     return groups[::-1]
 
@@ -444,7 +461,11 @@ class RigidSolver:
             if self._scratch != (e, src, h, target):
                 forward(target, e, src, h)
             target.kernel_solve_grad(e)
-            for k0, k1, plain in parts:
+            for k0, k1, plain, hand in parts:
+                if hand is not None:
+                    with ForwardCompile():  # a primal kernel (nothing differentiates it)
+                        getattr(target, hand)()
+                    continue
                 with AdjointCompile(plain):
                     target.kernel_dynamics_part.grad(k0, k1, e, src, h)
 
