@@ -9,6 +9,7 @@ import functools
 
 import taichi as ti
 
+from .layout import func_set_zero
 from .math3d import func_add, func_inertia_mul
 
 LOCAL_SOLVE_MAX = 16  # element capacity up to which the no-gradient factor-solve runs on local copies
@@ -98,7 +99,7 @@ def func_inertia_adjoint(s: ti.template(), i_b):
         i = s.anc_i[t]
         j = s.anc_j[t]
         g = s.mass_mat.grad[i_b, i, j]
-        s.mass_mat.grad[i_b, i, j] = ti.cast(0, s.dtype)
+        func_set_zero(s.mass_mat.grad, (i_b, i, j))
         s.dof_n.grad[i_b, i] = s.dof_n.grad[i_b, i] + g * s.cdof_w[i_b, j]
         s.dof_f.grad[i_b, i] = s.dof_f.grad[i_b, i] + g * s.cdof_v[i_b, j]
         s.cdof_w.grad[i_b, j] = s.cdof_w.grad[i_b, j] + g * s.dof_n[i_b, i]
@@ -107,8 +108,8 @@ def func_inertia_adjoint(s: ti.template(), i_b):
         i_l = s.dof_link[i]
         gn = s.dof_n.grad[i_b, i]
         gf = s.dof_f.grad[i_b, i]
-        s.dof_n.grad[i_b, i] = ti.Vector.zero(s.dtype, 3)
-        s.dof_f.grad[i_b, i] = ti.Vector.zero(s.dtype, 3)
+        func_set_zero(s.dof_n.grad, (i_b, i))
+        func_set_zero(s.dof_f.grad, (i_b, i))
         w = s.cdof_w[i_b, i]
         v = s.cdof_v[i_b, i]
         h = s.crb_h[i_b, i_l]
@@ -134,9 +135,8 @@ def func_inertia_adjoint(s: ti.template(), i_b):
         s.link_h.grad[i_b, i_l] = s.link_h.grad[i_b, i_l] + gh
         s.link_J.grad[i_b, i_l] = s.link_J.grad[i_b, i_l] + gJ
     for i_l in range(s.n_links):
-        s.crb_m.grad[i_b, i_l] = ti.cast(0, s.dtype)
-        s.crb_h.grad[i_b, i_l] = ti.Vector.zero(s.dtype, 3)
-        s.crb_J.grad[i_b, i_l] = ti.Matrix.zero(s.dtype, 3, 3)
+        for x in ti.static((s.crb_m.grad, s.crb_h.grad, s.crb_J.grad)):
+            func_set_zero(x, (i_b, i_l))
 
 
 @ti.func
