@@ -218,43 +218,151 @@ def test_func_add_is_plain_in_the_primal_and_differentiable_in_the_adjoint(field
     np.testing.assert_allclose(grad, exact, rtol=1e-13, atol=1e-13)
 
 
-def test_written_out_inertia_adjoint_matches_taichis():
-    """solver.HAND_ADJOINTS: the written-out adjoint of the INERTIA stages (core.kernel_inertia_adjoint) against
-    Taichi's adjoint of the same stages (kernel_dynamics_part(k, k + 4).grad), on the skewed arm (offset centres of
-    mass, rotated non-diagonal inertia, skewed axes) in 3 envs at a random state, from random adjoints in every
-    field the stages write or read: the same adjoints to rounding, the stored fields' adjoints zeroed alike."""
+HAND_RUNS = ["inertia", "kinematics_inertia", "link_state", "forces", "accumulate_project", "generalized",
+             "generalized_springs_implicitfast", "generalized_euler", "before_applied", "after_applied", "dynamics"]
+
+
+def _hand_adjoint_scene(integrator, springs):
+    """A scene with every joint type and three trees: the skewed arm (offset centres of mass, rotated non-diagonal
+    inertia, skewed axes) on a free base whose quaternion is not of unit norm, spinning at 1, 150 and 300 rad/s in
+    the three envs (the implicit gyroscopic moment's theta at 1/2, on its smooth step and at 1), the mimic gripper
+    (prismatic fingers) and the small arm (a fixed joint), both fixed; a random state, random gains, damping,
+    friction losses, springs, force limits that saturate some dofs, every control mode, joints past their limits,
+    and in env 2 the free base's position target at its own orientation (the rotation error's series branch).
+    Returns the core after an evaluation at slot 0 (h = 0.01)."""
     import genesis_lite as gs
     from gradient_cases import URDF_DIR
-    from solvers.rigid.core import DYNAMICS
+
+    rigid = dict(integrator=getattr(gs.integrator, integrator))
+    if springs:
+        rigid["joint_limit_stiffness"] = 3e3
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True),
+                     rigid_options=gs.options.RigidOptions(**rigid), show_viewer=False)
+    scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "skew_arm.urdf"), fixed=False, pos=(0.3, -0.2, 1.0)))
+    scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "mimic_gripper.urdf"), fixed=True, pos=(1.0, 0.5, 0.5)))
+    scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "arm.urdf"), fixed=True, pos=(-1.0, 0.2, 0.3)))
+    scene.build(n_envs=3)
+    solver = scene.rigid_solver
+    core = solver.core
+    rng = np.random.default_rng(7)
+    nq, nv = solver.n_qs, solver.n_dofs
+
+    def update(field, fn):
+        x = field.to_numpy()
+        fn(x)
+        field.from_numpy(x)
+
+    def state(qpos):
+        qpos[0, :3, :nq] += rng.uniform(-0.8, 0.8, (3, nq))
+        qpos[0, :3, 3:7] = rng.uniform(-1.0, 1.0, (3, 4)) * 1.3  # the free base's quaternion, not normalised
+        dof_q, lo, hi = core.dof_q.to_numpy(), core.dof_limit_lo.to_numpy(), core.dof_limit_hi.to_numpy()
+        for d in range(nv):  # some joints past a limit: by up to 3 cm or rad, or within the impedance's width
+            if dof_q[d] >= 0 and np.isfinite(lo[d]) and rng.uniform() < 0.6:
+                depth = np.where(rng.uniform(size=2) < 0.5, 0.03, 1.2e-3) * rng.uniform(-1.0, 1.0, 2)
+                qpos[0, :2, dof_q[d]] = np.where(rng.uniform(size=2) < 0.5, lo[d], hi[d]) + depth
+    update(core.qpos, state)
+
+    def velocity(qvel):
+        qvel[0, :3, :nv] = rng.uniform(-2.0, 2.0, (3, nv))
+        spin = rng.standard_normal((3, 3))
+        qvel[0, :3, 3:6] = spin / np.linalg.norm(spin, axis=1, keepdims=True) * np.array([[1.0], [150.0], [300.0]])
+    update(core.qvel, velocity)
+    for name, lo_, hi_ in (("ctrl_force", -5, 5), ("ctrl_vel", -1, 1), ("dof_kp", 10, 200), ("dof_kv", 1, 20),
+                           ("dof_damping", 0.1, 2), ("dof_frictionloss", 0.0, 0.5), ("dof_stiffness", 0.0, 30)):
+        update(getattr(core, name), lambda x, a=lo_, b=hi_: x.__setitem__((slice(0, 3), slice(0, nv)),
+                                                                           rng.uniform(a, b, (3, nv))))
+    update(core.ctrl_mode, lambda x: x.__setitem__((slice(0, 3), slice(0, nv)), rng.integers(0, 3, (3, nv))))
+    update(core.dof_force_lo, lambda x: x.__setitem__((slice(0, 3), slice(0, nv)), -rng.uniform(2, 60, (3, nv))))
+    update(core.dof_force_hi, lambda x: x.__setitem__((slice(0, 3), slice(0, nv)), rng.uniform(2, 60, (3, nv))))
+
+    def targets(ctrl_pos):
+        ctrl_pos[:3, :nv] = rng.uniform(-1.0, 1.0, (3, nv))
+        q = core.qpos.to_numpy()[0, 2, 3:7]
+        w, x, y, z = q / np.linalg.norm(q)
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        # intrinsic x-y-z Euler angles of R = Rx(a) Ry(b) Rz(c)
+        ctrl_pos[2, 3:6] = np.arctan2(-R[1, 2], R[2, 2]), np.arcsin(R[0, 2]), np.arctan2(-R[0, 1], R[0, 0])
+    update(core.ctrl_pos, targets)
+    update(core.ctrl_mode, lambda x: x.__setitem__((2, slice(3, 6)), 1))  # env 2's base under position control
+    core.kernel_evaluate(0, 0, 0.01)
+    return core, rng
+
+
+@pytest.mark.parametrize("run", HAND_RUNS)
+def test_written_out_adjoints_match_taichis(run):
+    """solver.HAND_ADJOINTS: the written-out adjoints (core.kernel_hand_adjoint) against Taichi's adjoints of the same
+    stages (kernel_dynamics_part(k0, k1).grad, in the groups adjoint_groups made before they were written out), in 3
+    envs (_hand_adjoint_scene), from random adjoints in every field the stages write or read: the same adjoints to
+    rounding, the stored fields' adjoints zeroed alike. `run`: the INERTIA stages, KINEMATICS + INERTIA, LINK_STATE
+    (the getters'), the link forces with the gyroscopic moments, the forces' accumulation and projection, the
+    generalised force with the free joint's rotation error (with each integrator's implicit terms, the limit
+    constraint and the limit springs), the two runs a scene with applied wrenches takes, and all the dynamics'
+    stages (the runs HAND_ADJOINTS lists)."""
+    from solvers.rigid.bias import BIAS
+    from solvers.rigid.core import DYNAMICS, LINK_STATE_ADJOINT, PLAIN_ADJOINT, HandAdjoint
     from solvers.rigid.inertia import INERTIA
-    from solvers.rigid.solver import HAND_ADJOINTS
+    from solvers.rigid.kinematics import KINEMATICS, LINK_STATE
+    from solvers.rigid.solver import HAND_ADJOINTS, MERGED_STAGES as GENERALIZED
     from solvers.taichi_compat.compile_options import AdjointCompile
 
-    assert HAND_ADJOINTS[INERTIA] == "kernel_inertia_adjoint"
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=0.01, requires_grad=True), show_viewer=False)
-    arm = scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "skew_arm.urdf"), fixed=True))
-    scene.build(n_envs=3)
-    rng = np.random.default_rng(7)
-    arm.set_dofs_position(rng.uniform(-1.5, 1.5, (3, arm.n_dofs)))
-    arm.set_dofs_velocity(rng.uniform(-2.0, 2.0, (3, arm.n_dofs)))
-    arm.get_links_pos()  # the state into the core's slot 0
-    core = scene.rigid_solver.core
-    core.kernel_evaluate(0, 0, 0.01)
-    fs = [core.mass_mat, core.dof_n, core.dof_f, core.crb_m, core.crb_h, core.crb_J, core.link_mass, core.link_h,
-          core.link_J, core.cdof_w, core.cdof_v]
+    ki, kb, kg = DYNAMICS.index(INERTIA[0]), DYNAMICS.index(BIAS[0]), DYNAMICS.index(GENERALIZED[0])
+    assert DYNAMICS == KINEMATICS + INERTIA + BIAS + GENERALIZED
+    integrator = {"generalized_springs_implicitfast": "implicitfast", "generalized_euler": "Euler"}.get(
+        run, "approximate_implicitfast")
+    core, rng = _hand_adjoint_scene(integrator, springs=run == "generalized_springs_implicitfast")
+    h = 0.01
+    inertia = ["mass_mat", "dof_n", "dof_f", "crb_m", "crb_h", "crb_J", "link_mass", "link_h", "link_J", "cdof_w",
+               "cdof_v"]
+    link_state = ["link_pos", "link_quat", "link_R", "cdof_w", "cdof_v", "cvel_w", "cvel_v", "qpos", "qvel"]
+    kinematics = link_state + ["link_cpos", "link_h", "link_J", "cdofd_w", "cdofd_v", "link_mass", "link_com",
+                               "link_inertia"]
+    forces = ["cfrc_n", "cfrc_f", "cacc_w", "cacc_v", "gravity", "link_mass", "link_h", "link_J", "cvel_w", "cvel_v",
+              "cdofd_w", "cdofd_v", "qvel"]
+    project = ["bias", "cfrc_n", "cfrc_f", "cdof_w", "cdof_v"]
+    generalized = ["force", "dof_lim_f", "dof_lim_D", "mass_mat", "qpos", "qvel", "dof_stiffness", "dof_armature",
+                   "bias", "ctrl_force", "ctrl_vel", "ctrl_pos", "dof_kp", "dof_kv", "dof_damping",
+                   "dof_frictionloss", "dof_rot_err"]
+    if integrator != "Euler" and run != "generalized_springs_implicitfast":
+        generalized.append("dof_invweight")  # (the limit constraint's; springs have none, Euler damps nothing)
+    kin_inertia = inertia[:6] + kinematics
+    gen = (generalized, [(kg, kg + 2)], HandAdjoint(generalized=True))
+    cases = {  # the fields, Taichi's groups (last first), the written-out adjoint
+        "inertia": (inertia, [(ki, ki + 4)], HandAdjoint(inertia=True)),
+        "kinematics_inertia": (kin_inertia, [(ki + 2, ki + 4), (0, ki + 2)], HandAdjoint(kinematics=True, inertia=True)),
+        "link_state": (link_state, [(0, len(LINK_STATE))], LINK_STATE_ADJOINT),
+        "forces": (forces, [(kb, kb + 2)], HandAdjoint(forces=True)),
+        "accumulate_project": (project, [(kb + 3, kb + 4), (kb + 2, kb + 3)],
+                               HandAdjoint(accumulate=True, project=True)),
+        "generalized": gen, "generalized_springs_implicitfast": gen, "generalized_euler": gen,
+        "before_applied": (kin_inertia + forces, [(kb, kb + 2), (ki + 2, ki + 4), (0, ki + 2)],
+                           HAND_ADJOINTS[KINEMATICS + INERTIA + BIAS[:2]]),
+        "after_applied": (project + generalized, [(kb + 3, kg + 2), (kb + 2, kb + 3)],
+                          HAND_ADJOINTS[BIAS[2:] + GENERALIZED]),
+        "dynamics": (kin_inertia + forces + project + generalized,
+                     [(kb + 3, kg + 2), (kb, kb + 3), (ki + 2, ki + 4), (0, ki + 2)], HAND_ADJOINTS[DYNAMICS]),
+    }
+    names, groups, spec = cases[run]
+    names = list(dict.fromkeys(names))
+    fs = [getattr(core, n) for n in names]
     seeds = [rng.standard_normal(f.grad.to_numpy().shape) for f in fs]
 
-    def adjoints(run):
+    def adjoints(launch):
         for f, x in zip(fs, seeds):
             f.grad.from_numpy(x)
-        run()
+        launch()
         return [f.grad.to_numpy() for f in fs]
 
-    k = DYNAMICS.index(INERTIA[0])
-    with AdjointCompile(False):
-        taichi = adjoints(lambda: core.kernel_dynamics_part.grad(k, k + len(INERTIA), 0, 0, 0.01))
-    hand = adjoints(core.kernel_inertia_adjoint)
-    names = ["mass_mat", "dof_n", "dof_f", "crb_m", "crb_h", "crb_J", "link_mass", "link_h", "link_J", "cdof_w", "cdof_v"]
+    def taichi_adjoints():
+        for k0, k1 in groups:  # each group's stages under its compile option
+            with AdjointCompile(all(f in PLAIN_ADJOINT for f in DYNAMICS[k0:k1])):
+                core.kernel_dynamics_part.grad(k0, k1, 0, 0, h)
+
+    taichi = adjoints(taichi_adjoints)
+    hand = adjoints(lambda: core.hand_adjoint(spec, 0, 0, h))
     for name, a, b, x in zip(names, taichi, hand, seeds):
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * np.abs(a).max(), err_msg=name)
-        assert np.abs(b - x).max() > 0.1  # every field's adjoint took part
+        if not (run in ("generalized", "generalized_springs_implicitfast", "generalized_euler", "after_applied")
+                and name == "mass_mat"):  # (its diagonal's adjoint is only read)
+            assert np.abs(b - x).max() > 0.1, name  # every field's adjoint took part

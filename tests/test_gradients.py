@@ -519,3 +519,53 @@ def test_parameters_across_rollouts(arm_env):
     scene.reset()
     arm.set_links_mass(mass0)
     arm.set_dofs_damping(torch.zeros(arm.n_dofs, **F64))
+
+
+# ----------------------------------------------------------------------------- clearing the adjoints
+@pytest.mark.parametrize("integrator", [None, gs.integrator.RK4])
+def test_clearing_only_the_inputs_adjoints_gives_the_full_clears_gradients(integrator):
+    """RigidSolver.clear_grads zeroes the per-evaluation scratch's adjoints only when they may not be zero already:
+    after a backward every one of them is exactly zero (the written-out adjoints zero what they read, after the
+    contact stages' adjoints added to them), and a rollout's gradients with the light clear are those with every
+    clear full, to the bit. The skewed arm on a free base, its base 4 mm into a plane and moving down (contacts at
+    every step), 3 envs, PD control towards targets, gradients to the start velocities, the targets and the gains, a loss
+    on the links' poses and velocities at every step."""
+    from gradient_cases import URDF_DIR
+    scene = make_scene(integrator=integrator)
+    scene.add_entity(gs.morphs.Plane())
+    arm = scene.add_entity(gs.morphs.URDF(file=str(URDF_DIR / "skew_arm.urdf"), fixed=False, pos=(0.0, 0.0, -0.004)))
+    scene.build(n_envs=3)
+    solver = scene.rigid_solver
+    rng = np.random.default_rng(11)
+    v0 = torch.tensor(rng.uniform(-1.0, 1.0, (3, arm.n_dofs)), **F64)
+    v0[:, 2] = -0.3
+    target = torch.tensor(rng.uniform(-0.5, 0.5, (3, arm.n_dofs - 6)), **F64)
+    kp = torch.tensor(rng.uniform(20.0, 80.0, (3, arm.n_dofs - 6)), **F64)
+    hinges = list(range(6, arm.n_dofs))
+    clears = []
+    kernel = solver.step_core.kernel_clear_grads
+    solver.step_core.kernel_clear_grads = lambda scratch: (clears.append(scratch), kernel(scratch))[1]
+
+    def gradients(light):
+        solver.light_clear = light
+        leaves = [x.clone().requires_grad_() for x in (v0, target, kp)]
+        scene.reset()
+        arm.set_dofs_velocity(leaves[0])
+        arm.set_dofs_kp(leaves[2], dofs_idx_local=hinges)
+        arm.control_dofs_position(leaves[1], dofs_idx_local=hinges)
+        loss = 0.0
+        for _ in range(4):
+            scene.step()
+            loss = loss + (arm.get_links_pos() ** 2).sum() + 0.1 * (arm.get_links_vel() ** 2).sum()
+            assert (arm.get_links_pos()[:, 0, 2] > -0.006).all()  # held up by the plane (falling: below -0.0079)
+        del clears[:]
+        loss.backward()
+        for g in solver.core.scratch_grads:
+            assert np.all(g.to_numpy() == 0.0), g  # nothing left for the next backward to find
+        return [x.grad for x in leaves], list(clears)
+
+    full, full_clears = gradients(False)
+    light, light_clears = gradients(True)
+    assert solver.contact is not None and all(full_clears) and not all(light_clears)  # (the first clear is full)
+    for a, b in zip(full, light):
+        assert a.abs().max() > 0 and torch.equal(a, b)

@@ -26,8 +26,9 @@ velocity mode keeps its own control instead of being given the PD torque too.
 """
 import taichi as ti
 
-from .kinematics import JOINT_FREE
-from .math3d import func_add2, func_euler_xyz_quat, func_quat_log, func_quat_mul
+from .kinematics import JOINT_FREE, func_take
+from .math3d import (func_add2, func_euler_xyz_quat, func_euler_xyz_quat_adjoint, func_quat_log, func_quat_log_adjoint,
+                     func_quat_mul, func_quat_mul_adjoint)
 
 CTRL_FORCE, CTRL_POSITION, CTRL_VELOCITY = 0, 1, 2
 FRICTIONLOSS_VEL = 1e-2  # m/s or rad/s: velocity scale of the smooth tanh friction loss
@@ -267,3 +268,159 @@ def func_generalized_force(s: ti.template(), i_b, e, src, h):
         diag = s.dof_armature[i_b, i_d] + h * D + h * h * K + con_D
         func_add2(s, s.mass_mat, i_b, i_d, i_d, diag)
 
+
+
+@ti.func
+def func_limit_constraint_adjoint(s: ti.template(), i_b, i_d, q, v, lo, hi, gf, gD):
+    """The adjoint of func_limit_constraint for an active constraint (its results' adjoints gf, gD; j has none):
+    (q's, v's), the inverse weight's added to its field; differentiated as written (a clamp passes the adjoint
+    where its argument is the one kept, as Taichi's max and min do)."""
+    d_lo = q - lo
+    d_hi = hi - q
+    d = ti.min(d_lo, d_hi)
+    j = ti.select(d_lo < d_hi, 1.0, -1.0)
+    dmin, dmax, width, mid, power = (s.dof_imp[i_d][0], s.dof_imp[i_d][1], s.dof_imp[i_d][2], s.dof_imp[i_d][3],
+                                     s.dof_imp[i_d][4])
+    xr = ti.max(-d, 0.0) / width
+    x = ti.min(xr, 1.0)
+    low = x < mid
+    wz = ti.select(low, x, 1.0 - x)
+    z = ti.pow(wz, power)
+    y = ti.select(low, z * s.dof_imp[i_d][5], 1.0 - z * s.dof_imp[i_d][6])
+    imp = dmin + y * (dmax - dmin)
+    b, k = s.dof_lim_b[i_d], s.dof_lim_k[i_d]
+    aref = -b * j * v - k * imp * d
+    invw = s.dof_invweight[i_b, i_d]
+    u = invw * (1.0 - imp) / imp
+    um = ti.max(u, LIMIT_MIN_DIAG)
+    D = 1.0 / um
+    # f = j D aref
+    garef = gf * j * D
+    gDt = gf * j * aref + gD
+    gu = ti.select(u >= LIMIT_MIN_DIAG, -gDt / (um * um), 0.0)
+    s.dof_invweight.grad[i_b, i_d] = s.dof_invweight.grad[i_b, i_d] + gu * (1.0 - imp) / imp
+    gimp = gu * (-invw / (imp * imp)) - garef * k * d
+    gv = -garef * b * j
+    gd = -garef * k * imp
+    gy = gimp * (dmax - dmin)
+    gz = ti.select(low, gy * s.dof_imp[i_d][5], -gy * s.dof_imp[i_d][6])
+    gwz = gz * power * ti.pow(wz, power - 1.0)
+    gx = ti.select(low, gwz, -gwz)
+    gd -= ti.select(xr <= 1.0 and -d >= 0.0, gx / width, 0.0)
+    gq = ti.select(d_lo <= d_hi, gd, -gd)
+    return gq, gv
+
+
+@ti.func
+def func_generalized_force_adjoint(s: ti.template(), i_b, src, h):
+    """The adjoint of func_generalized_force then of func_free_rot_errors (grad path), written out
+    (solver.HAND_ADJOINTS), plain adds: per dof, the force's and the limit constraint's stored adjoints read and
+    zeroed (as Taichi's store adjoints do), M's diagonal adjoint read (its term is added, not stored: the mass
+    matrix's store adjoint zeroes it later), differentiated as written; then each free joint's rotation error."""
+    for i_d in range(s.n_dofs):
+        gF = func_take(s.force, i_b, i_d)
+        gLf = func_take(s.dof_lim_f, i_b, i_d)
+        gLD = func_take(s.dof_lim_D, i_b, i_d)
+        gM = s.mass_mat.grad[i_b, i_d, i_d]
+        v = s.qvel[src, i_b, i_d]
+        i_q = s.dof_q[i_d]
+        has_q = ti.cast(i_q >= 0, s.dtype)
+        q = s.qpos[src, i_b, ti.max(i_q, 0)] * has_q
+        i_l = s.dof_link[i_d]
+        k = i_d - s.link_dof_start[i_l]
+        is_free = s.link_jtype[i_l] == JOINT_FREE
+        free_lin = is_free and k < 3
+        free_rot = is_free and k >= 3
+        i_lin = ti.min(s.link_q_start[i_l] + k, s.qpos_len - 1)
+        q_lin = ti.select(free_lin, s.qpos[src, i_b, i_lin], q)
+        mode = s.ctrl_mode[i_b, i_d]
+        pos_mode = ti.cast(mode == CTRL_POSITION, s.dtype)
+        vel_mode = ti.cast(mode == CTRL_VELOCITY, s.dtype)
+        force_mode = 1.0 - pos_mode - vel_mode
+        kp = s.dof_kp[i_b, i_d] * pos_mode
+        kv = s.dof_kv[i_b, i_d] * (pos_mode + vel_mode)
+        err = ti.select(free_rot, s.dof_rot_err[i_b, i_d], s.ctrl_pos[i_b, i_d] - q_lin)
+        raw = force_mode * s.ctrl_force[i_b, i_d] + kp * err + kv * (s.ctrl_vel[i_b, i_d] - v)
+        lo = s.dof_force_lo[i_b, i_d]
+        hi = s.dof_force_hi[i_b, i_d]
+        free_act = ti.cast(raw >= lo and raw <= hi, s.dtype)
+        fl = s.dof_frictionloss[i_b, i_d]
+        th = ti.tanh(v / FRICTIONLOSS_VEL)
+        damp = s.dof_damping[i_b, i_d]
+        stiff = s.dof_stiffness[i_b, i_d]
+        lim_lo = s.dof_limit_lo[i_d]
+        lim_hi = s.dof_limit_hi[i_d]
+        springs = s.limits_on == LIMITS_SPRING
+        below = springs and i_q >= 0 and q < lim_lo
+        above = springs and i_q >= 0 and q > lim_hi
+        lim_K = ti.select(below or above, s.limit_k, 0.0)
+        ion = s.implicit_on
+        kvo = s.implicit_kv_only
+        K = lim_K + ion * (1.0 - kvo) * kp * free_act
+        # force = tau - damp v - spring - fl th - bias + lim_f + con_f - h K v; M_ii += arm + h D + h^2 K + con_D
+        gK = -gF * h * v + gM * h * h
+        gD = gM * h
+        gv = gF * (-damp - h * K)
+        gq = -gF * has_q * stiff
+        g_damp = -gF * v + gD * ion
+        g_fl = -gF * th + gD * ion * (1.0 - th * th) / FRICTIONLOSS_VEL
+        gth = -gF * fl + gD * ion * fl * (-2.0 * th) / FRICTIONLOSS_VEL
+        gv += gth * (1.0 - th * th) / FRICTIONLOSS_VEL
+        s.dof_stiffness.grad[i_b, i_d] = s.dof_stiffness.grad[i_b, i_d] - gF * has_q * (q - s.dof_springref[i_d])
+        s.dof_armature.grad[i_b, i_d] = s.dof_armature.grad[i_b, i_d] + gM
+        s.bias.grad[i_b, i_d] = s.bias.grad[i_b, i_d] - gF
+        if below:
+            gq -= gF * s.limit_k
+            gv -= ti.select(v <= 0.0, gF * s.limit_d, 0.0)
+        if above:
+            gq -= gF * s.limit_k
+            gv -= ti.select(v >= 0.0, gF * s.limit_d, 0.0)
+        # the PD: K's kp (implicit) and D's kv
+        g_kp = gK * ion * (1.0 - kvo) * free_act
+        g_kv = gD * ion * (free_act + kvo * (1.0 - free_act))
+        # tau = clamp(raw, lo, hi)
+        graw = gF * free_act
+        s.ctrl_force.grad[i_b, i_d] = s.ctrl_force.grad[i_b, i_d] + graw * force_mode
+        s.ctrl_vel.grad[i_b, i_d] = s.ctrl_vel.grad[i_b, i_d] + graw * kv
+        gerr = graw * kp
+        g_kp += graw * err
+        g_kv += graw * (s.ctrl_vel[i_b, i_d] - v)
+        gv -= graw * kv
+        s.dof_kp.grad[i_b, i_d] = s.dof_kp.grad[i_b, i_d] + g_kp * pos_mode
+        s.dof_kv.grad[i_b, i_d] = s.dof_kv.grad[i_b, i_d] + g_kv * (pos_mode + vel_mode)
+        s.dof_damping.grad[i_b, i_d] = s.dof_damping.grad[i_b, i_d] + g_damp
+        s.dof_frictionloss.grad[i_b, i_d] = s.dof_frictionloss.grad[i_b, i_d] + g_fl
+        if free_rot:
+            s.dof_rot_err.grad[i_b, i_d] = s.dof_rot_err.grad[i_b, i_d] + gerr
+        else:
+            s.ctrl_pos.grad[i_b, i_d] = s.ctrl_pos.grad[i_b, i_d] + gerr
+            if free_lin:
+                s.qpos.grad[src, i_b, i_lin] = s.qpos.grad[src, i_b, i_lin] - gerr
+            else:
+                gq -= gerr
+        # the limit constraint, where active
+        con_on = s.limits_on == LIMITS_CONSTRAINT and i_q >= 0
+        if con_on and ti.min(q - lim_lo, lim_hi - q) < 0.0:
+            cq, cv = func_limit_constraint_adjoint(s, i_b, i_d, q, v, lim_lo, lim_hi, gF + gLf, gM + gLD)
+            gq += cq
+            gv += cv
+        s.qvel.grad[src, i_b, i_d] = s.qvel.grad[src, i_b, i_d] + gv
+        if i_q >= 0:
+            s.qpos.grad[src, i_b, i_q] = s.qpos.grad[src, i_b, i_q] + gq
+    for t in range(s.n_free_links):
+        i_l = s.free_link[t]
+        qs = s.link_q_start[i_l] + 3
+        ds = s.link_dof_start[i_l] + 3
+        gr = ti.Vector([func_take(s.dof_rot_err, i_b, ds + k) for k in ti.static(range(3))])
+        q = ti.Vector([s.qpos[src, i_b, qs + k] for k in ti.static(range(4))])
+        a, b, c = s.ctrl_pos[i_b, ds], s.ctrl_pos[i_b, ds + 1], s.ctrl_pos[i_b, ds + 2]
+        qt = func_euler_xyz_quat(a, b, c)
+        qc = ti.Vector([q[0], -q[1], -q[2], -q[3]])
+        gqt, gqc = func_quat_mul_adjoint(qt, qc, func_quat_log_adjoint(func_quat_mul(qt, qc), gr))
+        ga, gb, gc = func_euler_xyz_quat_adjoint(a, b, c, gqt)
+        s.ctrl_pos.grad[i_b, ds] = s.ctrl_pos.grad[i_b, ds] + ga
+        s.ctrl_pos.grad[i_b, ds + 1] = s.ctrl_pos.grad[i_b, ds + 1] + gb
+        s.ctrl_pos.grad[i_b, ds + 2] = s.ctrl_pos.grad[i_b, ds + 2] + gc
+        s.qpos.grad[src, i_b, qs] = s.qpos.grad[src, i_b, qs] + gqc[0]
+        for k in ti.static(range(1, 4)):
+            s.qpos.grad[src, i_b, qs + k] = s.qpos.grad[src, i_b, qs + k] - gqc[k]

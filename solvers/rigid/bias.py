@@ -7,8 +7,9 @@ thrown tumbling at 40 rad/s went to NaN within 0.7 s at dt = 10 ms, in flight, a
 Euler; MuJoCo's implicitfast keeps it, but damps the tumbling; tests/test_integrators.py)."""
 import taichi as ti
 
-from .kinematics import JOINT_FREE, func_free_twist, func_hinge_rate, func_link_joint_velocity, func_parent_slot
-from .math3d import func_add, func_cross_force, func_inertia_mul, func_mm, func_mv, func_skew
+from .kinematics import (JOINT_FREE, func_add_vec3, func_free_twist, func_hinge_rate, func_link_joint_velocity,
+                         func_parent_slot, func_take)
+from .math3d import func_add, func_cross_force, func_inertia_mul, func_mm, func_mtv, func_mv, func_skew
 
 # a link lighter than this (kg) gets no implicit gyroscopic moment (func_gyro_implicit: its centre of mass
 # is mc / m)
@@ -124,6 +125,143 @@ def func_project_forces(s: ti.template(), i_b, e, src, h):
     for i_d in range(s.n_dofs):
         i_l = s.dof_link[i_d]
         s.bias[i_b, i_d] = s.cdof_w[i_b, i_d].dot(s.cfrc_n[i_b, i_l]) + s.cdof_v[i_b, i_d].dot(s.cfrc_f[i_b, i_l])
+
+
+@ti.func
+def func_skew_adjoint(G):
+    """The adjoint of func_skew(p) for its adjoint G: p's."""
+    return ti.Vector([G[2, 1] - G[1, 2], G[0, 2] - G[2, 0], G[1, 0] - G[0, 1]])
+
+
+@ti.func
+def func_inertia_mul_adjoint(m, hh, J, w, v, gn, gf):
+    """The adjoint of func_inertia_mul(m, hh, J, w, v) = (J w + hh x v, m v + w x hh) for (gn, gf): (m's, hh's, J's,
+    w's, v's)."""
+    return (gf.dot(v), gf.cross(w) + v.cross(gn), gn.outer_product(w), func_mtv(J, gn) + hh.cross(gf),
+            m * gf + gn.cross(hh))
+
+
+@ti.func
+def func_gyro_implicit_adjoint(s: ti.template(), on, m, mc, J, w, h, gy):
+    """The adjoint of func_gyro_implicit(s, on, m, mc, J, w, h) for its result's adjoint gy: (m's, mc's, J's, w's),
+    differentiated as written (theta's smooth step has a zero slope where its clamps switch)."""
+    mm = ti.max(m, GYRO_MIN_MASS)
+    c = mc / mm
+    E = ti.Matrix.identity(s.dtype, 3)
+    K = c.dot(c) * E - c.outer_product(c)
+    Ic = on * (J - m * K) + (1.0 - on) * E
+    ws = on * w
+    L = func_mv(Ic, ws)
+    g = ws.cross(L)
+    raw = (h * h * ws.dot(ws) - 1.0) / 3.0
+    x = ti.min(ti.max(raw, 0.0), 1.0)
+    theta = 0.5 + 0.5 * x * x * (3.0 - 2.0 * x)
+    S = func_skew(ws)
+    B = func_mm(S, Ic) - func_skew(L)
+    A = Ic + (theta * h) * B
+    Ai = A.inverse()
+    z = func_mv(Ai, g)
+    # y = Ic z - g, z = A^-1 g
+    gIc = gy.outer_product(z)
+    gz = func_mtv(Ic, gy)
+    ag = func_mtv(Ai, gz)
+    gg = ag - gy
+    gA = -ag.outer_product(z)
+    # A = Ic + theta h (S Ic - [L]x)
+    th = theta * h
+    gIc += gA + th * (S.transpose() @ gA)
+    gws = func_skew_adjoint(th * (gA @ Ic.transpose()))
+    gL = -th * func_skew_adjoint(gA)
+    gtheta = h * (gA * B).sum()
+    inside = ti.cast(raw > 0.0 and raw < 1.0, s.dtype)
+    gws += (gtheta * 3.0 * x * (1.0 - x) * inside * h * h * 2.0 / 3.0) * ws
+    # g = ws x L, L = Ic ws
+    gws += L.cross(gg)
+    gL += gg.cross(ws)
+    gIc += gL.outer_product(ws)
+    gws += func_mtv(Ic, gL)
+    # Ic = on (J - m K) + (1 - on) E, K = c.c E - c c^T, c = mc / max(m, min)
+    gJ = on * gIc
+    trI = gIc[0, 0] + gIc[1, 1] + gIc[2, 2]
+    gc = -on * m * (2.0 * trI * c - (gIc @ c + gIc.transpose() @ c))
+    gm = -on * (gIc * K).sum() - ti.cast(m > GYRO_MIN_MASS, s.dtype) * gc.dot(mc) / (mm * mm)
+    return gm, gc / mm, gJ, on * gws
+
+
+@ti.func
+def func_bias_adjoint(s: ti.template(), i_b, src, h, forces: ti.template(), accumulate: ti.template(),
+                      project: ti.template()):
+    """The adjoint of the BIAS stages, written out (solver.HAND_ADJOINTS), last first: of func_project_forces
+    (`project`), of func_accumulate_forces (`accumulate`; each link's force adjoint gets its parent's, parents
+    first) and of func_link_forces and func_free_gyro (`forces`; the links children first), each store's adjoint
+    reading and zeroing the stored field's (as Taichi's do), grad-path branches, differentiated as written, plain
+    adds."""
+    if ti.static(project):
+        for i_d in range(s.n_dofs):
+            i_l = s.dof_link[i_d]
+            g = func_take(s.bias, i_b, i_d)
+            s.cdof_w.grad[i_b, i_d] = s.cdof_w.grad[i_b, i_d] + g * s.cfrc_n[i_b, i_l]
+            s.cdof_v.grad[i_b, i_d] = s.cdof_v.grad[i_b, i_d] + g * s.cfrc_f[i_b, i_l]
+            s.cfrc_n.grad[i_b, i_l] = s.cfrc_n.grad[i_b, i_l] + g * s.cdof_w[i_b, i_d]
+            s.cfrc_f.grad[i_b, i_l] = s.cfrc_f.grad[i_b, i_l] + g * s.cdof_v[i_b, i_d]
+    if ti.static(accumulate):
+        for i_l in range(s.n_links):
+            p = s.link_parent[i_l]
+            if p >= 0:
+                s.cfrc_n.grad[i_b, i_l] = s.cfrc_n.grad[i_b, i_l] + s.cfrc_n.grad[i_b, p]
+                s.cfrc_f.grad[i_b, i_l] = s.cfrc_f.grad[i_b, i_l] + s.cfrc_f.grad[i_b, p]
+    if ti.static(forces):
+        for t in range(s.n_free_links):
+            i_l = s.free_link[t]
+            m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]
+            on = s.implicit_on * ti.cast(m > GYRO_MIN_MASS, s.dtype)
+            gm, gmc, gJ, gw = func_gyro_implicit_adjoint(s, on, m, mc, J, s.cvel_w[i_b, i_l], h, s.cfrc_n.grad[i_b, i_l])
+            s.link_mass.grad[i_b, i_l] = s.link_mass.grad[i_b, i_l] + gm
+            s.link_h.grad[i_b, i_l] = s.link_h.grad[i_b, i_l] + gmc
+            s.link_J.grad[i_b, i_l] = s.link_J.grad[i_b, i_l] + gJ
+            s.cvel_w.grad[i_b, i_l] = s.cvel_w.grad[i_b, i_l] + gw
+        for k in range(s.n_links):
+            i_l = s.n_links - 1 - k
+            gN = func_take(s.cfrc_n, i_b, i_l)
+            gF = func_take(s.cfrc_f, i_b, i_l)
+            m, hh, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]
+            aw, av = s.cacc_w[i_b, i_l], s.cacc_v[i_b, i_l]
+            wv, vv = s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l]
+            hn, hf = func_inertia_mul(m, hh, J, wv, vv)
+            # cfrc = I a + v x* (I v)
+            gm, gh, gJ, gaw, gav = func_inertia_mul_adjoint(m, hh, J, aw, av, gN, gF)
+            gwv = hn.cross(gN) + hf.cross(gF)
+            gvv = hf.cross(gN)
+            ghn = gN.cross(wv)
+            ghf = gN.cross(vv) + gF.cross(wv)
+            gm2, gh2, gJ2, gwv2, gvv2 = func_inertia_mul_adjoint(m, hh, J, wv, vv, ghn, ghf)
+            s.link_mass.grad[i_b, i_l] = s.link_mass.grad[i_b, i_l] + gm + gm2
+            s.link_h.grad[i_b, i_l] = s.link_h.grad[i_b, i_l] + gh + gh2
+            s.link_J.grad[i_b, i_l] = s.link_J.grad[i_b, i_l] + gJ + gJ2
+            s.cvel_w.grad[i_b, i_l] = s.cvel_w.grad[i_b, i_l] + gwv + gwv2
+            s.cvel_v.grad[i_b, i_l] = s.cvel_v.grad[i_b, i_l] + gvv + gvv2
+            gaw += func_take(s.cacc_w, i_b, i_l)
+            gav += func_take(s.cacc_v, i_b, i_l)
+            d0 = s.link_dof_start[i_l]
+            if s.link_jtype[i_l] == JOINT_FREE:
+                # av = vb x wb - gravity
+                vb, wb = func_free_twist(s, i_b, src, d0)
+                func_add_vec3(s.qvel.grad, src, i_b, d0, wb.cross(gav))
+                func_add_vec3(s.qvel.grad, src, i_b, d0 + 3, gav.cross(vb))
+                s.gravity.grad[i_b] = s.gravity.grad[i_b] - gav
+            else:
+                p = s.link_parent[i_l]
+                if p >= 0:
+                    s.cacc_w.grad[i_b, p] = s.cacc_w.grad[i_b, p] + gaw
+                    s.cacc_v.grad[i_b, p] = s.cacc_v.grad[i_b, p] + gav
+                else:
+                    s.gravity.grad[i_b] = s.gravity.grad[i_b] - gav
+                if s.link_ndof[i_l] == 1:
+                    qd = s.qvel[src, i_b, d0]
+                    s.cdofd_w.grad[i_b, d0] = s.cdofd_w.grad[i_b, d0] + gaw * qd
+                    s.cdofd_v.grad[i_b, d0] = s.cdofd_v.grad[i_b, d0] + gav * qd
+                    s.qvel.grad[src, i_b, d0] = (s.qvel.grad[src, i_b, d0] + gaw.dot(s.cdofd_w[i_b, d0])
+                                                 + gav.dot(s.cdofd_v[i_b, d0]))
 
 
 BIAS = (func_link_forces, func_free_gyro, func_accumulate_forces, func_project_forces)

@@ -20,18 +20,21 @@ function's first argument `s` is a RigidCore: the fields, the run-time sizes, an
 `s.external` (None on a plain core). The kernels through which arrays enter and leave the core are in
 state_io.py.
 """
+import typing
+
 import taichi as ti
 
 from .. import taichi_compat
 from .actuation import (LIMIT_ROUNDS, LIMITS_CONSTRAINT, func_free_rot_errors, func_generalized_force,
-                        func_limit_release, func_limit_release_grad, func_limit_rounds_next)
-from .bias import BIAS, func_free_gyro
+                        func_generalized_force_adjoint, func_limit_release, func_limit_release_grad,
+                        func_limit_rounds_next)
+from .bias import BIAS, func_bias_adjoint, func_free_gyro
 from .contact import func_contact_solve, func_factor_solve_dense, func_solve_grad_dense, func_tree_env
 from .external import AppliedWrench, func_applied_wrench
 from .inertia import INERTIA, TreeSchedule, func_factor_solve, func_inertia_adjoint, func_solve_grad
 from .integrate import INTEGRATE
 from .kinematics import (KINEMATICS, LINK_STATE, func_dof_subspace, func_forward_kinematics, func_free_pose,
-                         func_world_inertia)
+                         func_kinematics_adjoint, func_world_inertia)
 from .layout import ZeroPlan, func_zero_plan, place_env_major
 from .schedule import OP_DYN, OP_SOLVE, SPAN_BITS, SPAN_MASK
 
@@ -76,6 +79,22 @@ def runs_serially(cap_envs: int, light: bool = False) -> bool:
         return False
     cap = SERIAL_MAX_ENVS_LIGHT if light else SERIAL_MAX_ENVS_TWO_THREADS
     return cfg.cpu_max_num_threads == 1 or (cfg.cpu_max_num_threads == 2 and cap_envs <= cap)
+
+
+class HandAdjoint(typing.NamedTuple):
+    """Which written-out adjoints a run of stages takes (core.kernel_hand_adjoint; solver.HAND_ADJOINTS)."""
+
+    kinematics: bool = False  # KINEMATICS (full) or LINK_STATE
+    full: bool = True
+    inertia: bool = False  # INERTIA
+    forces: bool = False  # func_link_forces, func_free_gyro
+    accumulate: bool = False  # func_accumulate_forces
+    project: bool = False  # func_project_forces
+    generalized: bool = False  # func_free_rot_errors, func_generalized_force
+    solve: bool = False  # the factor-solve's adjoint first (kernel_mass_solve's, in the same loop over envs)
+
+
+LINK_STATE_ADJOINT = HandAdjoint(kinematics=True, full=False)
 
 
 DYNAMICS = KINEMATICS + INERTIA + BIAS + (func_free_rot_errors, func_generalized_force)
@@ -270,6 +289,9 @@ class RigidCore:
         self.grad_fields0 = [x.grad for x in params + scratch] if g else []
         self.grad_fields1 = [x.grad for x in state] if g else []
         self.grad_plan = ZeroPlan(self.grad_fields0, self.grad_fields1, N)
+        self.param_grads = [x.grad for x in params] if g else []
+        self.input_grad_plan = ZeroPlan(self.param_grads, self.grad_fields1, N)
+        self.scratch_grads = [x.grad for x in scratch] if g else []
 
     # ------------------------------------------------------------------ build and reset
     @ti.kernel
@@ -558,25 +580,49 @@ class RigidCore:
                     stage(self, i_b, 0, src, 0.0)
 
     @ti.kernel
-    def kernel_inertia_adjoint(self):
-        """The written-out adjoint of the INERTIA stages (inertia.func_inertia_adjoint; solver.HAND_ADJOINTS)."""
+    def kernel_hand_adjoint(self, e: ti.i32, src: ti.i32, h: float, kinematics: ti.template(), full: ti.template(),
+                            inertia: ti.template(), forces: ti.template(), accumulate: ti.template(),
+                            project: ti.template(), generalized: ti.template(), solve: ti.template()):
+        """Written-out adjoints of a run of stages (a HandAdjoint: solver.HAND_ADJOINTS), in one loop over envs, last
+        stage first, after the factor-solve's of evaluation e (`solve`; a core without contacts): the
+        generalised force's and the free joints' rotation errors' (actuation.
+        func_generalized_force_adjoint), the BIAS stages' (bias.func_bias_adjoint), the INERTIA stages'
+        (inertia.func_inertia_adjoint), the KINEMATICS stages' or LINK_STATE's at state slot src
+        (kinematics.func_kinematics_adjoint)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
             if i_b < self.n_envs:
-                func_inertia_adjoint(self, i_b)
+                if ti.static(solve):
+                    func_solve_grad(self, i_b, e)
+                    func_limit_release_grad(self, i_b, e, self.solve_tmp)
+                if ti.static(generalized):
+                    func_generalized_force_adjoint(self, i_b, src, h)
+                if ti.static(forces or accumulate or project):
+                    func_bias_adjoint(self, i_b, src, h, forces, accumulate, project)
+                if ti.static(inertia):
+                    func_inertia_adjoint(self, i_b)
+                if ti.static(kinematics):
+                    func_kinematics_adjoint(self, i_b, src, full)
+
+    def hand_adjoint(self, spec, e: int, src: int, h: float):
+        """The written-out adjoint `spec` (a HandAdjoint) of evaluation e at state slot src, substep h."""
+        assert not (spec.solve and (self.has_contact or self.dense_solve))
+        self.kernel_hand_adjoint(e, src, h, *spec)  # (bools: the fast launch path keys them by value)
 
     @ti.kernel
-    def kernel_clear_grads(self):
-        """Zero every adjoint field of the scene's envs, and seed the adjoint of the solver's Tape
-        scalar (see kernel_vjp). Constants, not x * 0: a NaN left by an earlier failed backward must not
-        survive. One top-level loop: each costs a task to load."""
+    def kernel_clear_grads(self, scratch: ti.template()):
+        """Zero the adjoint fields of the scene's envs, and seed the adjoint of the solver's Tape
+        scalar (see kernel_vjp): every one (`scratch`), or those of the parameters and the state only, where the
+        per-evaluation scratch's are known to be zero (RigidSolver.clear_grads). Constants, not x * 0: a NaN left
+        by an earlier failed backward must not survive. One top-level loop: each costs a task to load."""
         self.vjp_loss.grad[None] = 1.0
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
             if i_b < self.n_envs:
-                func_zero_plan(self.grad_plan, i_b, self.cfg_i[I_ELEMS])
+                func_zero_plan(self.grad_plan if ti.static(scratch) else self.input_grad_plan, i_b,
+                               self.cfg_i[I_ELEMS])
 
 
 @ti.data_oriented
@@ -607,8 +653,9 @@ class SceneCore(RigidCore):
         self.dense_solve = bool(contact is not None and contact.dense)
         self.has_contact = contact is not None
         if core.requires_grad:
-            self.grad_plan = ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems,
-                                      [f.grad for x in extra + [applied] if x is not None for f in x.grad_fields])
+            own = [f.grad for x in extra + [applied] if x is not None for f in x.grad_fields]
+            self.grad_plan = ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems, own)
+            self.input_grad_plan = ZeroPlan(core.param_grads, core.grad_fields1, core.cap_elems, own)
 
 
 def with_applied(step_core):

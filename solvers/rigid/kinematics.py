@@ -11,7 +11,9 @@ the world slot (func_parent_slot), not to a link this stage writes later.
 """
 import taichi as ti
 
-from .math3d import (func_axis_angle_quat, func_cross_motion, func_mv, func_quat_mul, func_quat_rotate, func_quat_to_R,
+from .layout import func_set_zero
+from .math3d import (func_axis_angle_quat, func_cross_motion, func_mtv, func_mv, func_quat_mul, func_quat_mul_adjoint,
+                     func_quat_rotate, func_quat_rotate_adjoint, func_quat_to_R, func_quat_to_R_adjoint,
                      func_rotate_inertia)
 
 JOINT_FIXED, JOINT_FREE, JOINT_REVOLUTE, JOINT_PRISMATIC = 0, 1, 2, 3
@@ -270,6 +272,175 @@ def func_dof_subspace_dot(s: ti.template(), i_b, e, src, h):
             dw, dv = func_cross_motion(s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l], s.cdof_w[i_b, i_d], s.cdof_v[i_b, i_d])
             s.cdofd_w[i_b, i_d] = ti.select(is_free, ti.Vector([0.0, 0.0, 0.0], dt=s.dtype), dw)
             s.cdofd_v[i_b, i_d] = ti.select(is_free, ang * vb.cross(s.cdof_w[i_b, i_d]), dv)
+
+
+@ti.func
+def func_take(x: ti.template(), i_b, i):
+    """x.grad[i_b, i], then zeroed: a store's adjoint, as Taichi's reads the stored entry's adjoint and zeroes it."""
+    g = x.grad[i_b, i]
+    func_set_zero(x.grad, (i_b, i))
+    return g
+
+
+@ti.func
+def func_add_vec3(x: ti.template(), a, b, i, v):
+    """x[a, b, i .. i + 2] += v (plain adds)."""
+    for k in ti.static(range(3)):
+        x[a, b, i + k] = x[a, b, i + k] + v[k]
+
+
+@ti.func
+def func_origin_adjoint(s: ti.template(), i_b, i_l, g):
+    """Adds the adjoint g of (link_pos[i_l] - func_link_origin(s, i_b, i_l)) to the link positions' adjoints."""
+    r = s.link_root[i_l]
+    s.link_pos.grad[i_b, i_l] = s.link_pos.grad[i_b, i_l] + g
+    s.link_pos.grad[i_b, r] = s.link_pos.grad[i_b, r] - g
+
+
+@ti.func
+def func_kinematics_adjoint(s: ti.template(), i_b, src, full: ti.template()):
+    """The adjoint of the KINEMATICS stages of env i_b at state slot src, written out (solver.HAND_ADJOINTS), with
+    plain adds (an env is one thread's); `full` False: of LINK_STATE only (the getters' kinematics, which stops
+    there). The stages in reverse order, each store's adjoint reading and zeroing the stored field's adjoint (as
+    Taichi's do) and adding into the adjoints of what the stage read, differentiated as written (the quaternion
+    helpers' adjoints: math3d), the grad-path branches only:
+    - func_world_inertia: c = p - o + R com, h = m c, J = R I R^T + m (c.c E - c c^T);
+    - func_dof_subspace_dot: a free joint's cdofd_v = ang vb x cdof_w, the others' cvel x cdof (motion cross);
+    - func_velocity / func_free_velocity: cvel = cvel[parent] + cdof qd over the links, children first, then the
+      free links' (wb, vb + (p - o) x wb);
+    - func_dof_subspace: cdof_w = rev R axis + free_ang e, cdof_v = pri R axis + free_lin e + (p - o) x cdof_w;
+    - func_forward_kinematics / func_free_pose: each link's pose from its parent's and its q, children first (a
+      parent's adjoint is complete when its turn comes: links are in topological order), then the free links'
+      (the position and the normalised quaternion of their qs)."""
+    if ti.static(full):
+        for i_l in range(s.n_links):
+            gh = func_take(s.link_h, i_b, i_l)
+            gJ = func_take(s.link_J, i_b, i_l)
+            gc = func_take(s.link_cpos, i_b, i_l)
+            R = s.link_R[i_b, i_l]
+            com = s.link_com[i_b, i_l]
+            I = s.link_inertia[i_b, i_l]
+            m = s.link_mass[i_b, i_l]
+            c = s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l) + func_mv(R, com)
+            cc = c.dot(c)
+            trJ = gJ[0, 0] + gJ[1, 1] + gJ[2, 2]
+            gm = gh.dot(c) + cc * trJ - c.dot(gJ @ c)
+            gct = gc + m * gh + m * (2.0 * trJ * c - (gJ @ c + gJ.transpose() @ c))
+            s.link_mass.grad[i_b, i_l] = s.link_mass.grad[i_b, i_l] + gm
+            s.link_inertia.grad[i_b, i_l] = s.link_inertia.grad[i_b, i_l] + R.transpose() @ gJ @ R
+            s.link_com.grad[i_b, i_l] = s.link_com.grad[i_b, i_l] + func_mtv(R, gct)
+            s.link_R.grad[i_b, i_l] = (s.link_R.grad[i_b, i_l] + gJ @ R @ I.transpose() + gJ.transpose() @ R @ I
+                                       + gct.outer_product(com))
+            func_origin_adjoint(s, i_b, i_l, gct)
+        for i_d in range(s.n_dofs):
+            i_l = s.dof_link[i_d]
+            gdw = func_take(s.cdofd_w, i_b, i_d)
+            gdv = func_take(s.cdofd_v, i_b, i_d)
+            a = s.cdof_w[i_b, i_d]
+            if s.link_jtype[i_l] == JOINT_FREE:
+                d0 = s.link_dof_start[i_l]
+                if i_d - d0 >= 3:
+                    vb = func_vec3(s.qvel, src, i_b, d0)
+                    func_add_vec3(s.qvel.grad, src, i_b, d0, a.cross(gdv))
+                    s.cdof_w.grad[i_b, i_d] = s.cdof_w.grad[i_b, i_d] + gdv.cross(vb)
+            else:
+                w = s.cvel_w[i_b, i_l]
+                v = s.cvel_v[i_b, i_l]
+                b = s.cdof_v[i_b, i_d]
+                s.cvel_w.grad[i_b, i_l] = s.cvel_w.grad[i_b, i_l] + a.cross(gdw) + b.cross(gdv)
+                s.cvel_v.grad[i_b, i_l] = s.cvel_v.grad[i_b, i_l] + a.cross(gdv)
+                s.cdof_w.grad[i_b, i_d] = s.cdof_w.grad[i_b, i_d] + gdw.cross(w) + gdv.cross(v)
+                s.cdof_v.grad[i_b, i_d] = s.cdof_v.grad[i_b, i_d] + gdv.cross(w)
+    for k in range(s.n_links):
+        i_l = s.n_links - 1 - k
+        if s.link_jtype[i_l] != JOINT_FREE:
+            gw = func_take(s.cvel_w, i_b, i_l)
+            gv = func_take(s.cvel_v, i_b, i_l)
+            p = s.link_parent[i_l]
+            if p >= 0:
+                s.cvel_w.grad[i_b, p] = s.cvel_w.grad[i_b, p] + gw
+                s.cvel_v.grad[i_b, p] = s.cvel_v.grad[i_b, p] + gv
+            if s.link_ndof[i_l] == 1:
+                d0 = s.link_dof_start[i_l]
+                qd = s.qvel[src, i_b, d0]
+                s.cdof_w.grad[i_b, d0] = s.cdof_w.grad[i_b, d0] + gw * qd
+                s.cdof_v.grad[i_b, d0] = s.cdof_v.grad[i_b, d0] + gv * qd
+                s.qvel.grad[src, i_b, d0] = (s.qvel.grad[src, i_b, d0] + gw.dot(s.cdof_w[i_b, d0])
+                                             + gv.dot(s.cdof_v[i_b, d0]))
+    for t in range(s.n_free_links):
+        i_l = s.free_link[t]
+        d0 = s.link_dof_start[i_l]
+        gw = func_take(s.cvel_w, i_b, i_l)
+        gv = func_take(s.cvel_v, i_b, i_l)
+        wb = func_vec3(s.qvel, src, i_b, d0 + 3)
+        r = s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)
+        func_origin_adjoint(s, i_b, i_l, wb.cross(gv))
+        func_add_vec3(s.qvel.grad, src, i_b, d0, gv)
+        func_add_vec3(s.qvel.grad, src, i_b, d0 + 3, gw + gv.cross(r))
+    for i_d in range(s.n_dofs):
+        i_l = s.dof_link[i_d]
+        jt = s.link_jtype[i_l]
+        gw0 = func_take(s.cdof_w, i_b, i_d)
+        gv = func_take(s.cdof_v, i_b, i_d)
+        pos = s.link_pos[i_b, i_l] - func_link_origin(s, i_b, i_l)
+        gw = gw0 + gv.cross(pos)
+        func_origin_adjoint(s, i_b, i_l, s.cdof_w[i_b, i_d].cross(gv))
+        rev = ti.cast(jt == JOINT_REVOLUTE, s.dtype)
+        pri = ti.cast(jt == JOINT_PRISMATIC, s.dtype)
+        if rev + pri > 0.0:  # (a free joint's cdof_w is a constant unit vector: (p - o) x it its only read)
+            s.link_R.grad[i_b, i_l] = s.link_R.grad[i_b, i_l] + (rev * gw + pri * gv).outer_product(s.link_jaxis[i_l])
+    for k in range(s.n_links):
+        i_l = s.n_links - 1 - k
+        if s.link_jtype[i_l] != JOINT_FREE:
+            func_link_pose_adjoint(s, i_b, src, i_l)
+    for t in range(s.n_free_links):
+        i_l = s.free_link[t]
+        qs = s.link_q_start[i_l]
+        gpos = func_take(s.link_pos, i_b, i_l)
+        gR = func_take(s.link_R, i_b, i_l)
+        gq = func_take(s.link_quat, i_b, i_l) + func_quat_to_R_adjoint(s.link_quat[i_b, i_l], gR)
+        func_add_vec3(s.qpos.grad, src, i_b, qs, gpos)
+        fq = ti.Vector([s.qpos[src, i_b, qs + 3 + j] for j in ti.static(range(4))])
+        n2 = fq.dot(fq)
+        n = ti.sqrt(ti.max(n2, 1e-30))
+        gfq = gq / n - ti.cast(n2 > 1e-30, s.dtype) * (gq.dot(fq) / (n * n * n)) * fq
+        for j in ti.static(range(4)):
+            s.qpos.grad[src, i_b, qs + 3 + j] = s.qpos.grad[src, i_b, qs + 3 + j] + gfq[j]
+
+
+@ti.func
+def func_link_pose_adjoint(s: ti.template(), i_b, src, i_l):
+    """The adjoint of func_link_pose (grad path) for link i_l, its parent's pose adjoints added to."""
+    gpos = func_take(s.link_pos, i_b, i_l)
+    quat = s.link_quat[i_b, i_l]
+    gq = func_take(s.link_quat, i_b, i_l) + func_quat_to_R_adjoint(quat, func_take(s.link_R, i_b, i_l))
+    p = s.link_parent[i_l]
+    jt = s.link_jtype[i_l]
+    qs = s.link_q_start[i_l]
+    has_p = p >= 0
+    pp = func_parent_slot(s, p)
+    pquat = ti.select(has_p, s.link_quat[i_b, pp], ti.Vector([1.0, 0.0, 0.0, 0.0], dt=s.dtype))
+    jq = s.link_jquat[i_l]
+    jp = s.link_jpos[i_l]
+    axis = s.link_jaxis[i_l]
+    jquat = func_quat_mul(pquat, jq)
+    q1 = s.qpos[src, i_b, ti.min(qs, s.qpos_len - 1)]
+    rev = ti.cast(jt == JOINT_REVOLUTE, s.dtype)
+    pri = ti.cast(jt == JOINT_PRISMATIC, s.dtype)
+    half = 0.5 * (q1 * rev)
+    aq = func_axis_angle_quat(axis, q1 * rev)
+    gjq, gaq = func_quat_mul_adjoint(jquat, aq, gq)
+    gjq2, gu = func_quat_rotate_adjoint(jquat, axis * (q1 * pri), gpos)
+    gjq += gjq2
+    if rev + pri > 0.0:
+        gaxis = axis[0] * gaq[1] + axis[1] * gaq[2] + axis[2] * gaq[3]
+        gq1 = pri * axis.dot(gu) + rev * 0.5 * (-ti.sin(half) * gaq[0] + ti.cos(half) * gaxis)
+        s.qpos.grad[src, i_b, qs] = s.qpos.grad[src, i_b, qs] + gq1
+    if has_p:
+        gpq, gjq_static = func_quat_mul_adjoint(pquat, jq, gjq)
+        gpq2, gjp_static = func_quat_rotate_adjoint(pquat, jp, gpos)
+        s.link_pos.grad[i_b, p] = s.link_pos.grad[i_b, p] + gpos
+        s.link_quat.grad[i_b, p] = s.link_quat.grad[i_b, p] + gpq + gpq2
 
 
 # Each stage is one loop over elements for one env; kernels run every stage as its own top-level

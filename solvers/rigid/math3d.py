@@ -47,6 +47,46 @@ def func_quat_rotate(q, v):
 
 
 @ti.func
+def func_quat_mul_adjoint(a, b, g):
+    """The adjoint of func_quat_mul(a, b) for the product's adjoint g: (a's, b's). The product is bilinear, r =
+    L(a) b = R(b) a, so a gets R(b)^T g and b gets L(a)^T g."""
+    ga = ti.Vector([g[0] * b[0] + g[1] * b[1] + g[2] * b[2] + g[3] * b[3],
+                    -g[0] * b[1] + g[1] * b[0] - g[2] * b[3] + g[3] * b[2],
+                    -g[0] * b[2] + g[1] * b[3] + g[2] * b[0] - g[3] * b[1],
+                    -g[0] * b[3] - g[1] * b[2] + g[2] * b[1] + g[3] * b[0]])
+    gb = ti.Vector([g[0] * a[0] + g[1] * a[1] + g[2] * a[2] + g[3] * a[3],
+                    -g[0] * a[1] + g[1] * a[0] + g[2] * a[3] - g[3] * a[2],
+                    -g[0] * a[2] - g[1] * a[3] + g[2] * a[0] + g[3] * a[1],
+                    -g[0] * a[3] + g[1] * a[2] - g[2] * a[1] + g[3] * a[0]])
+    return ga, gb
+
+
+@ti.func
+def func_quat_to_R_adjoint(q, G):
+    """The adjoint of func_quat_to_R(q) for R's adjoint G: q's (differentiated as written, not on the unit sphere)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return 2.0 * ti.Vector([
+        -G[0, 1] * z + G[0, 2] * y + G[1, 0] * z - G[1, 2] * x - G[2, 0] * y + G[2, 1] * x,
+        G[0, 1] * y + G[0, 2] * z + G[1, 0] * y - 2.0 * G[1, 1] * x - G[1, 2] * w + G[2, 0] * z + G[2, 1] * w
+        - 2.0 * G[2, 2] * x,
+        -2.0 * G[0, 0] * y + G[0, 1] * x + G[0, 2] * w + G[1, 0] * x + G[1, 2] * z - G[2, 0] * w + G[2, 1] * z
+        - 2.0 * G[2, 2] * y,
+        -2.0 * G[0, 0] * z - G[0, 1] * w + G[0, 2] * x + G[1, 0] * w - 2.0 * G[1, 1] * z + G[1, 2] * y + G[2, 0] * x
+        + G[2, 1] * y])
+
+
+@ti.func
+def func_quat_rotate_adjoint(q, v, g):
+    """The adjoint of func_quat_rotate(q, v) = v + q0 t + u x t (t = 2 u x v, u = q's vector part) for the
+    result's adjoint g: (q's, v's), differentiated as written."""
+    u = ti.Vector([q[1], q[2], q[3]])
+    t = 2.0 * u.cross(v)
+    gt = q[0] * g + g.cross(u)
+    gu = t.cross(g) + 2.0 * v.cross(gt)
+    return ti.Vector([g.dot(t), gu[0], gu[1], gu[2]]), g + 2.0 * gt.cross(u)
+
+
+@ti.func
 def func_axis_angle_quat(axis, angle):
     h = 0.5 * angle
     s = ti.sin(h)
@@ -93,6 +133,49 @@ def func_quat_log(q):
     small = s2 < 1e-10 * w * w
     k = ti.select(small, 2.0 / w * (1.0 - s2 / (3.0 * w * w)), 2.0 * ti.atan2(s, w) / s)
     return sgn * k * v
+
+
+@ti.func
+def func_euler_xyz_quat_adjoint(a, b, c, g):
+    """The adjoint of func_euler_xyz_quat(a, b, c) for the quaternion's adjoint g: (a's, b's, c's)."""
+    ca, sa = ti.cos(0.5 * a), ti.sin(0.5 * a)
+    cb, sb = ti.cos(0.5 * b), ti.sin(0.5 * b)
+    cc, sc = ti.cos(0.5 * c), ti.sin(0.5 * c)
+    da = ti.Vector([-sa * cb * cc - ca * sb * sc, ca * cb * cc - sa * sb * sc,
+                    -sa * sb * cc - ca * cb * sc, -sa * cb * sc + ca * sb * cc])
+    db = ti.Vector([-ca * sb * cc - sa * cb * sc, -sa * sb * cc + ca * cb * sc,
+                    ca * cb * cc + sa * sb * sc, -ca * sb * sc + sa * cb * cc])
+    dc = ti.Vector([-ca * cb * sc - sa * sb * cc, -sa * cb * sc + ca * sb * cc,
+                    -ca * sb * sc - sa * cb * cc, ca * cb * cc - sa * sb * sc])
+    return 0.5 * g.dot(da), 0.5 * g.dot(db), 0.5 * g.dot(dc)
+
+
+@ti.func
+def func_quat_log_adjoint(q, g):
+    """The adjoint of func_quat_log(q) for the rotation vector's adjoint g: q's, differentiated as written (each
+    clamp passes the adjoint where its argument is the one kept, as Taichi's max does)."""
+    v = ti.Vector([q[1], q[2], q[3]])
+    s2 = v.dot(v)
+    sgn = ti.select(q[0] < 0.0, -1.0, 1.0)
+    w = ti.max(ti.abs(q[0]), 1e-6)
+    s = ti.sqrt(ti.max(s2, 1e-20))
+    small = s2 < 1e-10 * w * w
+    at = ti.atan2(s, w)
+    k = ti.select(small, 2.0 / w * (1.0 - s2 / (3.0 * w * w)), 2.0 * at / s)
+    gk = sgn * g.dot(v)
+    gs2 = 0.0
+    gw = 0.0
+    if small:
+        gs2 = gk * (2.0 / w) * (-1.0 / (3.0 * w * w))
+        gw = gk * (-2.0 / (w * w) * (1.0 - s2 / (3.0 * w * w)) + (2.0 / w) * (2.0 * s2 / (3.0 * w * w * w)))
+    else:
+        r2 = s * s + w * w
+        gs = gk * (2.0 * (w / r2) / s - 2.0 * at / (s * s))
+        gw = gk * (-2.0 * (s / r2) / s)
+        gs2 = ti.select(s2 >= 1e-20, gs * 0.5 / s, 0.0)
+    gv = sgn * k * g + 2.0 * gs2 * v
+    gq0 = ti.select(ti.abs(q[0]) >= 1e-6, gw * ti.select(q[0] > 0.0, 1.0, ti.select(q[0] < 0.0, -1.0, 0.0)), 0.0)
+    return ti.Vector([gq0, gv[0], gv[1], gv[2]])
 
 
 @ti.func

@@ -8,10 +8,9 @@ substep runs op by op (`substep(i)`) so that the scene can record it on a `ti.ad
 (genesis_lite/simulator.py): an evaluation (dynamics + factor-solve) is one `ti.ad.grad_replaced` call,
 whose forward runs each env's stages in turn in one loop over the envs (core.kernel_evaluate) and whose
 adjoint, registered with `ti.ad.grad_for`, recomputes the evaluation's scratch when a later one
-has overwritten it, runs the hand-written adjoint of the factor-solve and then Taichi's adjoint of the
-dynamics' stages as separate loops (kernel_dynamics_part, in the kernels of adjoint_groups: the same
-numbers), but for the inertia stages, whose adjoint is written out (HAND_ADJOINTS); integration kernels are
-recorded as they are.
+has overwritten it, runs the hand-written adjoint of the factor-solve and then the adjoint of the
+dynamics' stages, last first: written out for the core's stages (HAND_ADJOINTS), Taichi's for a scene's own
+(kernel_dynamics_part, in the kernels of adjoint_groups); integration kernels are recorded as they are.
 
 A scene with collision pairs (or with external wrenches, external.py) runs its dynamics on a SceneCore
 (core.py) that adds those stages to the core's. The contact solver's fields are sized by a contact
@@ -37,13 +36,15 @@ from .actuation import (LIMITS_CONSTRAINT, LIMITS_OFF, LIMITS_SPRING, func_free_
                         limit_gains)
 from .collision import NO_ADJOINT
 from .contact import ContactPlan
-from .core import (DYNAMICS, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC, I_DOFS, I_FREE, I_ELEMS, I_ENVS, I_LIMITS_ON,
+from .bias import BIAS
+from .core import (DYNAMICS, LINK_STATE_ADJOINT, F_IMPLICIT_KV_ONLY, F_IMPLICIT_ON, F_LIMIT_D, F_LIMIT_K, I_ANC,
+                   I_DOFS, I_FREE, I_ELEMS, I_ENVS, I_LIMITS_ON,
                    I_LINKS, I_QPOS_LEN, I_QS, I_QVEL_LEN, N_CFG_F, N_CFG_I, NO_NAN, PLAIN_ADJOINT,
-                   elem_capacity, env_capacity, with_applied)
+                   HandAdjoint, elem_capacity, env_capacity, with_applied)
 from .external import ExternalWrench
 from .flatten import FlatModel
 from .inertia import INERTIA, TreeSchedule
-from .kinematics import JOINT_FREE, LINK_STATE
+from .kinematics import JOINT_FREE, KINEMATICS, LINK_STATE
 from .model import EntityModel
 from .pool import POOL
 from .schedule import OP_DYN, OP_INT, Integrator, StepSchedule, pack_span
@@ -57,40 +58,42 @@ SPECIALIZE_MIN_ENVS = 512
 # stages whose adjoint runs in the kernel of the stage before them (RigidSolver._evaluation_unit): the generalised
 # force, whose adjoint alone left ~1e-250 in an env outside the loss, and the free joints' rotation errors it reads
 MERGED_STAGES = (func_free_rot_errors, func_generalized_force)
-# runs of consecutive stages whose adjoint is written out, and the core's kernel that runs it, instead of Taichi's:
-# in a parallel loop Taichi's adjoints add with compare-and-swap loops, these with plain adds (the inertia stages:
-# 663 us a step at 1,024 envs against ~1,240, benchmarks/results/grad.md; tests/test_autodiff_rules.py holds
-# each against Taichi's adjoint of the same stages)
-HAND_ADJOINTS = {INERTIA: "kernel_inertia_adjoint"}
+# runs of consecutive stages whose adjoint is written out (core.kernel_hand_adjoint: one loop over envs, the stages'
+# adjoints in turn, plain adds) instead of Taichi's, which add with compare-and-swap loops in a parallel loop and cost
+# ~3.4x their forward even serial (benchmarks/results/grad.md). tests/test_autodiff_rules.py holds each part against
+# Taichi's adjoint of the same stages. The longest run that starts at a stage is taken: a scene's own stages
+# (contacts, external wrenches) come after DYNAMICS and keep Taichi's adjoints; applied wrenches come between the
+# gyroscopic moments and the accumulation, which splits the core's run in two.
+HAND_ADJOINTS = {
+    DYNAMICS: HandAdjoint(kinematics=True, inertia=True, forces=True, accumulate=True, project=True, generalized=True),
+    KINEMATICS + INERTIA + BIAS[:2]: HandAdjoint(kinematics=True, inertia=True, forces=True),
+    BIAS[2:] + MERGED_STAGES: HandAdjoint(accumulate=True, project=True, generalized=True),
+}
 
 
 def adjoint_groups(stages):
-    """The kernels that run the adjoint of a dynamics' stages, last first, as (k0, k1, plain, hand): each the adjoint
-    of kernel_dynamics_part(k0, k1), stages k0..k1-1 as separate loops in one kernel, for a run of consecutive stages
-    with an adjoint (NO_ADJOINT stages are left out) and the same PLAIN_ADJOINT flag (the compile option differs);
-    a MERGED_STAGES stage stays with the stage before it. A run of HAND_ADJOINTS is a group of its own whose `hand`
-    names the core's kernel that runs its written-out adjoint (None for the others). The Panda's 15 stages take 4 kernels, not 13 (one per
-    stage but the merged ones, as before 2026-12-02): the same gradients to the bit (trajectory_fingerprint.py),
-    its 1-env backward of 100 steps 42.6-44.1 -> 32.4-34.3 ms (each launch costs ~10 us of Python and Taichi),
-    1,024 envs 1357-1386 -> 1300-1312 ms, the same cold compile (a fresh process's first rollout 6.6 s against
-    6.9). (The stages in one loop body instead, one env at a time, as the forward runs them, gave wrong adjoints in
-    Taichi 1.7.4: it runs the adjoints of sibling loops of one loop body in their forward order, so a stage's
-    adjoint reads its outputs' adjoints before the later stages have added to them (tests/sibling_loops.py).
-    Listed in reverse order, such a kernel's adjoint gives these groups' gradients (to the bit on the Panda alone,
-    within 4e-14 relative over a plane), but no faster: 1,024 envs, backward one body / separate loops 0.986,
-    median of 8 pairs in one process, 2026-12-04.)"""
+    """The kernels that run the adjoint of a dynamics' stages, last first, as (k0, k1, plain, hand). A run of
+    HAND_ADJOINTS is one group whose `hand` is its HandAdjoint (core.kernel_hand_adjoint); the core's stages are one
+    such run (a scene with applied wrenches: two), so a robot without contacts takes one adjoint kernel an
+    evaluation. The others (`hand` None) are each the adjoint of kernel_dynamics_part(k0, k1), stages k0..k1-1 as
+    separate loops in one kernel, for a run of consecutive stages with an adjoint (NO_ADJOINT stages are left out)
+    and the same PLAIN_ADJOINT flag (the compile option differs); a MERGED_STAGES stage stays with the stage before
+    it. One kernel per group, not per stage: each launch costs ~10 us of Python and Taichi. (The stages in one loop
+    body instead, one env at a time, as the forward runs them, gave wrong adjoints in Taichi 1.7.4: it runs the
+    adjoints of sibling loops of one loop body in their forward order, so a stage's adjoint reads its outputs'
+    adjoints before the later stages have added to them (tests/sibling_loops.py).)"""
     def hand_at(k):
-        return next(((len(run), name) for run, name in HAND_ADJOINTS.items() if tuple(stages[k:k + len(run)]) == run),
-                    (0, None))
+        runs = [(len(run), spec) for run, spec in HAND_ADJOINTS.items() if tuple(stages[k:k + len(run)]) == run]
+        return max(runs, key=lambda r: r[0], default=(0, None))
 
     groups, k, n = [], 0, len(stages)
     while k < n:
         if stages[k] in NO_ADJOINT:
             k += 1
             continue
-        m, name = hand_at(k)
-        if name is not None:
-            groups.append((k, k + m, True, name))
+        m, spec = hand_at(k)
+        if spec is not None:
+            groups.append((k, k + m, True, spec))
             k += m
             continue
         plain = stages[k] in PLAIN_ADJOINT
@@ -202,6 +205,11 @@ class RigidSolver:
         self.dense_solve = self.step_core.dense_solve
         self._fill_info(gravity)
         self._scratch = None  # the (e, src, h) whose evaluation the scratch fields hold, if any
+        # whether every adjoint of the per-evaluation scratch is zero (see clear_grads); light_clear False: never
+        # assumed (every clear zeroes them all)
+        self._scratch_grads_zero = False
+        self.light_clear = True
+        self._light_clear_ok = self.external is None and not self.dense_solve
         self._fused_ready = False  # kernel_step_fused compiled (see taichi_compat.compile_options.ForwardCompile)
         self._fused_bound = (None, None)  # see _launch_fused
         self._watch_clock = self.contact.clock if self.contact is not None else None
@@ -409,12 +417,12 @@ class RigidSolver:
         """Dynamics at slot src + factor-solve into qacc[e], as one call on the tape. Its adjoint
         recomputes the evaluation first when the scratch fields (poses, M, its factor) hold another
         one, then runs the adjoint of the solve (hand-written: for qacc = M^-1 f, f_bar = M^-1 qacc_bar
-        and M_bar = -f_bar qacc^T) and Taichi's adjoint of the dynamics kernel, stage by stage in reverse
-        order, in the kernels of adjoint_groups (Taichi compiles an adjoint in time superlinear in its size:
-        the Panda's 13 stages took 9 s as separate kernels, 24 s as one; in four groups as now, as long as one
-        per stage). The generalised force shares the kernel of the stage before it (with the free
-        joints' rotation errors, MERGED_STAGES): its adjoint alone left ~1e-250 (not 0) in the gradient of an env
-        outside the loss
+        and M_bar = -f_bar qacc^T) and the adjoints of the dynamics' stages in reverse order, in the kernels of
+        adjoint_groups: the core's stages written out (HAND_ADJOINTS), a scene's own (contacts, external and
+        applied wrenches) Taichi's (which compiles an adjoint in time superlinear in its size: the Panda's 13
+        stages took 9 s as separate kernels, 24 s as one, before they were written out). In Taichi's, the
+        generalised force shared the kernel of the stage before it (with the free joints' rotation errors,
+        MERGED_STAGES): its adjoint alone left ~1e-250 (not 0) in the gradient of an env outside the loss
         (tests/test_gradients.py::test_batched_environments_each_get_their_own_gradient). A stage that
         writes no float (the broad phase: collision.NO_ADJOINT) has an empty adjoint, which is not run.
 
@@ -460,14 +468,18 @@ class RigidSolver:
             target, parts = runs[use]
             if self._scratch != (e, src, h, target):
                 forward(target, e, src, h)
-            target.kernel_solve_grad(e)
-            for k0, k1, plain, hand in parts:
+            # the factor-solve's adjoint, in the first written-out adjoint's loop over envs where it can be
+            fuse = not target.has_contact and parts and parts[0][3] is not None
+            if not fuse:
+                target.kernel_solve_grad(e)
+            for i, (k0, k1, plain, hand) in enumerate(parts):
                 if hand is not None:
                     with ForwardCompile():  # a primal kernel (nothing differentiates it)
-                        getattr(target, hand)()
+                        target.hand_adjoint(hand._replace(solve=fuse and i == 0), e, src, h)
                     continue
                 with AdjointCompile(plain):
                     target.kernel_dynamics_part.grad(k0, k1, e, src, h)
+            self._scratch_grads_zero = self._light_clear_ok
 
         return evaluate
 
@@ -476,8 +488,7 @@ class RigidSolver:
         loops in one kernel (see adjoint_groups). The coupler launches the core's kernel itself: its calls
         run inside the MPM substep's own grad_replaced adjoint, where a nested one is not recorded."""
         core = self.core
-        assert DYNAMICS[: len(LINK_STATE)] == LINK_STATE and set(LINK_STATE) <= set(PLAIN_ADJOINT)
-        n = len(LINK_STATE)
+        assert DYNAMICS[: len(LINK_STATE)] == LINK_STATE == KINEMATICS[: len(LINK_STATE)]
 
         @ti.ad.grad_replaced
         def kinematics(src):
@@ -486,8 +497,9 @@ class RigidSolver:
 
         @ti.ad.grad_for(kinematics)
         def kinematics_grad(src):
-            with AdjointCompile(True):  # LINK_STATE is in PLAIN_ADJOINT: one kernel (see adjoint_groups)
-                core.kernel_dynamics_part.grad(0, n, 0, src, 0.0)
+            with ForwardCompile():  # written out (a primal kernel: nothing differentiates it)
+                core.hand_adjoint(LINK_STATE_ADJOINT, 0, src, 0.0)
+            self._scratch_grads_zero = self._light_clear_ok
 
         return kinematics
 
@@ -497,8 +509,20 @@ class RigidSolver:
         self._scratch = None
 
     def clear_grads(self):
-        """Zero every adjoint of the scene's envs and seed the adjoint of the solver's vjp scalar."""
-        self.step_core.kernel_clear_grads()
+        """Zero the adjoints of the scene's envs and seed the adjoint of the solver's vjp scalar. Those of the
+        per-evaluation scratch (poses, inertias, forces, M: 3/4 of the numbers a full clear zeroes) only when
+        they may not be zero. The core's stages come first in every dynamics, so their written-out adjoints
+        (HAND_ADJOINTS) run last in an evaluation's backward, after those of a scene's own stages (contacts,
+        applied wrenches) have added to the scratch's adjoints, and they read each scratch adjoint and zero it,
+        as every store's adjoint does; the scene's own solvers' fields are cleared either way. So the scratch's
+        adjoints are zero when the last launch that touched them before this clear was such an adjoint that
+        ended (an evaluation's or the getters' kinematics'), with nothing that adds to them after it (the
+        integration's and the vjp's adjoints touch the state's only). Not assumed: after a backward that stopped
+        part-way, in a fresh solver, with the coupler's external wrenches (its kinematics run inside the MPM
+        substep's adjoint) or a dense contact solve (it fills M's adjoint outside the tree's entries, which
+        nothing zeroes). tests/test_gradients.py compares the two clears."""
+        self.step_core.kernel_clear_grads(not (self.light_clear and self._scratch_grads_zero))
+        self._scratch_grads_zero = False
 
     def mass_matrix(self, src: int):
         """M (without armature or implicit terms) at qpos[src] into mass_mat (read it with read_mass_matrix)."""
