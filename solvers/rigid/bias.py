@@ -189,14 +189,13 @@ def func_gyro_implicit_adjoint(s: ti.template(), on, m, mc, J, w, h, gy):
 
 
 @ti.func
-def func_bias_adjoint(s: ti.template(), i_b, src, h, forces: ti.template(), accumulate: ti.template(),
-                      project: ti.template()):
+def func_bias_adjoint(s: ti.template(), i_b, src, h, forces, accumulate, project):
     """The adjoint of the BIAS stages, written out (solver.HAND_ADJOINTS), last first: of func_project_forces
     (`project`), of func_accumulate_forces (`accumulate`; each link's force adjoint gets its parent's, parents
     first) and of func_link_forces and func_free_gyro (`forces`; the links children first), each store's adjoint
     reading and zeroing the stored field's (as Taichi's do), grad-path branches, differentiated as written, plain
     adds."""
-    if ti.static(project):
+    if project:
         for i_d in range(s.n_dofs):
             i_l = s.dof_link[i_d]
             g = func_take(s.bias, i_b, i_d)
@@ -204,13 +203,13 @@ def func_bias_adjoint(s: ti.template(), i_b, src, h, forces: ti.template(), accu
             s.cdof_v.grad[i_b, i_d] = s.cdof_v.grad[i_b, i_d] + g * s.cfrc_f[i_b, i_l]
             s.cfrc_n.grad[i_b, i_l] = s.cfrc_n.grad[i_b, i_l] + g * s.cdof_w[i_b, i_d]
             s.cfrc_f.grad[i_b, i_l] = s.cfrc_f.grad[i_b, i_l] + g * s.cdof_v[i_b, i_d]
-    if ti.static(accumulate):
+    if accumulate:
         for i_l in range(s.n_links):
             p = s.link_parent[i_l]
             if p >= 0:
                 s.cfrc_n.grad[i_b, i_l] = s.cfrc_n.grad[i_b, i_l] + s.cfrc_n.grad[i_b, p]
                 s.cfrc_f.grad[i_b, i_l] = s.cfrc_f.grad[i_b, i_l] + s.cfrc_f.grad[i_b, p]
-    if ti.static(forces):
+    if forces:
         for t in range(s.n_free_links):
             i_l = s.free_link[t]
             m, mc, J = s.link_mass[i_b, i_l], s.link_h[i_b, i_l], s.link_J[i_b, i_l]

@@ -286,12 +286,12 @@ class RigidCore:
                    self.cacc_v, self.crb_m, self.crb_h, self.crb_J, self.cfrc_n, self.cfrc_f, self.dof_n, self.dof_f,
                    self.mass_mat, self.bias, self.force, self.dof_lim_D, self.dof_lim_f, self.dof_rot_err]
         self.zero_plan = ZeroPlan([self.mass_mat, self.cdof_w, self.cdof_v, self.cdofd_w, self.cdofd_v], [], N)
-        self.grad_fields0 = [x.grad for x in params + scratch] if g else []
-        self.grad_fields1 = [x.grad for x in state] if g else []
-        self.grad_plan = ZeroPlan(self.grad_fields0, self.grad_fields1, N)
+        # kernel_clear_grads': the parameters' and the state's, and the per-evaluation scratch's
         self.param_grads = [x.grad for x in params] if g else []
-        self.input_grad_plan = ZeroPlan(self.param_grads, self.grad_fields1, N)
+        self.state_grads = [x.grad for x in state] if g else []
+        self.input_grad_plan = ZeroPlan(self.param_grads, self.state_grads, N)
         self.scratch_grads = [x.grad for x in scratch] if g else []
+        self.scratch_grad_plan = ZeroPlan(self.scratch_grads, [], N)
 
     # ------------------------------------------------------------------ build and reset
     @ti.kernel
@@ -580,49 +580,51 @@ class RigidCore:
                     stage(self, i_b, 0, src, 0.0)
 
     @ti.kernel
-    def kernel_hand_adjoint(self, e: ti.i32, src: ti.i32, h: float, kinematics: ti.template(), full: ti.template(),
-                            inertia: ti.template(), forces: ti.template(), accumulate: ti.template(),
-                            project: ti.template(), generalized: ti.template(), solve: ti.template()):
+    def kernel_hand_adjoint(self, e: ti.i32, src: ti.i32, h: float, kinematics: ti.i32, full: ti.i32, inertia: ti.i32,
+                            forces: ti.i32, accumulate: ti.i32, project: ti.i32, generalized: ti.i32, solve: ti.i32):
         """Written-out adjoints of a run of stages (a HandAdjoint: solver.HAND_ADJOINTS), in one loop over envs, last
         stage first, after the factor-solve's of evaluation e (`solve`; a core without contacts): the
-        generalised force's and the free joints' rotation errors' (actuation.
-        func_generalized_force_adjoint), the BIAS stages' (bias.func_bias_adjoint), the INERTIA stages'
-        (inertia.func_inertia_adjoint), the KINEMATICS stages' or LINK_STATE's at state slot src
-        (kinematics.func_kinematics_adjoint)."""
+        generalised force's and the free joints' rotation errors' (actuation.func_generalized_force_adjoint), the
+        BIAS stages' (bias.func_bias_adjoint), the INERTIA stages' (inertia.func_inertia_adjoint), the KINEMATICS
+        stages' or LINK_STATE's at state slot src (kinematics.func_kinematics_adjoint). The parts are chosen at run
+        time: every run is this one compiled kernel (as template arguments, each run was a kernel of its own,
+        and a warm process paid Taichi's front end for each: ~130 ms for the getters' LINK_STATE alone)."""
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
             if i_b < self.n_envs:
-                if ti.static(solve):
+                if solve:
                     func_solve_grad(self, i_b, e)
                     func_limit_release_grad(self, i_b, e, self.solve_tmp)
-                if ti.static(generalized):
+                if generalized:
                     func_generalized_force_adjoint(self, i_b, src, h)
-                if ti.static(forces or accumulate or project):
+                if forces or accumulate or project:
                     func_bias_adjoint(self, i_b, src, h, forces, accumulate, project)
-                if ti.static(inertia):
+                if inertia:
                     func_inertia_adjoint(self, i_b)
-                if ti.static(kinematics):
+                if kinematics:
                     func_kinematics_adjoint(self, i_b, src, full)
 
     def hand_adjoint(self, spec, e: int, src: int, h: float):
         """The written-out adjoint `spec` (a HandAdjoint) of evaluation e at state slot src, substep h."""
         assert not (spec.solve and (self.has_contact or self.dense_solve))
-        self.kernel_hand_adjoint(e, src, h, *spec)  # (bools: the fast launch path keys them by value)
+        self.kernel_hand_adjoint(e, src, h, *[int(x) for x in spec])
 
     @ti.kernel
-    def kernel_clear_grads(self, scratch: ti.template()):
+    def kernel_clear_grads(self, scratch: ti.i32):
         """Zero the adjoint fields of the scene's envs, and seed the adjoint of the solver's Tape
-        scalar (see kernel_vjp): every one (`scratch`), or those of the parameters and the state only, where the
-        per-evaluation scratch's are known to be zero (RigidSolver.clear_grads). Constants, not x * 0: a NaN left
-        by an earlier failed backward must not survive. One top-level loop: each costs a task to load."""
+        scalar (see kernel_vjp): those of the parameters and the state (and of a SceneCore's own solvers), and
+        those of the per-evaluation scratch where `scratch` (RigidSolver.clear_grads: they may not be zero).
+        Constants, not x * 0: a NaN left by an earlier failed backward must not survive. One top-level loop: each
+        costs a task to load."""
         self.vjp_loss.grad[None] = 1.0
         if ti.static(self.serial):
             ti.loop_config(serialize=True)
         for i_b in range(self.cap_envs):
             if i_b < self.n_envs:
-                func_zero_plan(self.grad_plan if ti.static(scratch) else self.input_grad_plan, i_b,
-                               self.cfg_i[I_ELEMS])
+                func_zero_plan(self.input_grad_plan, i_b, self.cfg_i[I_ELEMS])
+                if scratch:
+                    func_zero_plan(self.scratch_grad_plan, i_b, self.cfg_i[I_ELEMS])
 
 
 @ti.data_oriented
@@ -654,8 +656,7 @@ class SceneCore(RigidCore):
         self.has_contact = contact is not None
         if core.requires_grad:
             own = [f.grad for x in extra + [applied] if x is not None for f in x.grad_fields]
-            self.grad_plan = ZeroPlan(core.grad_fields0, core.grad_fields1, core.cap_elems, own)
-            self.input_grad_plan = ZeroPlan(core.param_grads, core.grad_fields1, core.cap_elems, own)
+            self.input_grad_plan = ZeroPlan(core.param_grads, core.state_grads, core.cap_elems, own)
 
 
 def with_applied(step_core):

@@ -298,9 +298,9 @@ def func_origin_adjoint(s: ti.template(), i_b, i_l, g):
 
 
 @ti.func
-def func_kinematics_adjoint(s: ti.template(), i_b, src, full: ti.template()):
+def func_kinematics_adjoint(s: ti.template(), i_b, src, full):
     """The adjoint of the KINEMATICS stages of env i_b at state slot src, written out (solver.HAND_ADJOINTS), with
-    plain adds (an env is one thread's); `full` False: of LINK_STATE only (the getters' kinematics, which stops
+    plain adds (an env is one thread's); `full` 0: of LINK_STATE only (the getters' kinematics, which stops
     there). The stages in reverse order, each store's adjoint reading and zeroing the stored field's adjoint (as
     Taichi's do) and adding into the adjoints of what the stage read, differentiated as written (the quaternion
     helpers' adjoints: math3d), the grad-path branches only:
@@ -312,7 +312,7 @@ def func_kinematics_adjoint(s: ti.template(), i_b, src, full: ti.template()):
     - func_forward_kinematics / func_free_pose: each link's pose from its parent's and its q, children first (a
       parent's adjoint is complete when its turn comes: links are in topological order), then the free links'
       (the position and the normalised quaternion of their qs)."""
-    if ti.static(full):
+    if full:
         for i_l in range(s.n_links):
             gh = func_take(s.link_h, i_b, i_l)
             gJ = func_take(s.link_J, i_b, i_l)

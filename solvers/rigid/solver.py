@@ -521,7 +521,7 @@ class RigidSolver:
         part-way, in a fresh solver, with the coupler's external wrenches (its kinematics run inside the MPM
         substep's adjoint) or a dense contact solve (it fills M's adjoint outside the tree's entries, which
         nothing zeroes). tests/test_gradients.py compares the two clears."""
-        self.step_core.kernel_clear_grads(not (self.light_clear and self._scratch_grads_zero))
+        self.step_core.kernel_clear_grads(int(not (self.light_clear and self._scratch_grads_zero)))
         self._scratch_grads_zero = False
 
     def mass_matrix(self, src: int):
