@@ -186,28 +186,36 @@ def func_pd_error(s: ti.template(), i_b, src, i_l, i_d, j, free_rot, pos_on, lin
 
 
 @ti.func
+def func_dof_inputs(s: ti.template(), i_b, src, i_d):
+    """What func_generalized_force (and its adjoint) reads of dof i_d: its velocity v, its coordinate's index i_q,
+    has_q (0/1) and the coordinate q (0 without one), its link i_l and index k in the link's joint, free_rot (a
+    free joint's rotational dof), the index i_lin and value q_lin of what its PD compares with the target, and its
+    control mode (and 0/1 masks of it). A free joint's dofs have no coordinate of their own (dof_q -1): the
+    translational ones are compared with the base position, the rotational ones with func_free_rot_vec."""
+    i_q = s.dof_q[i_d]
+    has_q = ti.cast(i_q >= 0, s.dtype)
+    q = s.qpos[src, i_b, ti.max(i_q, 0)] * has_q
+    i_l = s.dof_link[i_d]
+    k = i_d - s.link_dof_start[i_l]
+    is_free = s.link_jtype[i_l] == JOINT_FREE
+    i_lin = ti.min(s.link_q_start[i_l] + k, s.qpos_len - 1)
+    mode = s.ctrl_mode[i_b, i_d]
+    pos_mode = ti.cast(mode == CTRL_POSITION, s.dtype)
+    vel_mode = ti.cast(mode == CTRL_VELOCITY, s.dtype)
+    return (s.qvel[src, i_b, i_d], i_q, has_q, q, i_l, k, is_free and k >= 3, i_lin,
+            ti.select(is_free and k < 3, s.qpos[src, i_b, i_lin], q), mode, pos_mode, vel_mode,
+            1.0 - pos_mode - vel_mode)
+
+
+@ti.func
 def func_generalized_force(s: ti.template(), i_b, e, src, h):
     """force = actuation + passive + joint limits - bias; adds the implicit terms to M's diagonal.
     h is the (sub)step length. Single-assignment form (see kinematics.py)."""
     if ti.static(not s.requires_grad):
         s.dof_lim_n[i_b] = 0
     for i_d in range(s.n_dofs):
-        v = s.qvel[src, i_b, i_d]
-        i_q = s.dof_q[i_d]
-        has_q = ti.cast(i_q >= 0, s.dtype)
-        q = s.qpos[src, i_b, ti.max(i_q, 0)] * has_q
-        # a free joint's dofs have no coordinate of their own (dof_q -1): the translational ones are
-        # compared with the base position, the rotational ones with func_free_rot_vec
-        i_l = s.dof_link[i_d]
-        k = i_d - s.link_dof_start[i_l]
-        is_free = s.link_jtype[i_l] == JOINT_FREE
-        free_lin = is_free and k < 3
-        free_rot = is_free and k >= 3
-        q_lin = ti.select(free_lin, s.qpos[src, i_b, ti.min(s.link_q_start[i_l] + k, s.qpos_len - 1)], q)
-        mode = s.ctrl_mode[i_b, i_d]
-        pos_mode = ti.cast(mode == CTRL_POSITION, s.dtype)
-        vel_mode = ti.cast(mode == CTRL_VELOCITY, s.dtype)
-        force_mode = 1.0 - pos_mode - vel_mode
+        v, i_q, has_q, q, i_l, k, free_rot, i_lin, q_lin, mode, pos_mode, vel_mode, force_mode = func_dof_inputs(
+            s, i_b, src, i_d)
         kp = s.dof_kp[i_b, i_d] * pos_mode
         kv = s.dof_kv[i_b, i_d] * (pos_mode + vel_mode)
         err = func_pd_error(s, i_b, src, i_l, i_d, k - 3, free_rot, mode == CTRL_POSITION, s.ctrl_pos[i_b, i_d] - q_lin)
@@ -322,21 +330,9 @@ def func_generalized_force_adjoint(s: ti.template(), i_b, src, h):
         gLf = func_take(s.dof_lim_f, i_b, i_d)
         gLD = func_take(s.dof_lim_D, i_b, i_d)
         gM = s.mass_mat.grad[i_b, i_d, i_d]
-        v = s.qvel[src, i_b, i_d]
-        i_q = s.dof_q[i_d]
-        has_q = ti.cast(i_q >= 0, s.dtype)
-        q = s.qpos[src, i_b, ti.max(i_q, 0)] * has_q
-        i_l = s.dof_link[i_d]
-        k = i_d - s.link_dof_start[i_l]
-        is_free = s.link_jtype[i_l] == JOINT_FREE
-        free_lin = is_free and k < 3
-        free_rot = is_free and k >= 3
-        i_lin = ti.min(s.link_q_start[i_l] + k, s.qpos_len - 1)
-        q_lin = ti.select(free_lin, s.qpos[src, i_b, i_lin], q)
-        mode = s.ctrl_mode[i_b, i_d]
-        pos_mode = ti.cast(mode == CTRL_POSITION, s.dtype)
-        vel_mode = ti.cast(mode == CTRL_VELOCITY, s.dtype)
-        force_mode = 1.0 - pos_mode - vel_mode
+        v, i_q, has_q, q, i_l, k, free_rot, i_lin, q_lin, mode, pos_mode, vel_mode, force_mode = func_dof_inputs(
+            s, i_b, src, i_d)
+        free_lin = s.link_jtype[i_l] == JOINT_FREE and k < 3
         kp = s.dof_kp[i_b, i_d] * pos_mode
         kv = s.dof_kv[i_b, i_d] * (pos_mode + vel_mode)
         err = ti.select(free_rot, s.dof_rot_err[i_b, i_d], s.ctrl_pos[i_b, i_d] - q_lin)

@@ -125,14 +125,19 @@ def func_quat_log(q):
     tiny sine the series 2 atan(x) / x = 2 (1 - x^2 / 3), x = |v| / |w|, is used, and neither branch
     divides by 0, so an unselected branch puts no NaN into the gradient. Discontinuous at half a turn
     (w = 0), where the short way flips."""
-    v = ti.Vector([q[1], q[2], q[3]])
-    s2 = v.dot(v)
-    sgn = ti.select(q[0] < 0.0, -1.0, 1.0)
-    w = ti.max(ti.abs(q[0]), 1e-6)
-    s = ti.sqrt(ti.max(s2, 1e-20))
-    small = s2 < 1e-10 * w * w
+    v, s2, sgn, w, s, small = func_quat_log_parts(q)
     k = ti.select(small, 2.0 / w * (1.0 - s2 / (3.0 * w * w)), 2.0 * ti.atan2(s, w) / s)
     return sgn * k * v
+
+
+@ti.func
+def func_quat_log_parts(q):
+    """func_quat_log's (and its adjoint's) intermediates: the vector part v, its squared norm s2, the sign of q0
+    sgn, w = max(|q0|, 1e-6), s = sqrt(max(s2, 1e-20)), and whether the series is used."""
+    v = ti.Vector([q[1], q[2], q[3]])
+    s2 = v.dot(v)
+    w = ti.max(ti.abs(q[0]), 1e-6)
+    return v, s2, ti.select(q[0] < 0.0, -1.0, 1.0), w, ti.sqrt(ti.max(s2, 1e-20)), s2 < 1e-10 * w * w
 
 
 @ti.func
@@ -154,12 +159,7 @@ def func_euler_xyz_quat_adjoint(a, b, c, g):
 def func_quat_log_adjoint(q, g):
     """The adjoint of func_quat_log(q) for the rotation vector's adjoint g: q's, differentiated as written (each
     clamp passes the adjoint where its argument is the one kept, as Taichi's max does)."""
-    v = ti.Vector([q[1], q[2], q[3]])
-    s2 = v.dot(v)
-    sgn = ti.select(q[0] < 0.0, -1.0, 1.0)
-    w = ti.max(ti.abs(q[0]), 1e-6)
-    s = ti.sqrt(ti.max(s2, 1e-20))
-    small = s2 < 1e-10 * w * w
+    v, s2, sgn, w, s, small = func_quat_log_parts(q)
     at = ti.atan2(s, w)
     k = ti.select(small, 2.0 / w * (1.0 - s2 / (3.0 * w * w)), 2.0 * at / s)
     gk = sgn * g.dot(v)
