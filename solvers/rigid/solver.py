@@ -519,8 +519,9 @@ class RigidSolver:
         ended (an evaluation's or the getters' kinematics'), with nothing that adds to them after it (the
         integration's and the vjp's adjoints touch the state's only). Not assumed: after a backward that stopped
         part-way, in a fresh solver, with the coupler's external wrenches (its kinematics run inside the MPM
-        substep's adjoint) or a dense contact solve (it fills M's adjoint outside the tree's entries, which
-        nothing zeroes). tests/test_gradients.py compares the two clears."""
+        substep's adjoint) or a dense contact solve (its adjoints work on the full matrix, beyond the tree's
+        entries that the mass matrix's adjoint zeroes: not checked, so not assumed). tests/test_gradients.py
+        compares the two clears."""
         self.step_core.kernel_clear_grads(int(not (self.light_clear and self._scratch_grads_zero)))
         self._scratch_grads_zero = False
 
