@@ -26,7 +26,8 @@ velocity mode keeps its own control instead of being given the PD torque too.
 """
 import taichi as ti
 
-from .kinematics import JOINT_FREE, func_take
+from .kinematics import JOINT_FREE
+from .layout import func_take
 from .math3d import (func_add2, func_euler_xyz_quat, func_euler_xyz_quat_adjoint, func_quat_log, func_quat_log_adjoint,
                      func_quat_mul, func_quat_mul_adjoint)
 

@@ -8,8 +8,10 @@ Euler; MuJoCo's implicitfast keeps it, but damps the tumbling; tests/test_integr
 import taichi as ti
 
 from .kinematics import (JOINT_FREE, func_add_vec3, func_free_twist, func_hinge_rate, func_link_joint_velocity,
-                         func_parent_slot, func_take)
-from .math3d import func_add, func_cross_force, func_inertia_mul, func_mm, func_mtv, func_mv, func_skew
+                         func_parent_slot)
+from .layout import func_take
+from .math3d import (func_add, func_cross_force, func_inertia_mul, func_inertia_mul_adjoint, func_mm, func_mtv, func_mv,
+                     func_skew)
 
 # a link lighter than this (kg) gets no implicit gyroscopic moment (func_gyro_implicit: its centre of mass
 # is mc / m)
@@ -131,14 +133,6 @@ def func_project_forces(s: ti.template(), i_b, e, src, h):
 def func_skew_adjoint(G):
     """The adjoint of func_skew(p) for its adjoint G: p's."""
     return ti.Vector([G[2, 1] - G[1, 2], G[0, 2] - G[2, 0], G[1, 0] - G[0, 1]])
-
-
-@ti.func
-def func_inertia_mul_adjoint(m, hh, J, w, v, gn, gf):
-    """The adjoint of func_inertia_mul(m, hh, J, w, v) = (J w + hh x v, m v + w x hh) for (gn, gf): (m's, hh's, J's,
-    w's, v's)."""
-    return (gf.dot(v), gf.cross(w) + v.cross(gn), gn.outer_product(w), func_mtv(J, gn) + hh.cross(gf),
-            m * gf + gn.cross(hh))
 
 
 @ti.func

@@ -9,8 +9,8 @@ import functools
 
 import taichi as ti
 
-from .layout import func_set_zero
-from .math3d import func_add, func_inertia_mul
+from .layout import func_set_zero, func_take
+from .math3d import func_add, func_inertia_mul, func_inertia_mul_adjoint
 
 LOCAL_SOLVE_MAX = 16  # element capacity up to which the no-gradient factor-solve runs on local copies
 
@@ -106,19 +106,14 @@ def func_inertia_adjoint(s: ti.template(), i_b):
         s.cdof_v.grad[i_b, j] = s.cdof_v.grad[i_b, j] + g * s.dof_f[i_b, i]
     for i in range(s.n_dofs):
         i_l = s.dof_link[i]
-        gn = s.dof_n.grad[i_b, i]
-        gf = s.dof_f.grad[i_b, i]
-        func_set_zero(s.dof_n.grad, (i_b, i))
-        func_set_zero(s.dof_f.grad, (i_b, i))
-        w = s.cdof_w[i_b, i]
-        v = s.cdof_v[i_b, i]
-        h = s.crb_h[i_b, i_l]
-        J = s.crb_J[i_b, i_l]
-        s.crb_m.grad[i_b, i_l] = s.crb_m.grad[i_b, i_l] + gf.dot(v)
-        s.crb_h.grad[i_b, i_l] = s.crb_h.grad[i_b, i_l] + gf.cross(w) + v.cross(gn)
-        s.crb_J.grad[i_b, i_l] = s.crb_J.grad[i_b, i_l] + gn.outer_product(w)
-        s.cdof_w.grad[i_b, i] = s.cdof_w.grad[i_b, i] + h.cross(gf) + J.transpose() @ gn
-        s.cdof_v.grad[i_b, i] = s.cdof_v.grad[i_b, i] + s.crb_m[i_b, i_l] * gf + gn.cross(h)
+        gm, gh, gJ, gw, gv = func_inertia_mul_adjoint(s.crb_m[i_b, i_l], s.crb_h[i_b, i_l], s.crb_J[i_b, i_l],
+                                                      s.cdof_w[i_b, i], s.cdof_v[i_b, i], func_take(s.dof_n, i_b, i),
+                                                      func_take(s.dof_f, i_b, i))
+        s.crb_m.grad[i_b, i_l] = s.crb_m.grad[i_b, i_l] + gm
+        s.crb_h.grad[i_b, i_l] = s.crb_h.grad[i_b, i_l] + gh
+        s.crb_J.grad[i_b, i_l] = s.crb_J.grad[i_b, i_l] + gJ
+        s.cdof_w.grad[i_b, i] = s.cdof_w.grad[i_b, i] + gw
+        s.cdof_v.grad[i_b, i] = s.cdof_v.grad[i_b, i] + gv
     for i_l in range(s.n_links):
         p = s.link_parent[i_l]
         gm = s.crb_m.grad[i_b, i_l]

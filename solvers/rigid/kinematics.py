@@ -11,7 +11,7 @@ the world slot (func_parent_slot), not to a link this stage writes later.
 """
 import taichi as ti
 
-from .layout import func_set_zero
+from .layout import func_take
 from .math3d import (func_axis_angle_quat, func_cross_motion, func_mtv, func_mv, func_quat_mul, func_quat_mul_adjoint,
                      func_quat_rotate, func_quat_rotate_adjoint, func_quat_to_R, func_quat_to_R_adjoint,
                      func_rotate_inertia)
@@ -272,14 +272,6 @@ def func_dof_subspace_dot(s: ti.template(), i_b, e, src, h):
             dw, dv = func_cross_motion(s.cvel_w[i_b, i_l], s.cvel_v[i_b, i_l], s.cdof_w[i_b, i_d], s.cdof_v[i_b, i_d])
             s.cdofd_w[i_b, i_d] = ti.select(is_free, ti.Vector([0.0, 0.0, 0.0], dt=s.dtype), dw)
             s.cdofd_v[i_b, i_d] = ti.select(is_free, ang * vb.cross(s.cdof_w[i_b, i_d]), dv)
-
-
-@ti.func
-def func_take(x: ti.template(), i_b, i):
-    """x.grad[i_b, i], then zeroed: a store's adjoint, as Taichi's reads the stored entry's adjoint and zeroes it."""
-    g = x.grad[i_b, i]
-    func_set_zero(x.grad, (i_b, i))
-    return g
 
 
 @ti.func

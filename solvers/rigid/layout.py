@@ -112,6 +112,14 @@ def func_set_zero(x: ti.template(), I: ti.template()):
         x[I] = ti.Matrix.zero(x.dtype, x.n, x.m)
 
 
+@ti.func
+def func_take(x: ti.template(), i_b, i):
+    """x.grad[i_b, i], then zeroed: a store's adjoint, as Taichi's reads the stored entry's adjoint and zeroes it."""
+    g = x.grad[i_b, i]
+    func_set_zero(x.grad, (i_b, i))
+    return g
+
+
 class ZeroPlan:
     """Per-env fields grouped by the shape of their per-env part, so that one loop zeroes a whole group
     (one loop per field makes a kernel several times larger, and its size is what loading it costs).

@@ -250,6 +250,14 @@ def func_inertia_mul(m, h, J, w, v):
     return n, f
 
 
+@ti.func
+def func_inertia_mul_adjoint(m, hh, J, w, v, gn, gf):
+    """The adjoint of func_inertia_mul(m, hh, J, w, v) = (J w + hh x v, m v + w x hh) for (gn, gf): (m's, hh's, J's,
+    w's, v's)."""
+    return (gf.dot(v), gf.cross(w) + v.cross(gn), gn.outer_product(w), func_mtv(J, gn) + hh.cross(gf),
+            m * gf + gn.cross(hh))
+
+
 def plain_updates(s) -> bool:
     """Whether a stage compiling now may update a field of s with a plain read-modify-write (x = x + v)
     rather than `+=`: where nothing differentiates the kernel being compiled (no gradients, or a primal kernel
