@@ -345,7 +345,7 @@ def child_mj(integrator, steps, rounds):
     files = W._quad_files(Path(tempfile.mkdtemp()))
     m, q0, v0, _, target = W._mj_build_quad(files, integrator, DT)
     d = mujoco.MjData(m)
-    d.qpos[:] = q0
+    d.qpos[:] = np.atleast_2d(q0)[0]  # start 0 (the batched work-precision rows' others: W.quad_starts)
     d.qvel[:] = v0
     d.ctrl[:] = target
     for _ in range(int(round(WARM_S / DT))):

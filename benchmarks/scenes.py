@@ -204,17 +204,21 @@ def mujoco_from_urdf(urdf, free=False, base_pos=(0.0, 0.0, 0.0), floor_mu=None, 
 
 
 def mujoco_initial_states(m, qpos, qvel, n_envs: int):
-    """(n_envs, nstate) full-physics states of MuJoCo's rollout, every env starting from (qpos, qvel)."""
+    """(n_envs, nstate) full-physics states of MuJoCo's rollout, every env starting from (qpos, qvel); qpos with a
+    row a start: env i from row i % rows."""
     import mujoco
 
     d = mujoco.MjData(m)
-    d.qpos[:] = qpos
-    d.qvel[:] = qvel
-    mujoco.mj_forward(m, d)
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    s0 = np.empty(mujoco.mj_stateSize(m, spec))
-    mujoco.mj_getState(m, d, s0, spec)
-    return np.tile(s0, (n_envs, 1))
+    rows = np.atleast_2d(np.asarray(qpos, dtype=float))
+    starts = np.empty((len(rows), mujoco.mj_stateSize(m, spec)))
+    for k, q in enumerate(rows):
+        mujoco.mj_resetData(m, d)
+        d.qpos[:] = q
+        d.qvel[:] = qvel
+        mujoco.mj_forward(m, d)
+        mujoco.mj_getState(m, d, starts[k], spec)
+    return starts[np.arange(n_envs) % len(rows)]
 
 
 def mujoco_state_slices(m):

@@ -87,12 +87,51 @@ def test_sample_times_must_be_whole_steps():
                         wp._samples(wp.SCENES[key], dt)  # raises if a sample time falls between steps
 
 
-def test_error_measure_flags_nan_and_takes_the_worst_env():
-    assert wp._error([[0.0, 1.0], [0.0, 1.5]], [0.0, 1.0], "pendulum") == pytest.approx(0.5)
+def test_error_measure_flags_nan_and_averages_the_envs_each_against_its_start():
+    """Each env's error is its worst observable; the scene's is their mean; env i is compared with the reference's
+    row i % rows (one row a start: the quadrupeds' envs start from QUAD_STARTS drops)."""
+    assert wp._error([[0.0, 1.0], [0.0, 1.5]], [0.0, 1.0], "pendulum") == pytest.approx(0.25)
+    assert wp._error([[0.0, 1.0], [0.0, 1.0]], [0.0, 1.0], "pendulum") == 0.0
     assert wp._error([[np.nan, 1.0]], [0.0, 1.0], "pendulum") == math.inf
+    ref = [[0.0, 1.0], [2.0, 3.0]]  # two starts
+    assert wp._error([[0.0, 1.0], [2.0, 3.0], [0.0, 1.0], [2.0, 3.0]], ref, "pendulum") == 0.0
+    assert wp._error([[0.0, 1.0], [2.0, 3.0], [0.0, 1.4], [2.0, 3.0]], ref, "pendulum") == pytest.approx(0.1)
+    assert wp._error([[0.0, 1.0]], ref, "pendulum") == 0.0  # one env: start 0
     assert wp._error([[3.0, 4.0, 0.0]], [0.0, 0.0, 0.0], "quadruped") == pytest.approx(5.0)
     # the quadruped's samples (x, y, z) at each sample time: the worst one's norm
     assert wp._error([[0.0, 0.0, 1.0, 3.0, 4.0, 0.0]], [0.0] * 6, "quadruped_armature") == pytest.approx(5.0)
+
+
+def test_quadruped_starts_are_fixed_and_start_0_is_the_level_drop():
+    """The batched quadruped rows start QUAD_STARTS drops: the same ones in every run and in both engines (one draw,
+    seeded), start 0 the one-env row's (level, at BASE_Z, the standing pose), the others each moved, with unit
+    quaternions; MuJoCo's initial states take one row a start, env i row i % rows."""
+    from bench_contact import BASE_Z, standing_pose
+
+    names = ["LF_HAA", "LF_HFE", "LF_KFE", "RF_HAA", "RF_HFE", "RF_KFE", "LH_HAA", "LH_HFE", "LH_KFE", "RH_HAA",
+             "RH_HFE", "RH_KFE"]
+    pos, quat, q = wp.quad_starts(names, wp.QUAD_STARTS)
+    pos2, quat2, q2 = wp.quad_starts(names, wp.QUAD_STARTS)
+    assert np.array_equal(pos, pos2) and np.array_equal(quat, quat2) and np.array_equal(q, q2)
+    assert np.array_equal(pos[0], [0.0, 0.0, BASE_Z]) and np.array_equal(quat[0], [1.0, 0.0, 0.0, 0.0])
+    assert np.array_equal(q[0], standing_pose(names))
+    assert np.allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-12)
+    moved = np.abs(np.concatenate([pos - pos[0], quat - quat[0], q - q[0]], axis=1)).max(axis=1)
+    assert moved[0] == 0.0 and np.all(moved[1:] > 1e-3)
+    assert np.all(np.abs(q - q[0]) <= 0.1) and np.all(np.abs(pos[:, 2] - BASE_Z) <= 0.03)
+    assert wp.SCENES["quadruped"].starts == wp.SCENES["quadruped_armature"].starts == wp.QUAD_STARTS
+
+
+def test_mujoco_initial_states_take_a_row_a_start():
+    mujoco = pytest.importorskip("mujoco")
+    m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><body><freejoint/><geom size="0.1"/></body></worldbody>'
+                                       '</mujoco>')
+    rows = np.array([[0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0], [0.5, -0.2, 2.0, 0.0, 1.0, 0.0, 0.0]])
+    qs, _ = S.mujoco_state_slices(m)
+    st = S.mujoco_initial_states(m, rows, np.zeros(6), 5)
+    assert st.shape[0] == 5
+    assert np.array_equal(st[:, qs], rows[[0, 1, 0, 1, 0]])
+    assert np.array_equal(S.mujoco_initial_states(m, rows[1], np.zeros(6), 3)[:, qs], rows[[1, 1, 1]])
 
 
 def _wave_speed(E, nu, rho):
