@@ -165,6 +165,11 @@ class _LaunchProbe:
             self.loss[None] += c * self.x[i] ** 2
 
     @ti.kernel
+    def scaled_square_sum(self, a: ti.i32):
+        for i in self.x:
+            self.loss[None] += a * self.x[i] ** 2
+
+    @ti.kernel
     def count(self, a: ti.i32, b: ti.i32) -> ti.i32:
         """The owner as the only template (the fused step's shape): out += a * b, returns out[0]."""
         for i in self.out:
@@ -252,6 +257,51 @@ def test_fast_launch_of_an_owner_s_kernel_follows_the_owner():
         assert q.count(2, 3) == 6 and q.count(1, 1) == 7
         assert r.count(1, 1) == 102
         assert q.out.to_numpy().tolist() == [7.0] * 3 and r.out.to_numpy().tolist() == [102.0] * 3
+
+
+def test_hot_launcher_gives_the_kernel_s_results_and_steps_aside():
+    """hot_launcher (the fused step's launch) gives the kernel's own results launch after launch, each owner
+    its own, after a field is created (which Taichi must place first), for an argument that is not an int
+    (the kernel's path, and Taichi's error for a wrong type), and inside a Tape, whose gradient must see every
+    launch; without the fast launch it is the bound kernel itself."""
+    gs.init(backend=gs.cpu, precision="64")
+    from solvers.taichi_compat import frontend as F
+
+    q, r = _LaunchProbe(3), _LaunchProbe(3)
+    hq, hr = F.hot_launcher(q.count), F.hot_launcher(r.count)
+    total_q = total_r = 0
+    for step in range(1, 6):
+        total_q += 2 * step
+        total_r += 3 * step
+        assert hq(step, 2) == total_q and hr(step, 3) == total_r
+    assert hq._gs_entry[0] is not None and hr._gs_entry[0] is not None  # the direct launch was taken
+    late = ti.field(ti.f64, shape=2)  # created after the launches
+    late.fill(1.5)
+    assert hq(1, 1) == total_q + 1 and late.to_numpy().tolist() == [1.5, 1.5]
+    lonely = ti.field(ti.f64)  # declared, not placed: refused at the next launch, as Taichi does
+    with pytest.raises(RuntimeError, match="not placed"):
+        hq(1, 1)
+    ti.root.dense(ti.i, 2).place(lonely)
+    assert hq(np.int32(2), 1) == total_q + 3  # not a Python int: through the kernel
+    with pytest.raises(Exception) as err:
+        hq("one", 1)
+    assert "cannot be converted" in str(err.value)
+    assert q.out.to_numpy().tolist() == [total_q + 3] * 3 and r.out.to_numpy().tolist() == [total_r] * 3
+    hs = F.hot_launcher(q.scaled_square_sum)
+    x = np.random.default_rng(4).normal(size=3)
+    q.x.from_numpy(x)
+    for _ in range(3):
+        hs(1)  # outside a Tape: the direct launch's entry exists
+    q.loss[None] = 0.0
+    with ti.ad.Tape(loss=q.loss):
+        hs(2)
+        hs(3)
+    np.testing.assert_allclose(q.loss[None], 5.0 * (x ** 2).sum(), rtol=1e-14)
+    np.testing.assert_allclose(q.x.grad.to_numpy(), 2 * 5.0 * x, rtol=1e-14)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(F, "_HOT", [None])
+        bound = q.count
+        assert F.hot_launcher(bound) is bound
 
 
 def test_source_store_keeps_taichi_s_source_across_processes(tmp_path, monkeypatch):
