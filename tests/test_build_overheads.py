@@ -283,6 +283,8 @@ def test_hot_launcher_gives_the_kernel_s_results_and_steps_aside():
         hq(1, 1)
     ti.root.dense(ti.i, 2).place(lonely)
     assert hq(np.int32(2), 1) == total_q + 3  # not a Python int: through the kernel
+    with pytest.raises(Exception):
+        hq(1)  # an argument missing: the kernel's own error
     with pytest.raises(Exception) as err:
         hq("one", 1)
     assert "cannot be converted" in str(err.value)

@@ -538,12 +538,14 @@ def install_fast_launch() -> bool:
         """See hot_launcher."""
         kernel, owner = bound._primal, bound._kernel_owner
         rt = kernel.runtime
-        entry = [None]  # (compiled instance, Taichi's key, compiled data, fields_state) of the last fast launch
+        # (compiled instance, Taichi's key, compiled data, fields_state, argument count) of the last fast launch
+        entry = [None]
 
         def launch(*args):
             e = entry[0]
-            if (e is not None and Kernel.__call__ is fast_call and rt.target_tape is None and not rt.fwd_mode_manager
-                    and kernel.compiled_kernels.get(e[1]) is e[0] and fields_state(rt) == e[3]):
+            if (e is not None and len(args) == e[4] and Kernel.__call__ is fast_call and rt.target_tape is None
+                    and not rt.fwd_mode_manager and kernel.compiled_kernels.get(e[1]) is e[0]
+                    and fields_state(rt) == e[3]):
                 ctx = e[0].make_launch_context()
                 j = 0
                 for v in args:
@@ -566,7 +568,7 @@ def install_fast_launch() -> bool:
             if (hit is not None and hit.data is not None and not hit.sync and hit.refs[0][1]() is owner and plan
                     and plan[0] == (0,) and not plan[1] and not plan[3] and len(plan[2]) == len(args)
                     and all(setter == "set_arg_int" for setter, _, _ in plan[2])):
-                entry[0] = (hit.t_kernel, hit.key, hit.data, fields_state(rt))
+                entry[0] = (hit.t_kernel, hit.key, hit.data, fields_state(rt), len(args))
             return ret
 
         launch._gs_entry = entry  # (tests look at it)
