@@ -432,6 +432,13 @@ def install_fast_launch() -> bool:
         """The template arguments' part of a cache key: value arguments as they are, objects by id."""
         return tuple([a if type(a) in _VALUE_TYPES else id(a) for a in [args[i] for i in temps]])
 
+    def reraise(err):
+        """Taichi's exception for an error of its C++ launch, as Kernel.__call__ raises it."""
+        err = handle_exception_from_cpp(err)
+        if impl.get_runtime().print_full_traceback:
+            raise err
+        raise err from None
+
     def fast_call(self, *args, **kwargs):
         d = self.__dict__
         plan = d.get("_gs_plan", False)
@@ -524,10 +531,7 @@ def install_fast_launch() -> bool:
                 data = hit.data = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
             prog.launch_kernel(data, ctx)
         except Exception as e:
-            e = handle_exception_from_cpp(e)
-            if impl.get_runtime().print_full_traceback:
-                raise e
-            raise e from None
+            reraise(e)
         if d["_gs_ret"]:
             if hit.sync:
                 runtime_ops.sync()
@@ -537,6 +541,11 @@ def install_fast_launch() -> bool:
     def hot(bound):
         """See hot_launcher."""
         kernel, owner = bound._primal, bound._kernel_owner
+        ret_type = kernel.return_type
+        ret_int = ret_type is not None
+        if ret_int and not (len(ret_type) == 1 and ret_type[0] in P.integer_types
+                            and is_signed(cook_dtype(ret_type[0]))):
+            return bound  # a return the direct launch does not read
         rt = kernel.runtime
         # (compiled instance, Taichi's key, compiled data, fields_state, argument count) of the last fast launch
         entry = [None]
@@ -547,20 +556,15 @@ def install_fast_launch() -> bool:
                     and not rt.fwd_mode_manager and kernel.compiled_kernels.get(e[1]) is e[0]
                     and fields_state(rt) == e[3]):
                 ctx = e[0].make_launch_context()
-                j = 0
-                for v in args:
+                for j, v in enumerate(args):
                     if type(v) is not int:
                         break
                     ctx.set_arg_int((j,), v)
-                    j += 1
                 else:
                     try:
                         rt.prog.launch_kernel(e[2], ctx)
                     except Exception as err:
-                        err = handle_exception_from_cpp(err)
-                        if impl.get_runtime().print_full_traceback:
-                            raise err
-                        raise err from None
+                        reraise(err)
                     return ctx.get_struct_ret_int((0,)) if ret_int else None
             ret = bound(*args)
             d = kernel.__dict__
@@ -572,11 +576,6 @@ def install_fast_launch() -> bool:
             return ret
 
         launch._gs_entry = entry  # (tests look at it)
-        ret_type = kernel.return_type
-        ret_int = ret_type is not None
-        if ret_type is not None and not (len(ret_type) == 1 and ret_type[0] in P.integer_types
-                                         and is_signed(cook_dtype(ret_type[0]))):
-            return bound
         return launch
 
     _HOT[0] = hot
