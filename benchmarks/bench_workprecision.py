@@ -24,6 +24,7 @@ Each genesis_lite sweep runs in a child process (one gs.init per process); Genes
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import math
@@ -122,6 +123,26 @@ def _gl_opts(gs, integrator, dt, substeps, collision, limits=True):
     return dict(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, gravity=(0.0, 0.0, -S.G)),
                 rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator),
                                                       enable_collision=collision, enable_joint_limit=limits))
+
+
+@contextlib.contextmanager
+def rigid_options(**fields):
+    """The genesis_lite builders called inside set these RigidOptions fields too (contact_damping=1e4, say):
+    the convergence studies' variations of a scene."""
+    global _gl_opts
+    opts = _gl_opts
+
+    def with_fields(*args, **kw):
+        d = opts(*args, **kw)
+        for k, v in fields.items():
+            setattr(d["rigid_options"], k, v)
+        return d
+
+    _gl_opts = with_fields
+    try:
+        yield
+    finally:
+        _gl_opts = opts
 
 
 def _gl_build_arm(urdf_key, q0, v0):

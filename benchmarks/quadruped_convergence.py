@@ -34,23 +34,10 @@ SAMPLE = 0.1  # s between recorded base positions
 def build(gs, files, dt, damping=None, integrator="RK4"):
     """`damping`: RigidOptions fields to set ({"contact_damping_ratio": 1.0}), or None for the defaults; its
     "armature" entry, if any, is the URDF's default_armature instead (None: the file's, none)."""
-    opts = W._gl_opts
-
     damping = dict(damping or {})
     armature = damping.pop("armature", None)
-
-    def with_damping(gs_, integrator_, dt_, substeps, collision, limits=True):
-        d = opts(gs_, integrator_, dt_, substeps, collision, limits)
-        for k, v in damping.items():
-            setattr(d["rigid_options"], k, v)
-        return d
-
-    W._gl_opts = with_damping
-    try:
-        scene, reset, observe = W._gl_build_quad(gs, files, integrator, dt, 1, 0, armature=armature)
-    finally:
-        W._gl_opts = opts
-    return scene, reset, observe
+    with W.rigid_options(**damping):
+        return W._gl_build_quad(gs, files, integrator, dt, 1, 0, armature=armature)
 
 
 def run(gs, files, dt, damping=None, start=None, t_end=T_END, integrator="RK4"):

@@ -105,21 +105,13 @@ def main():
         names = [d[0] for d in DECOMPOSED[:n]]
     else:
         names = [f"drawn {i}" + (" (level)" if i == 0 else "") for i in range(n)]
-    if rigid:
-        opts = W._gl_opts
-
-        def with_rigid(*args, **kw):
-            d = opts(*args, **kw)
-            for k, v in rigid.items():
-                setattr(d["rigid_options"], k, v)
-            return d
-
-        W._gl_opts = with_rigid
     if a.restart:
-        return restart(a.restart)
+        with W.rigid_options(**rigid):
+            return restart(a.restart)
     wps = W.SCENES["quadruped_armature"]
     files = wps.files(Path(tempfile.mkdtemp()))
-    gl = W.worker_gl(wps.key, {k: str(v) for k, v in files.items()}, POINTS, n, 1)["points"]
+    with W.rigid_options(**rigid):
+        gl = W.worker_gl(wps.key, {k: str(v) for k, v in files.items()}, POINTS, n, 1)["points"]
     for p in gl:
         if p.get("failed"):
             raise SystemExit(f"genesis_lite {p['integrator']} dt = {p['dt']}: {p['failed']}")
