@@ -3,12 +3,13 @@
 The work-precision benchmark measures each engine's error against that engine's own fine run. This script
 runs its scene (ANYmal B dropped from 0.62 m, PD holding the standing pose, float64, 1 env) at halving steps
 and prints the base position's largest change per halving, over the whole run and over its standing part
-(t >= 0.5 s): with the defaults (Genesis's armature of 0.1 on every joint, the fixed contact damper of
-4e4 N s/m per point) for implicitfast and RK4 from 5 ms down; without armature for the mass-relative damper
-(RigidOptions(contact_damping_ratio=1): critical per pair, at least 4 k h) and the fixed one, where a light
-foot's damping time m / c ~ 1e-5 s is what no practical step resolves; then restarts a run from the
-mass-relative model's fine run at t = 0.5 s with a coarse and a fine step, to tell a steady-state error of
-the step from a history (the landing) that the step changes.
+(t >= 0.5 s): with the defaults (Genesis's armature of 0.1 on every joint; since 2026-12-05 the contact of
+1e5 N/m per point critically damped for the mass it moves, RigidOptions(contact_damping_ratio=1) with at least
+4 k h) for implicitfast and RK4 from 5 ms down, and without armature; then the contact of before (1e6 N/m, a
+fixed damper of 4e4 N s/m, where a light foot's damping time m / c ~ 1e-5 s is what no practical step
+resolves) and variants of it; then restarts a run from the defaults' fine run (no armature) at t = 0.5 s with a
+coarse and a fine step, to tell a steady-state error of the step from a history (the landing) that the step
+changes.
 
     python benchmarks/quadruped_convergence.py [--quick] [--out benchmarks/results/quadruped_convergence.md]
 """
@@ -34,7 +35,7 @@ SAMPLE = 0.1  # s between recorded base positions
 def build(gs, files, dt, damping=None, integrator="RK4"):
     """`damping`: RigidOptions fields to set ({"contact_damping_ratio": 1.0}), or None for the defaults; its
     "armature" entry, if any, is the URDF's default_armature instead (None: the file's, none)."""
-    damping = dict(damping or {})
+    damping = dict(damping or {})  # (an empty dict: the defaults, without armature)
     armature = damping.pop("armature", None)
     with W.rigid_options(**damping):
         return W._gl_build_quad(gs, files, integrator, dt, 1, 0, armature=armature)
@@ -74,10 +75,10 @@ def foot_mass(gs, files):
     m = 1.0 / float((J @ torch.linalg.inv(M) @ J.transpose(-1, -2))[0, 2, 2])
     k = gs.options.RigidOptions().contact_stiffness
     return (f"LF_SHANK (0.348 kg, its foot sphere): vertical effective mass {m:.2f} kg at the standing pose, "
-            f"critical damping 2 sqrt(k m) = {2 * (k * m) ** 0.5:.0f} N s/m at k = {k:g} N/m (the default fixed "
-            f"damper: 4e4 N s/m, m / c = {m / 4e4:.1e} s; the mass-relative one, contact_damping_ratio = 1, takes "
-            f"this mass through the robot at its initial configuration, not the link's own: "
-            f"{2 * (k * 0.348) ** 0.5:.0f} N s/m until 2026-12-01).")
+            f"critical damping 2 sqrt(k m) = {2 * (k * m) ** 0.5:.0f} N s/m at the default k = {k:g} N/m, the "
+            f"default damper since 2026-12-05 (m / c = {m / (2 * (k * m) ** 0.5):.1e} s; it takes this mass through "
+            f"the robot at its initial configuration, not the link's own: {2 * (k * 0.348) ** 0.5:.0f} N s/m "
+            f"until 2026-12-01). The fixed damper of before (4e4 N s/m on 1e6 N/m): m / c = {m / 4e4:.1e} s.")
 
 
 def main():
@@ -90,22 +91,30 @@ def main():
     gs.init(backend=gs.cpu, precision="64", logging_level="warning")
     files = W._quad_files(Path(tempfile.mkdtemp()))
     halving = [5e-3 / 2**k for k in range(9)]  # 5 ms .. 19.5 us
-    models = [("the defaults (Genesis's armature of 0.1 kg m^2 on every joint, fixed contact damping 4e4 N s/m, "
-               "friction's load with Coulomb's forces applied), implicitfast", {"armature": 0.1}, "implicitfast",
+    fixed = {"contact_stiffness": 1e6, "contact_damping": 4e4}  # the default contact until 2026-12-05
+    at_1e6 = {"contact_stiffness": 1e6}
+    models = [("the defaults (Genesis's armature of 0.1 kg m^2 on every joint; since 2026-12-05 the contact 1e5 N/m "
+               "per point, critically damped for the mass it moves; friction's load with Coulomb's forces applied), "
+               "implicitfast", {"armature": 0.1}, "implicitfast", halving),
+              ("the defaults (armature 0.1), RK4", {"armature": 0.1}, "RK4", halving),
+              ("no armature, the defaults, RK4", {}, "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
+              ("armature 0.1, the contact of before 2026-12-05 (1e6 N/m, fixed damping 4e4 N s/m), implicitfast",
+               {"armature": 0.1, **fixed}, "implicitfast", halving),
+              ("armature 0.1, the contact of before (1e6 N/m, 4e4 N s/m), RK4", {"armature": 0.1, **fixed}, "RK4",
                halving),
-              ("the defaults (armature 0.1, fixed damping), RK4", {"armature": 0.1}, "RK4", halving),
-              ("armature 0.1, fixed damping, friction_load = \"frictionless\" (friction's load from the frictionless "
-               "solve, the model before 2026-12-02), implicitfast", {"armature": 0.1, "friction_load": "frictionless"},
-               "implicitfast", halving[:8]),
-              ("armature 0.1 and contact_damping_ratio = 1 (the damper critical for the mass each contact moves through "
-               "the robot), implicitfast", {"armature": 0.1, "contact_damping_ratio": 1.0}, "implicitfast", halving[:8]),
-              ("armature 0.1, a fixed contact_damping of 4e3 N s/m (about critical for a foot's effective mass, "
-               "see below), implicitfast", {"armature": 0.1, "contact_damping": 4e3}, "implicitfast", halving[:8]),
-              ("armature 0.1, a fixed contact_damping of 1e3 N s/m (under-damped), implicitfast",
-               {"armature": 0.1, "contact_damping": 1e3}, "implicitfast", halving[:8]),
-              ("no armature, contact_damping_ratio = 1 (critical for each contact's mass, at least 4 k h), RK4",
-               {"contact_damping_ratio": 1.0}, "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
-              ("no armature, fixed contact_damping 4e4 N s/m, RK4", None, "RK4",
+              ("armature 0.1, the contact of before, friction_load = \"frictionless\" (friction's load from the "
+               "frictionless solve, the model before 2026-12-02), implicitfast",
+               {"armature": 0.1, **fixed, "friction_load": "frictionless"}, "implicitfast", halving[:8]),
+              ("armature 0.1, 1e6 N/m and the damper critical for the mass each contact moves through the robot, "
+               "implicitfast", {"armature": 0.1, **at_1e6}, "implicitfast", halving[:8]),
+              ("armature 0.1, 1e6 N/m, a fixed contact_damping of 4e3 N s/m (about critical for a foot's effective "
+               "mass at 1e6 N/m), implicitfast", {"armature": 0.1, **at_1e6, "contact_damping": 4e3}, "implicitfast",
+               halving[:8]),
+              ("armature 0.1, 1e6 N/m, a fixed contact_damping of 1e3 N s/m (under-damped), implicitfast",
+               {"armature": 0.1, **at_1e6, "contact_damping": 1e3}, "implicitfast", halving[:8]),
+              ("no armature, 1e6 N/m, the critical damper (at least 4 k h), RK4", dict(at_1e6), "RK4",
+               [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
+              ("no armature, the contact of before (1e6 N/m, fixed 4e4 N s/m), RK4", dict(fixed), "RK4",
                [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5])]
     if args.quick:
         models = [(n, d, i, dts[:3]) for n, d, i, dts in models]
@@ -131,10 +140,10 @@ def main():
     lines += ["## A foot's effective mass", "", foot_mass(gs, files), ""]
     if not args.quick:
         fine = 1e-4
-        ratio = next(d for n, d, i, _ in models if d == {"contact_damping_ratio": 1.0})
+        ratio = {}  # the defaults without armature
         traj, robot = run(gs, files, fine, ratio, t_end=0.5)
         start = (robot.get_qpos().clone(), robot.get_dofs_velocity().clone())
-        lines += ["## Restart at t = 0.5 s (contact_damping_ratio = 1)", "",
+        lines += ["## Restart at t = 0.5 s (no armature, the defaults)", "",
                   f"The state of the dt = {fine:g} s run at t = 0.5 s, continued to t = 1 s with each step:", "",
                   "| dt s | base z at t = 1 s (m) |", "| --- | --- |"]
         for dt in (4e-4, fine):

@@ -112,9 +112,11 @@ class RigidOptions(_Options):
     pose: 1.3x at 1 env, 1.6-1.9x at 1,024 envs; with its hand pressed onto its forearm, 21-22 of its own
     pairs touching, 10-12x; benchmarks/results/self_collision.md), and with gradients its contact kernels and
     their adjoints compile as soon as any own pair can touch (the README's main example: 58 s cold, 15 s
-    without). contact_stiffness (N/m per contact point) and
-    contact_damping (N s/m per contact point) set the penalty model (the stiffness scaled up for pairs
-    heavier than 100 kg). Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
+    without). contact_stiffness (N/m per contact point, 1e5 by default) and the damping set the penalty
+    model (the stiffness scaled up for pairs heavier than 100 kg). By default each contact is critically
+    damped for the mass it moves (see contact_damping_ratio); contact_damping (N s/m per contact point) gives
+    a fixed damper instead (genesis_lite's default until 2026-12-05: 4e4 with a stiffness of 1e6), and
+    giving both is an error. Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
     by d, the constraint asks for the reference acceleration -b v - k imp d (b = 2 / (0.95 tc),
     k = 1 / (0.95 tc)^2, tc = max(constraint_timeconst, 2 substep dt), imp 0.9 -> 0.95 over the first mm or
     mrad; an MJCF joint's solreflimit / solimplimit where it has them) with an impedance that scales with the
@@ -123,24 +125,26 @@ class RigidOptions(_Options):
     while the joint leaves the limit faster than that (tests/test_joint_limits.py: MuJoCo's trajectories to
     1e-14). joint_limit_stiffness / joint_limit_damping (N m/rad, N m s/rad; None by default) select penalty
     springs instead (either one given; the other then 1e4 / 1e2), genesis_lite's limits before 2026-11-29.
-    contact_damping_ratio (None by default) makes the damper
-    mass-relative instead: critical times the ratio for each contact, 2 ratio sqrt(k m_eff) with m_eff the
+    contact_damping_ratio (None by default: 1, critical, unless contact_damping is given) sets each contact's
+    damper relative to its mass: critical times the ratio, 2 ratio sqrt(k m_eff) with m_eff the
     mass the contact moves along its normal, each side's link weighed through its articulation at the
     initial configuration, armature included (MuJoCo's body_invweight0 along the normal: ANYmal's foot moves
     4-5 kg, its own mass is 0.35 kg; computed at build from the model's masses and armature, while a lone free
     body takes its own mass as it is set), and at least 4 k h (h the step). A landing then rebounds with
-    exp(-2) of its speed whatever the mass behind the contact (tests/test_contact_damper.py). A legged
-    landing without rotor inertia (default_armature=None) converges as dt shrinks with it, not with the fixed
-    damper (a bare foot's m / c ~ 1e-5 s); with the default armature its standing posture moves by 6.8e-5,
-    3.0e-5, 2.7e-5, 1.4e-5 m per halving from 2.5 to 0.3 ms against the fixed damper's 1.1e-4, 5.2e-5, 4.4e-5,
-    1.5e-5 m (benchmarks/results/quadruped_convergence.md). It is not the default because a sliding box's
-    friction is less accurate with it at fine steps (+3.9e-3 m from Coulomb's slide at 0.3 ms, -2.4e-4 m with
-    the fixed damper).
+    exp(-2) of its speed whatever the mass behind the contact (tests/test_contact_damper.py). Since 2026-12-05
+    this, with the stiffness of 1e5 N/m, is the default: the contact's time scales, sqrt(m_eff / k) and the
+    damper's m_eff / c, are then those of the body (7 and 3 ms for ANYmal's foot), which practical steps resolve,
+    so contact scenes converge as dt shrinks. The fixed damper of before (4e4 N s/m with 1e6 N/m) gave a foot a
+    damping time m / c of 1e-4 s (1e-5 s without rotor inertia) that no practical step resolves: the quadruped's
+    16 drops at 1.25 ms erred by 9.6e-4 m against the reference (2.7e-4 m now), and RK4 at 0.2 ms by 9.8e-5 m
+    against RK4 at 0.1 ms (5.5e-6 m now; benchmarks/results/workprecision_quadruped_starts.md). Penetration
+    under load is k-bound: a 4.5 kg box resting on four corners sinks 0.11 mm (0.011 mm at 1e6 N/m); a pair heavier than
+    k (10 ms)^2 (10 kg at the default) has its stiffness scaled with its mass (a 400 t box sinks 0.25 mm).
     friction_load ("coulomb" by default, since 2026-12-02) is the normal force Coulomb's bound mu f_n takes:
     the force the contact law gives with Coulomb's forces applied (at most twice the frictionless solve's, and
     in the bound rounds at most the law's force at the solution), which carries the load friction's own
     torque moves between a body's contacts (a box sliding on a face presses its leading edge; a standing
-    robot's feet): a sliding box converges to Coulomb's slide at first order as dt shrinks (2.4e-4 m at
+    robot's feet): a sliding box converges to Coulomb's slide at first order as dt shrinks (2.8e-4 m at
     0.3 ms) and a standing quadruped's posture converges (tests/test_contact.py). "frictionless" takes the
     frictionless solve's normal forces, the model before that day (3.2e-3 m at 0.3 ms, growing as dt shrank).
 
@@ -170,8 +174,8 @@ class RigidOptions(_Options):
     enable_self_collision: bool = False
     enable_adjacent_collision: bool = False
     enable_neutral_collision: bool = False
-    contact_stiffness: float = 1e6
-    contact_damping: float = 4e4
+    contact_stiffness: float = 1e5
+    contact_damping: Optional[float] = None
     contact_damping_ratio: Optional[float] = None
     friction_load: str = "coulomb"
     joint_limit_stiffness: Optional[float] = None
@@ -235,7 +239,7 @@ class RigidOptions(_Options):
                       "use gs.integrator.approximate_implicitfast, implicitfast, Euler or RK4")
         for name in ("contact_stiffness", "contact_damping", "joint_limit_stiffness", "joint_limit_damping"):
             v = getattr(self, name)
-            if v is None and name.startswith("joint_limit"):
+            if v is None and name != "contact_stiffness":
                 continue
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
                 self._err(name, v, "must be a finite number >= 0")
@@ -245,6 +249,10 @@ class RigidOptions(_Options):
                 continue
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 self._err(name, v, "must be a finite number > 0")
+        if self.contact_damping is not None and self.contact_damping_ratio is not None:
+            self._err("contact_damping", self.contact_damping,
+                      f"and contact_damping_ratio={self.contact_damping_ratio!r} both given: give one (a fixed "
+                      "damper in N s/m, or a ratio of each contact's critical damping), or neither (critical)")
         if self.friction_load not in ("frictionless", "coulomb"):
             self._err("friction_load", self.friction_load, 'must be "coulomb" (the default) or "frictionless"')
         m = self.max_mesh_contact_points

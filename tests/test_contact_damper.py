@@ -1,5 +1,5 @@
-"""The mass-relative contact damper (issue #24), RigidOptions(contact_damping_ratio=1): critical for the mass
-each contact moves along its normal.
+"""The mass-relative contact damper (issue #24), the default since 2026-12-05 (RigidOptions(contact_damping_ratio=1)
+when no fixed contact_damping is given): critical for the mass each contact moves along its normal.
 
 A contact point's damper is 2 ratio sqrt(k m) with m the effective mass of its two sides along the
 contact's normal, each side's through its articulation at the initial configuration, armature included
@@ -23,7 +23,7 @@ import genesis_lite as gs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import scenes as S  # noqa: E402
 
-K = 1e6  # RigidOptions.contact_stiffness's default, N/m per contact point
+K = gs.options.RigidOptions().contact_stiffness  # the default, N/m per contact point
 RADIUS = 0.05
 
 SLIDER = """<?xml version="1.0"?>
@@ -47,8 +47,7 @@ def _rebound(make_body, dt, v_normal=1.0):
     """(restitution, normal mass): a body given by make_body(scene) -> (entity, set_velocity(vn), normal
     velocity(), normal mass) approaches the frictionless ground at v_normal without gravity; the normal
     velocity it leaves with over the one it came with."""
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, gravity=(0.0, 0.0, 0.0)),
-                     rigid_options=gs.options.RigidOptions(contact_damping_ratio=1.0))
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt, gravity=(0.0, 0.0, 0.0)))
     scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.0))
     body, set_vn, get_vn, m = make_body(scene)
     scene.build()
@@ -99,10 +98,10 @@ def test_a_landing_rebounds_as_a_critically_damped_contact(tmp_path, case):
     a restitution of exp(-2) = 0.1353 whatever m. The ball alone (2 kg), a 1 kg ball on a vertical slider
     with a rotor inertia of 3 kg (4 kg along the normal: its own mass alone would make the damper half-critical),
     and on a slider leaning 40 degrees (6.8 kg along the normal) all rebound with it. At dt = 10 us (the
-    contact lasts 2 / w = 2.8-5.2 ms) and the default contact smoothing (5 um against ~0.4-1 mm of
-    overlap). Measured 2026-12-01: 0.1344, 0.1347, 0.1348 (0.1334, 0.1340, 0.1343 at 20 us; 0.1349, 0.1350,
-    0.1351 at 5 us: first order in dt). With the default fixed damper (4e4 N s/m per point): 0.0012,
-    0.0024, 0.0041, over-damped."""
+    contact lasts 2 / w = 8.9-16.5 ms at the default 1e5 N/m) and the default contact smoothing (5 um against
+    ~1-2 mm of overlap), default options. Measured 2026-12-05: 0.1350, 0.1351, 0.1352 (0.1347, 0.1349, 0.1350 at
+    20 us; 0.1352, 0.1352, 0.1353 at 5 us: first order in dt). With the fixed damper that was the default
+    until then (4e4 N s/m per point, with 1e6 N/m): 0.0012, 0.0024, 0.0041, over-damped."""
     make = {"free ball": _free_ball, "vertical slider with armature": _slider(tmp_path, 0.0, 3.0),
             "skewed slider with armature": _slider(tmp_path, 40.0, 3.0)}[case]
     e, m = _rebound(make, 1e-5)

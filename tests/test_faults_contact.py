@@ -141,7 +141,8 @@ def test_a_later_tunnelling_warns_after_an_early_one():
 @pytest.mark.parametrize("tonnes", [4, 400])
 def test_heavy_box_rests_on_the_ground(tonnes):
     """A 4 t or 400 t box (1 m cube) set on the ground rests on it: its contacts' stiffness and damping
-    scale with its mass above 100 kg (solvers/rigid/contact/law.py, HEAVY_MASS), as MuJoCo's follow the
+    scale with its mass above k (10 ms)^2, 10 kg at the default 1e5 N/m (solvers/rigid/contact/law.py,
+    heavy_mass), as MuJoCo's follow the
     effective mass (MuJoCo: 0.11 mm for a 400 t, 0.2 m box). After 1 s it is within 0.5 mm of resting
     height (measured: 0.25 mm), at rest, and nothing warns. Before: the 400 t box sank 0.76 m (its
     weight on four corners of 1e6 N/m)."""
@@ -159,7 +160,7 @@ def test_heavy_box_rests_on_the_ground(tonnes):
 
 def test_heavy_load_on_a_light_box_warns_about_contact_stiffness():
     """The scaling follows each contact's own pair: a 400 t box resting on a light one (box B, 4.8 kg) presses
-    B into the ground with 3.9 MN through contacts of B's own 1e6 N/m, which cannot hold it. Within 32 steps
+    B into the ground with 3.9 MN through contacts of B's own 1e5 N/m, which cannot hold it. Within 32 steps
     the scene warns, naming contact_stiffness and the light body's case."""
     scene, a, b = _ground_and_two_boxes(size_a=(1.0, 1.0, 1.0), rho_a=4e5)
     _place(b, (0.0, 0.0, 0.1), (0.0,) * 6)

@@ -8,20 +8,27 @@ from ..collision import GEOM_CAPSULE, GEOM_CYLINDER, GEOM_SPHERE, SLOT_BOXEDGE, 
 
 # slots whose depth is below -MARGIN_WIDTHS * delta carry no force (softplus(-20) ~ 2e-9)
 MARGIN_WIDTHS = 20.0
-# a pair whose effective mass m_eff is above HEAVY_MASS (kg) gets its contact stiffness (and a fixed
-# damping) scaled by m_eff / HEAVY_MASS (func_heavy_scale): the options' k is per contact point, in N/m,
-# which holds a body of tens of kg within millimetres but lets a 400 t box sink 0.76 m. Scaling k by the
-# mass keeps the contact's time constant sqrt(m / k) that of a HEAVY_MASS body, as MuJoCo's solref does
+# a pair whose effective mass m_eff is above k HEAVY_TIME^2 (heavy_mass: 10 kg at the default k of 1e5 N/m) gets
+# its contact stiffness (and a fixed damping) scaled by m_eff / heavy_mass (func_heavy_scale): the options' k is
+# per contact point, in N/m, which holds a body of a few kg within a millimetre but lets a 400 t box sink metres.
+# Scaling k by the mass keeps the contact's time constant sqrt(m / k) at most HEAVY_TIME, as MuJoCo's solref does
 # for every body (its constraint stiffness follows the effective mass: 0.11 mm for the 400 t box). Below
-# HEAVY_MASS the stiffness is the options' N/m: robots' links, tools and props keep it. The damping is
-# the fixed RigidOptions.contact_damping (scaled like k for a heavy pair), or mass-relative for every
-# pair when RigidOptions.contact_damping_ratio is set (critical times the ratio, see func_normal_law).
-HEAVY_MASS = 100.0
-# the mass-relative damping (contact_damping_ratio set) is at least STEP_DAMPING k h: the damper's time
+# heavy_mass the stiffness is the options' N/m: robots' links, tools and props keep it. The damping is critical
+# for each pair (RigidOptions.contact_damping_ratio, 1 by default: see func_normal_law), or the fixed
+# RigidOptions.contact_damping (scaled like k for a heavy pair) when that is given. (With k = 1e6, the default
+# until 2026-12-05, heavy_mass is 100 kg, the fixed threshold of before.)
+HEAVY_TIME = 0.01
+
+
+def heavy_mass(k):
+    """The effective mass (kg) above which a pair's contact stiffness k (N/m per point) is scaled up."""
+    return k * HEAVY_TIME ** 2
+# the mass-relative damping (the default) is at least STEP_DAMPING k h: the damper's time
 # constant c / k spans at least STEP_DAMPING steps. At a coarse step (h well above the contact's sqrt(m_eff / k)) the
 # implicit step of a critically damped hinge spring chatters (a box resting on another at dt = 10 ms
 # alternated 11 um in depth every other step and was thrown off after 0.7 s); this floor keeps such
-# steps as damped as the fixed 4e4 N s/m was at the default dt = 10 ms (4 * 1e6 * 0.01), and fades
+# steps as damped, relative to k, as the fixed 4e4 N s/m on 1e6 N/m (the default until 2026-12-05) was at
+# dt = 10 ms (4 * 1e6 * 0.01), and fades
 # as h shrinks, leaving the dt-independent critical law once h < zeta sqrt(m_eff / k) / 2 (MuJoCo
 # keeps its constraints' time constant at least 2 dt, solref's safety clamp, for the same reason)
 STEP_DAMPING = 4.0
@@ -66,8 +73,8 @@ def func_link_invmass(s: ti.template(), i_b, l, n):
 
 @ti.func
 def func_heavy_scale(s: ti.template(), i_b, i_s, n):
-    """(heavy, scale, inv): whether slot i_s's pair is heavier than HEAVY_MASS, m_eff / HEAVY_MASS (the
-    factor on its stiffness, and on a fixed damping: see HEAVY_MASS) and the inverse mass the
+    """(heavy, scale, inv): whether slot i_s's pair is heavier than heavy_mass(k), m_eff / heavy_mass(k) (the
+    factor on its stiffness, and on a fixed damping: see HEAVY_TIME) and the inverse mass the
     mass-relative damper takes; m_eff = 1 / (1 / m_a + 1 / m_b) over the sides that move (a static side
     is infinitely heavy), each side its own link's mass: a light link pressed by a heavy load through its
     joints (a foot under a heavy robot) keeps the options' stiffness. The damper's inverse mass sums
@@ -76,9 +83,10 @@ def func_heavy_scale(s: ti.template(), i_b, i_s, n):
     own_a, w_a = func_link_invmass(s, i_b, c.geom_link[c.slot_ga[i_s]], n)
     own_b, w_b = func_link_invmass(s, i_b, c.geom_link[c.slot_gb[i_s]], n)
     own = own_a + own_b
-    heavy = own * HEAVY_MASS < 1.0
+    hm = ti.static(heavy_mass(c.k))
+    heavy = own * hm < 1.0
     # own > 0 on the heavy side; the other side's value is never used (nor its adjoint: 0)
-    scale = ti.select(heavy, 1.0 / (ti.max(own, ti.static(div_floor())) * HEAVY_MASS), 1.0)
+    scale = ti.select(heavy, 1.0 / (ti.max(own, ti.static(div_floor())) * hm), 1.0)
     return heavy, scale, w_a + w_b
 
 
@@ -88,9 +96,9 @@ def func_normal_law(c: ti.template(), depth, depth_end, h, heavy, scale, inv):
     depth predicted for the end of the step, and the force of the current state alone (the spring on
     the current depth and the damper on the current approach). heavy, scale, inv: func_heavy_scale's.
     The stiffness is c.k, times `scale` for a heavy pair. The damping is the pair's critical damping
-    times c.zeta (RigidOptions.contact_damping_ratio), 2 zeta sqrt(k m_eff), or STEP_DAMPING h k if more,
-    when c.zeta > 0 (contact_damping_ratio set), else the fixed c.d (the default,
-    RigidOptions.contact_damping) times `scale`; each side of the kink is its own branch (ti.select),
+    times c.zeta (RigidOptions.contact_damping_ratio, 1 by default), 2 zeta sqrt(k m_eff), or STEP_DAMPING h k if
+    more, when c.zeta > 0 (the default), else the fixed c.d (RigidOptions.contact_damping given) times `scale`;
+    each side of the kink is its own branch (ti.select),
     exact on its side."""
     z = depth / c.delta
     zp = depth_end / c.delta

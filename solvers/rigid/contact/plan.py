@@ -47,11 +47,15 @@ class ContactPlan:
         self.n_links = flat.n_links
         self.n_geoms, self.n_pairs, self.n_slots = geoms.n, len(pairs), len(slots)
         self.k = float(options.contact_stiffness)
-        # the damping: a fixed N s/m (the default), or a damping ratio for every pair when
-        # contact_damping_ratio is set (then zeta > 0, and d = 0: unused, and not a class of its own)
+        # the damping: a ratio of each pair's critical damping (contact_damping_ratio, 1 when neither it nor
+        # contact_damping is given: the default), then zeta > 0 and d = 0 (unused, not a class of its own); or
+        # a fixed N s/m when contact_damping is given (zeta = 0)
+        fixed = getattr(options, "contact_damping", None)
         ratio = getattr(options, "contact_damping_ratio", None)
+        if ratio is None and fixed is None:
+            ratio = 1.0
         self.zeta = float(ratio) if ratio is not None else 0.0
-        self.d = 0.0 if ratio is not None else float(options.contact_damping)
+        self.d = 0.0 if ratio is not None else float(fixed)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
         # friction's load (RigidOptions.friction_load): > 0 the normal force predicted with Coulomb's forces

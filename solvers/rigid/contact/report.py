@@ -4,7 +4,7 @@ import numpy as np
 import taichi as ti
 
 from ..collision import GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_SPHERE
-from .law import HEAVY_MASS
+from .law import heavy_mass
 from .passes import func_link_motion, func_normal_after, func_rel_motion
 
 # a contact whose depth at the end of a step exceeds this fraction of the thinner geom's half
@@ -126,7 +126,7 @@ def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gai
     why = (f"it went {gain * lim:.3g} m deeper within one step of {h:g} s{approach}: too fast for the penalty "
            "contact to stop within a step" if fast else
            f"its contact stiffness (RigidOptions.contact_stiffness = {plan.k:g} N/m per contact point, times "
-           f"m / {HEAVY_MASS:g} kg for a pair of effective mass m above {HEAVY_MASS:g} kg) cannot hold its weight "
+           f"m / {heavy_mass(plan.k):g} kg for a pair of effective mass m above {heavy_mass(plan.k):g} kg) cannot hold its weight "
            "and the loads on it (a light body carrying a heavy one keeps its own stiffness)")
     todo = ("use a smaller dt or more substeps (SimOptions.substeps), or raise RigidOptions.contact_stiffness"
             if fast else
