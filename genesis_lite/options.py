@@ -113,7 +113,8 @@ class RigidOptions(_Options):
     pairs touching, 10-12x; benchmarks/results/self_collision.md), and with gradients its contact kernels and
     their adjoints compile as soon as any own pair can touch (the README's main example: 58 s cold, 15 s
     without). contact_stiffness (N/m per contact point, 1e5 by default) and the damping set the penalty
-    model (the stiffness scaled up for pairs heavier than 100 kg). By default each contact is critically
+    model (the stiffness scaled up for pairs heavier than k (10 ms)^2, 10 kg at the default). By default each
+    contact is critically
     damped for the mass it moves (see contact_damping_ratio); contact_damping (N s/m per contact point) gives
     a fixed damper instead (genesis_lite's default until 2026-12-05: 4e4 with a stiffness of 1e6), and
     giving both is an error. Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
@@ -138,8 +139,9 @@ class RigidOptions(_Options):
     damping time m / c of 1e-4 s (1e-5 s without rotor inertia) that no practical step resolves: the quadruped's
     16 drops at 1.25 ms erred by 9.6e-4 m against the reference (2.7e-4 m now), and RK4 at 0.2 ms by 9.8e-5 m
     against RK4 at 0.1 ms (5.5e-6 m now; benchmarks/results/workprecision_quadruped_starts.md). Penetration
-    under load is k-bound: a 4.5 kg box resting on four corners sinks 0.11 mm (0.011 mm at 1e6 N/m); a pair heavier than
-    k (10 ms)^2 (10 kg at the default) has its stiffness scaled with its mass (a 400 t box sinks 0.25 mm).
+    under load is k-bound: a 4.5 kg box resting on four corners sinks 0.11 mm (0.011 mm at 1e6 N/m); a pair
+    heavier than k (10 ms)^2 (10 kg at the default) has its stiffness scaled with its mass (a 400 t box sinks
+    0.25 mm).
     friction_load ("coulomb" by default, since 2026-12-02) is the normal force Coulomb's bound mu f_n takes:
     the force the contact law gives with Coulomb's forces applied (at most twice the frictionless solve's, and
     in the bound rounds at most the law's force at the solution), which carries the load friction's own

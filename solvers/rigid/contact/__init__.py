@@ -18,7 +18,7 @@ infinitely heavy; or the fixed RigidOptions.contact_damping (N s/m per point) wh
 1e-5 s (1e-4 s with rotor inertia) that no practical step resolves, and the quadruped drops converged slowly as dt
 shrank (issue #24, benchmarks/results/workprecision_quadruped_starts.md). With the critical damper at 1e6 N/m a
 sliding box's friction was biased at fine steps (+3.9e-3 m from Coulomb's slide at 0.3125 ms); at 1e5 N/m it is
-not (-2.8e-4 m, tests/test_contact.py), the box's pitching modes being resolved by those steps.
+not (-2.8e-4 m, tests/test_contact.py; why the stiffness matters there was not traced).
 The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
 step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
 spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.
@@ -34,7 +34,8 @@ Coulomb's law with the normal force the step actually applies, and is viscous be
 
 Limits (issue #21). A penalty contact stops a body within a step only when (k + c / h) times the
 depth it allows outweighs the body's momentum per step and its load: a box at 1e6 m/s (1e4 m per step)
-or a 400 t box on four corners of 1e5 N/m, were its stiffness not scaled with its mass, goes through. The report pass records, per env, the first
+or a 400 t box on four corners of 1e5 N/m, were its stiffness not scaled with its mass, goes through. The report
+pass records, per env, the first
 contact that ends a step deeper than DEEP_FRACTION of the thinner geom's half thickness, and the scene
 warns (ContactPenetrationWarning, ContactSolver.watch: a read after each of the first 16 steps, then
 every 16th), naming the geoms, the step and the remedy (smaller dt or more substeps for a fast body, a
@@ -108,7 +109,8 @@ contact's linear force pulls where another contact stops the body first:
     friction stayed glued to the ground, the ground's laws pulling it down with up to 3.6 N against its
     0.38 N weight; a 38 g cube did not leave the ground at all, and in float32 the grasps threw the cube
     (tests/test_grasp.py; Genesis's franka_cube scene, benchmarks/franka_cube_precision.py, now ends at
-    z = 0.1847 m in float32, 0.1846 m in float64 on 2026-12-05, 0.1850 with the fixed damper of before; Genesis 0.1832). Released for good (no return within the step),
+    z = 0.1847 m in float32, 0.1846 m in float64 on 2026-12-05, 0.1850 with the fixed damper of before; Genesis
+    0.1832). Released for good (no return within the step),
     the points of a pad's face that pulled while the face pushed left its load on two or three points,
     and the cube spun in the pads; released by pairs of geoms, a pad's face kept a +-23 N couple of
     points and threw the cube in float32. The set changes are not a line search (step 2b's): a law whose
