@@ -140,14 +140,14 @@ def main():
     lines += ["## A foot's effective mass", "", foot_mass(gs, files), ""]
     if not args.quick:
         fine = 1e-4
-        ratio = {}  # the defaults without armature
-        traj, robot = run(gs, files, fine, ratio, t_end=0.5)
+        defaults = {}  # without armature
+        traj, robot = run(gs, files, fine, defaults, t_end=0.5)
         start = (robot.get_qpos().clone(), robot.get_dofs_velocity().clone())
         lines += ["## Restart at t = 0.5 s (no armature, the defaults)", "",
                   f"The state of the dt = {fine:g} s run at t = 0.5 s, continued to t = 1 s with each step:", "",
                   "| dt s | base z at t = 1 s (m) |", "| --- | --- |"]
         for dt in (4e-4, fine):
-            tr, _ = run(gs, files, dt, ratio, start=start, t_end=0.5)
+            tr, _ = run(gs, files, dt, defaults, start=start, t_end=0.5)
             lines.append(f"| {dt:g} | {tr[-1][2]:.6f} |")
             print(lines[-1], flush=True)
         lines.append("")

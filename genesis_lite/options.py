@@ -114,8 +114,8 @@ class RigidOptions(_Options):
     their adjoints compile as soon as any own pair can touch (the README's main example: 58 s cold, 15 s
     without). contact_stiffness (N/m per contact point, 1e5 by default) and the damping set the penalty
     model (the stiffness scaled up for pairs heavier than k (10 ms)^2, 10 kg at the default). By default each
-    contact is critically
-    damped for the mass it moves (see contact_damping_ratio); contact_damping (N s/m per contact point) gives
+    contact is critically damped for the mass it moves (see contact_damping_ratio); contact_damping (N s/m per
+    contact point) gives
     a fixed damper instead (genesis_lite's default until 2026-12-05: 4e4 with a stiffness of 1e6), and
     giving both is an error. Joint limits are Genesis's (and MuJoCo's) soft constraint by default: past a limit
     by d, the constraint asks for the reference acceleration -b v - k imp d (b = 2 / (0.95 tc),

@@ -22,6 +22,8 @@ from genesis_lite.errors import GenesisException, SimulationNaNError
 from conftest import robot_urdf
 
 G = 9.81
+# the default contact until 2026-12-05 (1e6 N/m and a fixed damper of 4e4 N s/m per point), kept as an option
+FIXED_DAMPER = dict(contact_stiffness=1e6, contact_damping=4e4)
 DT = 0.01
 F64 = torch.float64
 
@@ -316,7 +318,7 @@ def test_quadruped_drop_converges_as_dt_shrinks_with_the_fixed_damper(urdf_path)
     """The same with the fixed damper that was the default until 2026-12-05 (contact_stiffness 1e6, contact_damping
     4e4 N s/m per point). Measured 2026-12-05: 4.0e-6 then 3.1e-6 m: the changes fall, slower than at first order
     (the default's 7.3e-6 then 3.5e-6 m)."""
-    changes, z = _drop_changes(urdf_path, contact_stiffness=1e6, contact_damping=4e4)
+    changes, z = _drop_changes(urdf_path, **FIXED_DAMPER)
     assert changes[1] < changes[0], changes
     assert changes[1] < 1e-5, changes
     assert 0.45 < z < 0.52  # standing
@@ -633,7 +635,7 @@ def test_fused_step_without_gradients_matches_the_gradient_schedule(contact):
     requires_grad runs the full schedule of the contact passes. Both give the same rollout and contact
     forces (to rounding: the two compile to different code). "fixed damper of before": 1e6 N/m and 4e4 N s/m,
     the default contact until 2026-12-05."""
-    rigid = {} if contact == "default" else dict(contact_stiffness=1e6, contact_damping=4e4)
+    rigid = {} if contact == "default" else FIXED_DAMPER
     q0, f0, m0 = _mixed_contact_rollout(False, **rigid)
     q1, f1, m1 = _mixed_contact_rollout(True, **rigid)
     assert m0[0].any() and m0[1].any() and (m0 == m1).all()
@@ -1399,7 +1401,7 @@ def test_grad_through_a_landing_with_mass_relative_damping(damper):
     mass, mu, velocity and height, against central differences in float64. "fixed": the same with the fixed
     damper that was the default until 2026-12-05 (contact_stiffness 1e6, contact_damping 4e4), whose gradient
     the default suite no longer runs."""
-    rigid = {} if damper.startswith("critical") else dict(contact_stiffness=1e6, contact_damping=4e4)
+    rigid = {} if damper.startswith("critical") else FIXED_DAMPER
     scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, requires_grad=True),
                      rigid_options=gs.options.RigidOptions(**rigid))
     scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.0))

@@ -122,11 +122,12 @@ def deep_contact_message(plan, i_s, i_b, n_envs, step, h, depth, speed, lim, gai
     ga, gb = int(plan.np_slot_ga[i_s]), int(plan.np_slot_gb[i_s])
     env = f" in env {i_b}" if n_envs > 1 else ""
     fast = gain > 1.0  # it went deeper than the limit within this one step
+    heavy = heavy_mass(plan.k)
     approach = f" (approach speed {speed:.3g} m/s: {speed * h:.3g} m per step)" if speed > 0 else ""
     why = (f"it went {gain * lim:.3g} m deeper within one step of {h:g} s{approach}: too fast for the penalty "
            "contact to stop within a step" if fast else
            f"its contact stiffness (RigidOptions.contact_stiffness = {plan.k:g} N/m per contact point, times "
-           f"m / {heavy_mass(plan.k):g} kg for a pair of effective mass m above {heavy_mass(plan.k):g} kg) cannot hold its weight "
+           f"m / {heavy:g} kg for a pair of effective mass m above {heavy:g} kg) cannot hold its weight "
            "and the loads on it (a light body carrying a heavy one keeps its own stiffness)")
     todo = ("use a smaller dt or more substeps (SimOptions.substeps), or raise RigidOptions.contact_stiffness"
             if fast else
