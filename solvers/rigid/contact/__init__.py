@@ -103,8 +103,9 @@ contact's linear force pulls where another contact stops the body first:
     ANYmal standing runs a round in 1 of 1,385 evaluations, a box sliding in none.
     The same rounds keep the final system's normal laws to those that push: a law that pulls at the last
     solution, beyond its round-off, is released (its law and its friction leave the system), and a law
-    released in an earlier round that pushes there comes back, once a step, with the friction pass's
-    viscosity or, where lower, the law's secant at its slip (passes.func_release_slot). The laws of step 4 are those that pushed in the frictionless solve,
+    out of the system that pushes there (released in an earlier round, or left out of the frictionless solve:
+    friction moves load onto it) comes back, once a step, with the friction pass's viscosity (none for a law
+    the frictionless solve left out) or, where lower, the law's secant at its slip (passes.func_release_slot). The laws of step 4 are those that pushed in the frictionless solve,
     and friction can pull a body off them: before (2026-11-28) a cube that a Panda's pads lifted by
     friction stayed glued to the ground, the ground's laws pulling it down with up to 3.6 N against its
     0.38 N weight; a 38 g cube did not leave the ground at all, and in float32 the grasps threw the cube
