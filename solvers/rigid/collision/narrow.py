@@ -8,7 +8,7 @@ a Panda over a plane beside a box, 4.6 -> 1.2 us a step). The two forms agree sl
 """
 import taichi as ti
 
-from .geoms import (BOXEDGE_TOL, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE,
+from .geoms import (BOXEDGE_TOL, CYL_RIM_FADE, GEOM_BOX, GEOM_CAPSULE, GEOM_CYLINDER, GEOM_MESH, GEOM_PLANE, GEOM_SPHERE,
                     N_HULL_EDGES, N_HULLFACE, N_KDOP, SLOT_BOXEDGE, SLOT_BOXFACE, SLOT_CYL_RIM, SLOT_HULLEDGE,
                     SLOT_HULLFACE, SLOT_SEGSEG)
 from ..kinematics import func_point_velocity
@@ -235,12 +235,17 @@ def func_gap_spheres(c: ti.template(), ga, gb, ca, cb):
 @ti.func
 def func_slot_point(c: ti.template(), i_s, kind, ga, xa, Ra, zb):
     """The point-side point of a slot: a fixed sample point, or the deepest rim point of a cylinder cap
-    towards a plane (normal zb)."""
+    towards a plane (normal zb), faded towards the cap's centre where the cap is within CYL_RIM_FADE contact
+    widths of level (its rim's heights differ by less than that): the deepest point's direction is undefined
+    at level, and unfaded it jumped to the opposite side of the rim each time a standing cylinder's tilt
+    changed sign (it rocked at |w| ~0.01 rad/s, tests/test_contact.py). The faded point's depth is at most
+    ~0.3 CYL_RIM_FADE widths short of the rim's deepest."""
     p_fixed = xa + func_mv(Ra, c.slot_p[i_s])
     if ti.static(c.has_rim):
         nl = func_mtv(Ra, zb)
-        rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + 1e-12)
         r_cyl = c.geom_size[ga][0]
+        fade = CYL_RIM_FADE * c.delta / r_cyl
+        rho = ti.sqrt(nl[0] * nl[0] + nl[1] * nl[1] + fade * fade)
         p_rim = xa + func_mv(Ra, ti.Vector([-r_cyl * nl[0] / rho, -r_cyl * nl[1] / rho, c.slot_aux[i_s] * c.geom_size[ga][1]]))
         return ti.select(kind == SLOT_CYL_RIM, p_rim, p_fixed)
     else:
