@@ -49,8 +49,9 @@ N_KDOP = len(KDOP_DIRS)
 N_HULL_CORNERS, N_HULL_EDGES = 2 * N_KDOP - 4, 3 * N_KDOP - 6
 
 CYL_RIM_PLANE = 3  # rim samples per cap against a plane (plus the deepest rim point of each cap)
-# the deepest rim point's slot moves to the cap's centre below this many contact widths of rim height difference
-# (narrow.func_slot_point): 1 left a cylinder standing on its cap rocking at dt = 10 ms, 10 holds it still at 10 and 2 ms
+# the deepest rim point's slot moves to the cap's centre below this many contact widths of rim height
+# difference (narrow.func_slot_point): 1 left a cylinder standing on its cap rocking at dt = 10 ms, 10 holds it
+# still at 10 and 2 ms
 CYL_RIM_FADE = 10.0
 CYL_RIM_OTHER = 8  # rim samples per cap against other geoms
 

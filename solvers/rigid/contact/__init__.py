@@ -105,7 +105,8 @@ contact's linear force pulls where another contact stops the body first:
     solution, beyond its round-off, is released (its law and its friction leave the system), and a law
     out of the system that pushes there (released in an earlier round, or left out of the frictionless solve:
     friction moves load onto it) comes back, once a step, with the friction pass's viscosity (none for a law
-    the frictionless solve left out) or, where lower, the law's secant at its slip (passes.func_release_slot). The laws of step 4 are those that pushed in the frictionless solve,
+    the frictionless solve left out) or, where lower, the law's secant at its slip (passes.func_release_slot).
+    The laws of step 4 are those that pushed in the frictionless solve,
     and friction can pull a body off them: before (2026-11-28) a cube that a Panda's pads lifted by
     friction stayed glued to the ground, the ground's laws pulling it down with up to 3.6 N against its
     0.38 N weight; a 38 g cube did not leave the ground at all, and in float32 the grasps threw the cube
@@ -129,7 +130,8 @@ the first solve (a Newton step), and it acts if the law pushes there. Contacts a
 their first linearisation (linearising them again too left a 30-link chain on the ground swinging) where the
 start-of-step velocity predicts them in contact; predicted further out than a few contact widths, their first
 linearisation has almost no slope, and they take the tangent at the first solve's velocity too, wholly from ten
-widths out (passes.func_relinearise_share: continuous, and a box falling onto one just stopped is caught). The passes between the solves (link velocities
+widths out (passes.func_relinearise_share: continuous, and a box falling onto one just stopped is caught).
+The passes between the solves (link velocities
 of a dof vector, per-slot forces, accumulation onto the dofs) are Taichi-differentiated kernels; the
 solves have hand-written adjoints (ContactSolver.solve_grad runs them in reverse; the gradient path
 keeps each bound round's starting solution and factor for its adjoint; the normal and the bound rounds each run
