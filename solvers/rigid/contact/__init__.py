@@ -111,7 +111,7 @@ contact's linear force pulls where another contact stops the body first:
     friction stayed glued to the ground, the ground's laws pulling it down with up to 3.6 N against its
     0.38 N weight; a 38 g cube did not leave the ground at all, and in float32 the grasps threw the cube
     (tests/test_grasp.py; Genesis's franka_cube scene, benchmarks/franka_cube_precision.py, now ends at
-    z = 0.1847 m in float32, 0.1846 m in float64 on 2026-12-05, 0.1850 with the fixed damper of before; Genesis
+    z = 0.1847 m in float32 and float64 on 2026-12-05's evening, 0.1850 with the fixed damper of before; Genesis
     0.1832). Released for good (no return within the step),
     the points of a pad's face that pulled while the face pushed left its load on two or three points,
     and the cube spun in the pads; released by pairs of geoms, a pad's face kept a +-23 N couple of

@@ -161,6 +161,8 @@ func_friction_clear, func_friction_clear_pairs, func_friction_tree, func_frictio
 # first solve's velocity too, wholly from RELIN_FROM + RELIN_OVER widths out (func_relinearise_share)
 RELIN_FROM = 2.0
 RELIN_OVER = 8.0
+
+
 @ti.func
 def func_relinearise_motion(s: ti.template(), i_b):
     c = s.contact
@@ -394,7 +396,6 @@ def func_friction_slots_listed(s: ti.template(), i_b):
             func_friction_slot(s, i_b, i_s)
         else:
             func_friction_out(s, i_b, i_s)
-            c.sl_in_now[i_b, i_s] = 0
 
 
 @ti.func
