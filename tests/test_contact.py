@@ -634,10 +634,10 @@ def test_fused_step_without_gradients_matches_the_gradient_schedule(contact):
     forces (to rounding: the two compile to different code). "fixed damper of before": 1e6 N/m and 4e4 N s/m,
     the default contact until 2026-12-05.
     Until 2026-12-05 (found by the default case) a slot beyond the contact margin could count as acting by the
-    sign of rounding noise in its ~0 force (slots.func_contact_normal): in env 2 the upper box, falling 8 mm above
-    the lower one, kept that null law when the ground stopped the lower box, and on the fused path it fell
-    8.4 mm into it in one step (the gradient schedule's noise had the other sign: 4.2e-5 m); the upper box
-    now lands on the lower one on both paths."""
+    sign of rounding noise in its ~0 force: in env 2 the upper box, falling 8 mm above the lower one, kept that
+    null law when the ground stopped the lower box, and on the fused path it fell 8.4 mm into it in one step (the
+    gradient schedule's noise had the other sign: 4.2e-5 m). Such a slot is now linearised again as a candidate
+    whatever its count (passes.func_relinearise_share), and the upper box lands on the lower one on both paths."""
     rigid = {} if contact == "default" else FIXED_DAMPER
     q0, f0, m0 = _mixed_contact_rollout(False, **rigid)
     q1, f1, m1 = _mixed_contact_rollout(True, **rigid)
@@ -1398,6 +1398,18 @@ def test_grad_through_a_sliding_landing():
     assert all(float(g.norm()) > 1e-3 for g in rep.autograd)
 
 
+def _corner_landing_scene(requires_grad, **rigid):
+    """A 6 kg box (0.3 x 0.2 x 0.1 m, tilted a little) 1 cm above a frictionless plane at dt = 1 ms, to land on
+    a corner: (scene, box)."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, requires_grad=requires_grad),
+                     rigid_options=gs.options.RigidOptions(**rigid))
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.0))
+    box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.2, 0.1), pos=(0, 0, 0.06), quat=(0.999, 0.02, 0.03, 0.01)),
+                           material=gs.materials.Rigid(rho=1000.0))
+    scene.build()
+    return scene, box
+
+
 def test_a_law_that_friction_loads_comes_back_into_the_final_system():
     """A law left out of the frictionless solve (its force ~0 there) can push once friction moves load onto
     it; the bound rounds bring it back (passes.func_release_slot). Before 2026-12-05 only laws they had
@@ -1405,14 +1417,11 @@ def test_a_law_that_friction_loads_comes_back_into_the_final_system():
     dropped from heights 1e-6 m apart, had that corner's law in (pushing 8.3 N) or out (none) at step 24, and
     its state jumped by 1.5e-5 m against 3.2e-7 m between the next two heights. The state 25 steps after the
     drop is now as continuous in the height on both sides (measured 3.8e-7 and 3.2e-7 m)."""
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3), rigid_options=gs.options.RigidOptions(**FIXED_DAMPER))
-    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.0))
-    box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.2, 0.1), pos=(0, 0, 0.06), quat=(0.999, 0.02, 0.03, 0.01)),
-                           material=gs.materials.Rigid(rho=1000.0, friction=0.3))
-    scene.build()
+    scene, box = _corner_landing_scene(False, **FIXED_DAMPER)
     q = []
     for z in (0.06 - 1e-6, 0.06, 0.06 + 1e-6):
         scene.reset()
+        box.set_friction(_t(0.3))
         box.set_pos(_t([0.0, 0.0, z]))
         box.set_dofs_velocity(_t([1.0, 0.3, -0.5, 0.0, 0.0, 0.0]))
         for _ in range(25):
@@ -1441,12 +1450,7 @@ def test_grad_through_a_landing_with_mass_relative_damping(damper):
     damper that was the default until 2026-12-05 (contact_stiffness 1e6, contact_damping 4e4), whose gradient
     the default suite no longer runs."""
     rigid = {} if damper.startswith("critical") else FIXED_DAMPER
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=1e-3, requires_grad=True),
-                     rigid_options=gs.options.RigidOptions(**rigid))
-    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=0.0))
-    box = scene.add_entity(gs.morphs.Box(size=(0.3, 0.2, 0.1), pos=(0, 0, 0.06), quat=(0.999, 0.02, 0.03, 0.01)),
-                           material=gs.materials.Rigid(rho=1000.0))
-    scene.build()
+    scene, box = _corner_landing_scene(True, **rigid)
     m0 = float(box.get_mass())
     k = gs.options.RigidOptions(**rigid).contact_stiffness
     assert 2 * np.sqrt(k * m0) > 4 * k * 1e-3  # the critical branch, not the floor

@@ -180,9 +180,10 @@ def func_relinearise_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.
     h = c.eval_h[i_b]
     du = func_rel_motion(s, i_b, i_s, pos, lw, lv).dot(n)
     depth = c.sl_depth[i_b, i_s]
-    # a contact acting at the start-of-step velocity keeps its linear law (dropped if its force
-    # at u1 pulls); a candidate gets the law's tangent at u1 (its first linearisation, at the
-    # start-of-step velocity, was ~0): it acts if the law pushes there
+    # a contact acting at the start-of-step velocity keeps its linear law, a candidate (its first
+    # linearisation, at the start-of-step velocity, was ~0) gets the law's tangent at u1, and a contact
+    # acting but predicted out by more than a few widths a share of each (func_relinearise_share); it is
+    # in the normal system if that law pushes at u1
     heavy, scale, inv = func_heavy_scale(s, i_b, i_s, n)
     f1, w1, _ = func_normal_law(c, depth, depth - c.sl_corr[i_b, i_s] - h * (u0.dot(n) + du), h, heavy, scale, inv)
     beta = func_relinearise_share(c, c.sl_cand[i_b, i_s] == 1, depth - c.sl_corr[i_b, i_s] - h * u0.dot(n))
@@ -191,11 +192,12 @@ def func_relinearise_slot(s: ti.template(), i_b, i_s, lw: ti.template(), lv: ti.
     # the first linearisation's share 1 - beta, the tangent at u1's beta; in if it pushes there
     F1 = (1.0 - beta) * c.sl_Fn[i_b, i_s] + beta * (f1 + w1 / h * du)
     W1 = (1.0 - beta) * c.sl_wn[i_b, i_s] + beta * w1
-    keep = F1 - W1 / h * du > 0
+    fk = F1 - W1 / h * du
+    keep = fk > 0
     c.sl_Fn_normal[i_b, i_s] = F1
     c.sl_wn_normal[i_b, i_s] = W1
     c.sl_in_normal[i_b, i_s] = ti.select(keep, 1, 0)
-    c.sl_fk[i_b, i_s] = F1 - W1 / h * du
+    c.sl_fk[i_b, i_s] = fk
     if ti.static(add):
         func_bank_add(s, c.bank_relinearise, i_b, i_s, pos, (ti.select(keep, F1, 0.0) - c.sl_Fn[i_b, i_s]) * n,
                       (ti.select(keep, W1, 0.0) - c.sl_wn[i_b, i_s]) * n.outer_product(n))
@@ -211,10 +213,14 @@ def func_relinearise_share(c: ti.template(), cand, depth_end):
     30-link chain on the ground swinging), rising to 1 at -RELIN_FROM - RELIN_OVER widths (the law's slope is
     then below 5e-5 of its full), along a smootherstep (C2: a body set exactly on the ground starts at 0 widths,
     and a kink there, even of the second derivative, moved its central differences by 5e-5). Before 2026-12-05
-    an acting slot kept its first linearisation however far out: one that the start-of-step velocity brought
-    only within the margin kept a slope ~1e-8 of the law's, and a box falling onto one that the step had just
-    stopped went 2.9 mm into it (four boxes stacked 45 degrees apart, tests/test_contact.py); relinearised, as a
-    candidate is, it is caught. Continuous in the state (the candidate's limit at the margin, 20 widths out)."""
+    an acting slot kept its first linearisation however far out. Beyond the margin whether a slot counted as
+    acting was the sign of rounding noise in its ~0 force (two boxes falling together 8 mm apart: fn_pred = 0
+    and fn_now = -d sigmoid(-60) (h u.n + corr) / h with u.n ~1e-84 m/s), different in the fused step and the
+    gradient schedule: on the fused path the upper box kept its null law when the ground stopped the lower
+    one and fell 8.4 mm into it in one step. Within the margin, one that the start-of-step velocity brought
+    only near kept a slope ~1e-8 of the law's, and a box falling onto one that the step had just stopped went
+    2.9 mm into it (four boxes stacked 45 degrees apart). Relinearised, as a candidate is, both are caught
+    (tests/test_contact.py). Continuous in the state, and beyond ten widths the same whatever the slot's count."""
     t = ti.min(ti.max((-RELIN_FROM - depth_end / c.delta) / RELIN_OVER, 0.0), 1.0)
     return ti.select(cand, 1.0, t * t * t * (10.0 + t * (6.0 * t - 15.0)))
 

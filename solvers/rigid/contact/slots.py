@@ -42,9 +42,9 @@ def func_clear_mass_cross(s: ti.template(), i_b):
 
 
 @ti.func
-def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, near, cand, corr):
-    """Normal force and its implicit block of slot i_s (near: within the contact margin, now or at the end
-    of the step; cand: a candidate), added onto its two links; the slot's data for the friction passes."""
+def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, cand, corr):
+    """Normal force and its implicit block of slot i_s (within the contact margin, now or at the end
+    of the step), added onto its two links; the slot's data for the friction passes."""
     c = s.contact
     # the normal force is linearised about the depth predicted for the end of the step, so a contact
     # that closes its gap within the step acts in it (speculative contact, see the module docstring)
@@ -54,14 +54,10 @@ def func_contact_normal(s: ti.template(), i_b, i_s, h, pos, n, depth, u, near, c
     # on while the force of the current state pushes (a contact creeping out of a deep overlap, whose
     # predicted force sits at ~0), the predicted one does (a gap closing within the step), or the pair
     # is a candidate (cand: its gap could close within the step if the bodies' motion changes; the
-    # first pass linearises it again at the velocity the first solve gives). Only a slot within the margin
-    # acts: beyond it both depths are more than MARGIN_WIDTHS widths apart, the softplus of either is ~0 or
-    # rounds to exactly 0, and the sign of fn_now and fn_pred is the sign of rounding noise (two boxes
-    # falling together 8 mm apart: fn_pred = 0 and fn_now = -d sigmoid(-60) (h u.n + corr) / h, u.n ~1e-84
-    # m/s); counted as acting such a slot kept its null law through the first pass instead of being
-    # linearised again as the candidate it is, and the upper box fell into the lower one, stopped by the
-    # ground, for a step or not depending on that noise (the fused step and the gradient schedule parted)
-    acting = near & ((fn_now > 0) | (fn_pred > 0))
+    # first pass linearises it again at the velocity the first solve gives). Beyond the margin "acting" can be
+    # the sign of rounding noise in a ~0 force; the first pass treats such a slot as a candidate either way
+    # (passes.func_relinearise_share)
+    acting = (fn_now > 0) | (fn_pred > 0)
     on = acting | cand
     c.sl_on[i_b, i_s] = ti.select(on, 1, 0)
     c.sl_cand[i_b, i_s] = ti.select(acting, 0, 1)
@@ -106,7 +102,7 @@ def func_contact_slot(s: ti.template(), i_b, i_s, h):
     # body while this one falls on): a candidate
     cand = depth + h * (ti.sqrt(ua.dot(ua) + TINY) + ti.sqrt(ub.dot(ub) + TINY)) > -c.margin
     if near | cand:
-        func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, near, cand, corr)
+        func_contact_normal(s, i_b, i_s, h, pos, n, depth, u, cand, corr)
 
 
 @ti.func
