@@ -16,10 +16,10 @@ integrator (implicitfast), SimOptions(requires_grad=True). The rollout timed eve
 forward = reset .. loss, backward = loss.backward(). Controls are fixed small random torques (N m).
 1. backward / forward time, 1 env and 1024 envs, without and with checkpointing (checkpoint_every=10),
    medians after a warm-up rollout; without checkpoints also with the controls fed as the rows of
-   controls.unbind(0) instead of controls[t] (torch's backward of controls[t] materialises a zero tensor of
-   the whole (T, envs, dofs) control sequence per step, which at 1024 envs is a share of the backward that
-   is torch's, not the simulator's), and the forward time per step against the plain requires_grad=False
-   rollout (same calls) so the cost of recording is visible.
+   controls.unbind(0) instead of controls[t] (both are views of the controls, whose gradients the setters
+   route to the controls themselves, genesis_lite/grad/views.py; torch's own backward of controls[t] would
+   fill a zero tensor of the whole (T, envs, dofs) sequence per step), and the forward time per step against
+   the plain requires_grad=False rollout (same calls) so the cost of recording is visible.
 2. the first backward of a fresh process (compile included) with an empty Taichi kernel cache, then the
    second and third process on the same cache directory.
 3. memory (VmRSS / VmHWM of the process, one fresh process per configuration) against the horizon, with
@@ -442,7 +442,7 @@ def part_memory(urdf, quick, tables, data):
               "compiled warm-up rollout; growth over the values before the rollout)")
     note = ("   RSS: VmRSS/VmHWM; heap: glibc mallinfo2 bytes in use (RSS misses growth that refills freed memory). "
             "'controls fed unbind(0)[t]': rows of controls.unbind(0); 'controls[t]' indexes the (T, n_dofs) leaf "
-            "each step, whose backward adds a dense (T, n_dofs) gradient per step in torch (O(T^2)).")
+            "each step (both views, whose gradients the setters route to the leaf: one fill of it a backward).")
     print(note, flush=True)
     tables.append(text + "\n\n" + note)
 

@@ -72,6 +72,7 @@ class Simulator:
         self.substeps = sim_options.substeps
         self.requires_grad = sim_options.requires_grad
         self.rollout_token = 0
+        self.view_nodes = {}  # grad/views.py: a node per base of the setters' views, for this rollout
         self.step_count = 0
         self._backward_done = False
         self._step_inputs = {}
@@ -258,6 +259,7 @@ class Simulator:
     # ---------------------------------------------------------------- rollouts
     def new_rollout(self, states):
         self.rollout_token += 1
+        self.view_nodes = {}
         self._backward_done = False
         self.step_count = 0
         if self.buffer is not None:

@@ -19,6 +19,7 @@ from ..errors import GenesisException, GenesisWarning, ZeroGainWarning
 from ..grad.indexing import all_finite, index_put
 from ..grad.remake import derive, recipe
 from ..grad.tensor import wrap
+from ..grad.views import routed
 from ..utils.geom import _unit_quat_to_R as _quat_to_R
 from ..utils.geom import quat_to_xyz, xyz_to_quat
 from .contact_api import ContactMixin
@@ -374,7 +375,8 @@ class RigidEntity(ContactMixin, KinematicsMixin, GravityCompensationMixin):
                     f"{who}: {what} requires grad but the scene was built without gradients, so it "
                     "would receive none. Create the scene with gs.options.SimOptions(requires_grad=True), or pass "
                     "x.detach().")
-            t = x.to(gs.tc_float)
+            sim = getattr(self._scene, "_simulator", None)
+            t = (routed(x, sim.view_nodes) if sim is not None else x).to(gs.tc_float)
         else:
             try:
                 t = torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=gs.tc_float, device=gs.device)
