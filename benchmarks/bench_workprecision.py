@@ -32,6 +32,7 @@ import os
 import statistics
 import sys
 import tempfile
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -972,6 +973,7 @@ def plot(results, n_envs: str, path: Path, title: str) -> bool:
     keys = [k for k, e in results.items() if not e.get("skipped") and n_envs in e["envs"]]
     if plt is None or not keys:
         return False
+    from matplotlib.ticker import NullFormatter
     cols = min(2, len(keys))
     rows = (len(keys) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(6.2 * cols, 4.6 * rows), squeeze=False)
@@ -1003,9 +1005,10 @@ def plot(results, n_envs: str, path: Path, title: str) -> bool:
                 ax.axhline(e, color="grey", ls=STYLE[engine][0], lw=0.8, label=f"{engine} reference's own error")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # labelled minor ticks ran into each other
         ax.set_xlabel("wall time of the run (s)")
         ax.set_ylabel("error")
-        ax.set_title(f"{key}: {results[key]['error_label']}", fontsize=9)
+        ax.set_title(textwrap.fill(f"{key}: {results[key]['error_label']}", 80), fontsize=8)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     for ax in list(axes.flat)[len(keys):]:
