@@ -160,6 +160,25 @@ def test_finite_values_that_require_grad_keep_their_gradients():
         assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("through", ["step", "getter"])
+def test_second_derivatives_are_refused_not_silently_missing(through):
+    """create_graph=True asks torch to differentiate the backward again; the step's and the getters' backward
+    are Taichi's adjoint kernels, so the second-order part through the scene would be silently missing (the
+    first-order gradient came back as a constant). Refused, naming what to do."""
+    scene = _grad_scene()
+    arm = scene.add_entity(gs.morphs.URDF(file=ARM, fixed=True), name="arm")
+    scene.build()
+    q0 = torch.tensor([0.1, 0.4, -0.3, 0.2], **F64, requires_grad=True)
+    arm.set_dofs_position(q0)
+    for _ in range(3 if through == "step" else 0):
+        scene.step()
+    loss = (arm.get_links_pos()[-1] ** 2).sum()
+    with pytest.raises(GenesisException, match="create_graph=True.*first derivatives only"):
+        torch.autograd.grad(loss, q0, create_graph=True)
+    (g,) = torch.autograd.grad(loss, q0)  # first order as before
+    assert float(g.abs().sum()) > 0
+
+
 def test_a_leaf_that_turned_nan_is_refused_at_reset(arm_and_box):
     """A parameter leaf set once is re-applied at every reset; if an optimiser step made it NaN, the reset
     says which quantity of which entity, not a divergence steps later."""

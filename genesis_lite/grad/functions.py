@@ -26,6 +26,17 @@ def _owner(ctx):
     return owner
 
 
+def _refuse_second_order():
+    """A node's backward runs with grad mode on only under create_graph=True: the step's adjoint is Taichi's
+    kernels, whose results torch cannot differentiate again, so the second-order part would be silently missing."""
+    if torch.is_grad_enabled():
+        raise GenesisException(
+            "backward with create_graph=True through a scene's steps: genesis_lite gives first derivatives only (the "
+            "step's backward runs Taichi's adjoint kernels, which torch cannot differentiate again), so a second "
+            "derivative would silently miss the simulation's part. Call backward / torch.autograd.grad without "
+            "create_graph; for a Hessian-vector product take central differences of two gradients.")
+
+
 class StepFunction(torch.autograd.Function):
     """(states_t, controls_t, parameters) of every solver -> states_{t+1}; the forward has already
     been set up in the solver fields by the simulator, the backward replays the step on a Tape."""
@@ -44,6 +55,7 @@ class StepFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads):
+        _refuse_second_order()
         sim = _owner(ctx)
         sim.check_token(ctx.token, "step")
         tensors = ctx.saved_tensors
@@ -66,6 +78,7 @@ class OutputFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads):
+        _refuse_second_order()
         bridge = _owner(ctx)
         bridge.sim.check_token(ctx.token, "getter")
         state = bridge.sim.getter_restore(bridge, ctx.saved_tensors, ctx.step)
