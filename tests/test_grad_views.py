@@ -2,10 +2,10 @@
 gradients to the base itself (genesis_lite/grad/views.py: one fill of the base per backward pass instead of
 one per step). The reference is torch's own backward of the same views: each test feeds the views once
 through `.clone()` (a copy, which the routing leaves alone, so torch's view backward runs) and once as they are,
-in the same scene with the default options, and asks for the same gradients. Finite differences of
-`controls[t]` rollouts are in tests/test_gradients.py; here what is checked is the routing's bookkeeping: views
+in the same scene with the default options, and asks for the same gradients: the routing's bookkeeping (views
 that share a base, several losses and backward passes, a pass that raised, a base written in place between
-steps, hooks."""
+steps, hooks). One test holds routed gradients against central differences in float64 (those of small control
+tensors, which keep torch's backward, are in tests/test_gradients.py)."""
 import numpy as np
 import pytest
 import torch
@@ -18,12 +18,14 @@ from conftest import ASSETS_DIR
 ARM = str(ASSETS_DIR / "urdf" / "skew_arm.urdf")  # 3 revolute joints on skewed axes, offset COMs
 T = 8
 F64 = dict(dtype=torch.float64)
-WIDE = -(-2 * ROUTE_MIN // T)  # columns of a (T, WIDE) control tensor: large enough to be routed
 
 
 def _wide(rows):
     """Columns for a (T, rows, cols) control tensor large enough for the routing (views.ROUTE_MIN)."""
     return -(-2 * ROUTE_MIN // (T * rows))
+
+
+WIDE = _wide(1)  # columns of a (T, WIDE) control tensor
 
 
 def _scene(n_envs):
@@ -246,3 +248,34 @@ def test_a_small_base_keeps_torchs_backward(scenes):
     assert "_ViewNodeBackward" not in _names(loss) and "SelectBackward0" in _names(loss)
     loss.backward()
     assert float(c.grad.abs().min()) > 0
+
+
+@pytest.mark.parametrize("n_envs", [0, 3])
+def test_routed_gradients_match_finite_differences(scenes, n_envs):
+    """Central differences in float64, default options: the controls are computed from two small leaves (a
+    torque profile over the steps times a torque per dof, padded into a base large enough to be routed), fed as
+    views c[t, ..., :n] each step; the loss reads the links' poses and velocities. gs.grad.check differences the
+    leaves, so the routed views' gradients are checked through the computation to them."""
+    scene, arm = _get(scenes, n_envs)
+    n = arm.n_dofs
+    lead = (n_envs,) if n_envs else ()
+    pad = _wide(max(n_envs, 1)) - n
+    rng = np.random.default_rng(8)
+    S = torch.tensor(rng.uniform(0.5, 1.5, (T,) + lead), **F64)
+    Wd = torch.tensor(rng.uniform(-2.0, 2.0, n), **F64)
+    graphs = []
+
+    def rollout(S, Wd):
+        c = torch.cat([S[..., None] * Wd, torch.zeros((T,) + lead + (pad,), **F64)], -1)
+        scene.reset()
+        for t in range(T):
+            arm.control_dofs_force(c[t, ..., :n])
+            scene.step()
+        loss = (arm.get_links_pos()[..., -1, :] ** 2).sum() + 0.1 * (arm.get_dofs_velocity() ** 2).sum()
+        graphs.append(_names(loss))
+        return loss
+
+    report = gs.grad.check(rollout, {"S": S, "Wd": Wd}, tol=1e-6)
+    print(report)
+    assert report.ok, str(report)
+    assert "_ViewNodeBackward" in graphs[0]  # the autograd rollout took the routing

@@ -3,11 +3,12 @@
 views.py routes a view's gradient to its base itself, which needs: the base of a view (`Tensor._base`), a
 tensor's in-place version counter (`Tensor._version`), whether a tensor has a backward hook
 (`Tensor._backward_hooks`) and which backward pass is running (`torch._C._current_graph_task_id`, what
-torch.utils.checkpoint uses). Checked on torch 2.13 (the version pyproject.toml pins); on a version outside
-CHECKED, or one without these, `can_route()` is False and views keep torch's own backward (slower, exact)."""
+torch.utils.checkpoint uses). Checked on torch 2.13 only (the version pyproject.toml pins): on any other
+version, or one without these, `can_route()` is False and views keep torch's own backward (slower, exact) until
+the range below is widened after checking tests/test_grad_views.py there."""
 import torch
 
-CHECKED = ((2, 1), (2, 13))  # first and last minor version known to have what views.py uses
+CHECKED = ((2, 13), (2, 13))  # first and last minor version on which views.py's uses were checked
 
 
 def _minor(version: str):

@@ -46,7 +46,7 @@ class _Sum:
         task = torch_compat.graph_task_id()
         if self.task != task:  # a new backward pass: nothing of an earlier one (say, one that raised) is kept
             self.task, self.buf = task, torch.zeros(self.shape, dtype=self.dtype, device=self.device)
-        self.buf.as_strided(*geometry).add_(g.to(self.dtype))
+        self.buf.as_strided(*geometry).add_(g)  # g has the view's dtype, the base's (_geometry)
 
     def take(self):
         """The sum of this backward pass, or None where no view node of it ran; the buffer goes to torch (which
@@ -82,19 +82,21 @@ class _ViewNode(torch.autograd.Function):
         return None, None, None, None
 
 
-def _exact(x, base):
-    """Whether the view's gradient can be added in place into a contiguous buffer of the base: a contiguous
-    base holding every element of the view, and a view whose elements are distinct (sorted by stride, each
-    dimension steps past the span of the smaller ones)."""
+def _geometry(x, base):
+    """The view's (shape, strides, offset) in a contiguous buffer of the base, where its gradient can be added
+    there in place: a contiguous base holding every element of the view, and a view whose elements are distinct
+    (sorted by stride, each dimension steps past the span of the smaller ones); else None."""
     if not base.is_contiguous() or x.dtype != base.dtype or x.device != base.device:
-        return False
+        return None
     offset = x.storage_offset() - base.storage_offset()
     extent = 1  # one past the largest offset the smaller dimensions reach
     for stride, size in sorted((st, s) for s, st in zip(x.shape, x.stride()) if s > 1):
         if stride < extent:
-            return False
+            return None
         extent += stride * (size - 1)
-    return offset >= 0 and offset + extent <= base.numel()
+    if offset < 0 or offset + extent > base.numel():
+        return None
+    return tuple(x.shape), tuple(x.stride()), offset
 
 
 def _base_of(x):
@@ -126,7 +128,10 @@ def routed(x, nodes):
     if os.environ.get("GS_ROUTE_VIEWS", "1") == "0":  # torch's own backward (benchmarks/bench_view_grads.py)
         return x
     base = _base_of(x)
-    if base is None or base.numel() - x.numel() < ROUTE_MIN or torch_compat.has_hooks(x) or not _exact(x, base):
+    if base is None or base.numel() - x.numel() < ROUTE_MIN or torch_compat.has_hooks(x):
+        return x
+    geometry = _geometry(x, base)
+    if geometry is None:
         return x
     key = id(base)
     entry = nodes.get(key)
@@ -135,5 +140,4 @@ def routed(x, nodes):
         entry = (weakref.ref(base), torch_compat.version(base), _BaseNode.apply(base, total), total)
         nodes[key] = entry
     _, _, token, total = entry
-    geometry = (tuple(x.shape), tuple(x.stride()), x.storage_offset() - base.storage_offset())
     return _ViewNode.apply(token, x.detach(), total, geometry)
