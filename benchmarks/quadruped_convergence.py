@@ -97,6 +97,11 @@ def main():
                "per point, critically damped for the mass it moves; friction's load with Coulomb's forces applied), "
                "implicitfast", {"armature": 0.1}, "implicitfast", halving),
               ("the defaults (armature 0.1), RK4", {"armature": 0.1}, "RK4", halving),
+              ("armature 0.1, RigidOptions(friction_smoothing_accel=0.1) (friction's slip speed at most 0.1 h m/s, so "
+               "that it shrinks with the step below 10 ms), implicitfast",
+               {"armature": 0.1, "friction_smoothing_accel": 0.1}, "implicitfast", halving),
+              ("armature 0.1, friction_smoothing_accel=0.1, RK4", {"armature": 0.1, "friction_smoothing_accel": 0.1},
+               "RK4", halving),
               ("no armature, the defaults, RK4", {}, "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
               ("armature 0.1, the contact of before 2026-12-05 (1e6 N/m, fixed damping 4e4 N s/m), implicitfast",
                {"armature": 0.1, **fixed}, "implicitfast", halving),

@@ -94,6 +94,23 @@ ROUND_OFF_RELEASE_F32 = 1e-3
 
 
 @ti.func
+def func_slip_eps(c: ti.template(), i_b):
+    """The friction law's slip speed eps for env i_b's step h: RigidOptions.friction_smoothing, or, where
+    RigidOptions.friction_smoothing_accel is given (c.slip_accel > 0), at most that times h. With a fixed eps the
+    law depends on h a / eps (a the contact's tangential acceleration): step 3's predicted slip carries the
+    Coulomb impulse h mu f / m, which decides between the sticking viscosity and the creep below eps, so near
+    h ~ eps m / (mu f) the model moves from one to the other and steps finer than that leave the limit of the
+    coarser ones (ANYmal standing: the base sank 1.3e-5 m more per halving of dt below 25 us), and a body resting
+    on a slope creeps at about (tan / mu) eps whatever the step. With eps proportional to h the ratio is fixed,
+    the creep falls with h and the limit as h -> 0 is exact Coulomb friction, at first order; the sharper law
+    makes the losses of landings rougher (tests/test_contact.py), so it is not the default."""
+    if ti.static(c.slip_accel > 0.0):
+        return ti.min(c.eps, c.slip_accel * c.eval_h[i_b])
+    else:
+        return c.eps
+
+
+@ti.func
 def func_round_span(s: ti.template(), i_b):
     """How many entries func_round_slot walks: every slot with gradients, the listed ones without."""
     n = s.contact.n_slots
@@ -275,7 +292,8 @@ def func_coulomb_slot(s: ti.template(), i_b, i_s):
     u2 = u0 + func_rel_motion(s, i_b, i_s, pos, c.link_w_normal, c.link_v_normal)
     f2 = func_normal_after(c, i_b, i_s, u0, u2, n)
     u2t = u2 - u2.dot(n) * n
-    g2 = u2t / ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+    eps = func_slip_eps(c, i_b)
+    g2 = u2t / ti.sqrt(u2t.dot(u2t) + eps * eps)
     c.sl_u_normal[i_b, i_s] = u2
     c.sl_load[i_b, i_s] = f2
     load = ti.max(f2, 0.0)
@@ -366,18 +384,19 @@ def func_friction_slot(s: ti.template(), i_b, i_s):
     u2 = c.sl_u_normal[i_b, i_s]
     f2 = c.sl_load[i_b, i_s]
     u2t = u2 - u2.dot(n) * n
-    s2 = ti.sqrt(u2t.dot(u2t) + c.eps * c.eps)
+    eps = func_slip_eps(c, i_b)
+    s2 = ti.sqrt(u2t.dot(u2t) + eps * eps)
     uc = u2 + func_rel_motion(s, i_b, i_s, pos, c.link_w_coulomb, c.link_v_coulomb)
     w = (uc - uc.dot(n) * n).dot(u2t) / s2
     # slip speed ahead, smoothly clipped at 0 (a reversal means the contact sticks)
-    wc = ti.min(ti.max(w / c.eps, -60.0), 60.0)
+    wc = ti.min(ti.max(w / eps, -60.0), 60.0)
     # (func_softplus's two branches, so that the adjoint at w == 0 is 1/2 as the derivative)
-    vp = ti.select(w > 0, w + c.eps * ti.log(1.0 + ti.exp(-wc)), c.eps * ti.log(1.0 + ti.exp(wc)))
+    vp = ti.select(w > 0, w + eps * ti.log(1.0 + ti.exp(-wc)), eps * ti.log(1.0 + ti.exp(wc)))
     keep = f2 > 0
     # the load: the frictionless solve's f2 (the default), or the normal force predicted with Coulomb's forces
     # applied (RigidOptions.friction_load = "coulomb": func_coulomb_load)
     load = func_coulomb_load(s, i_b, i_s, u0, uc, n, f2, w, s2, keep) if ti.static(c.load_shift > 0.0) else ti.max(f2, 0.0)
-    eta = c.sl_mu[i_b, i_s] * load / ti.sqrt(vp * vp + c.eps * c.eps)
+    eta = c.sl_mu[i_b, i_s] * load / ti.sqrt(vp * vp + eps * eps)
     drop = ti.select(keep, 0.0, 1.0)
     nn = n.outer_product(n)
     u0t = u0 - u0.dot(n) * n
@@ -502,22 +521,20 @@ def func_bound_load(s: ti.template(), i_b, i_s, u3):
 
 
 @ti.func
-def func_law_secant(s: ti.template(), bound, u3t):
+def func_law_secant(bound, u3t, eps):
     """The smoothed friction law's secant at the slip u3t for Coulomb's bound `bound` (func_coulomb_bound):
-    bound / sqrt(|u_t|^2 + eps^2)."""
-    c = s.contact
-    return bound / ti.sqrt(u3t.dot(u3t) + c.eps * c.eps)
+    bound / sqrt(|u_t|^2 + eps^2), eps func_slip_eps's."""
+    return bound / ti.sqrt(u3t.dot(u3t) + eps * eps)
 
 
 @ti.func
-def func_bound_next(s: ti.template(), bound, u3t, eta):
+def func_bound_next(bound, u3t, eta, eps):
     """func_bound_eta for a slot of viscosity eta and Coulomb's bound `bound` (func_coulomb_bound, computed
     once per slot and round by the caller) at the slip u3t of a solve (func_tangential): its slip speed
     (|u_t|, with a 1e-4 eps floor inside the root so that its derivative stays finite at rest), the bound
     and the law's secant."""
-    c = s.contact
-    speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * c.eps * c.eps)
-    return func_bound_eta(eta, speed, bound, func_law_secant(s, bound, u3t))
+    speed = ti.sqrt(u3t.dot(u3t) + 1e-8 * eps * eps)
+    return func_bound_eta(eta, speed, bound, func_law_secant(bound, u3t, eps))
 
 
 @ti.func
@@ -567,8 +584,9 @@ def func_bound_slot(s: ti.template(), i_b, i_s, u3, eta, inside, rel, bank: ti.t
     # (within Coulomb's bound: the friction pass's sticking viscosity mu f2 / eps, brought back by a last
     # round, threw two boxes pushed into each other into a 7 rad/s spin)
     bound = func_coulomb_bound(s, i_b, i_s, u3)
-    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(s, bound, u3t))
-    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(s, bound, u3t, eta),
+    eps = func_slip_eps(c, i_b)
+    eta_back = ti.min(c.sl_eta[i_b, i_s], func_law_secant(bound, u3t, eps))
+    eta2 = ti.select(back, eta_back, ti.select(release, 0.0, ti.select(inside, func_bound_next(bound, u3t, eta, eps),
                                                                         eta)))
     stays = back | (inside & (not release))  # in the system after the round
     if back | inside:
@@ -647,7 +665,7 @@ def func_bound_count(s: ti.template(), i_b, e, r):
             if (rel == 0) & (c.sl_in_now[i_b, i_s] == 1):
                 eta = c.sl_eta_now[i_b, i_s]
                 bound = func_coulomb_bound(s, i_b, i_s, u3)
-                n += ti.select(func_bound_next(s, bound, func_tangential(s, i_b, i_s, u3), eta) < eta, 1, 0)
+                n += ti.select(func_bound_next(bound, func_tangential(s, i_b, i_s, u3), eta, func_slip_eps(c, i_b)) < eta, 1, 0)
         c.bnd_rel[i_b, r, i_s] = rel
         n += ti.select(rel > 0, 1, 0)
     return n

@@ -58,6 +58,9 @@ class ContactPlan:
         self.d = 0.0 if ratio is not None else float(fixed)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
+        # RigidOptions.friction_smoothing_accel: eps at most this times the step (0: off, the default)
+        accel = getattr(options, "friction_smoothing_accel", None)
+        self.slip_accel = float(accel) if accel is not None else 0.0
         # friction's load (RigidOptions.friction_load): > 0 the normal force predicted with Coulomb's forces
         # applied, at most this many times the frictionless solve's (the default), 0 the frictionless solve's
         self.load_shift = LOAD_SHIFT if getattr(options, "friction_load", "coulomb") == "coulomb" else 0.0
@@ -123,7 +126,7 @@ class ContactPlan:
                          _cap(self.n_lp, 4) if self.dense else 0, _cap(self.n_cross, 16) if self.dense else 0)
         self.flags = (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.has_hulledge,
                       self.sdf_types,
-                      (self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift), self.static)
+                      (self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift, self.slip_accel), self.static)
 
 
 def _dense_order(flat):

@@ -73,7 +73,7 @@ class ContactSolver:
         (self.dense, self.has_rim, self.has_segseg, self.has_boxedge, self.has_boxface, self.has_hulledge,
          self.sdf_types, consts, self.static_sizes) = plan.flags
         self.baked_sizes = tuple(plan.cfg_i)
-        self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift = consts
+        self.k, self.d, self.zeta, self.delta, self.eps, self.load_shift, self.slip_accel = consts
         self.margin = MARGIN_WIDTHS * self.delta
         self.dtype = core.dtype
         G, Pn, S, n_lp, n_cross = plan.caps
