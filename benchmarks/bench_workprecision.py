@@ -57,10 +57,11 @@ PANDA_T = 0.5  # s: the free swing folds the arm with up to 25 rad/s by then (40
 # --- the sweep ---------------------------------------------------------------------------------------------
 
 
-def sweep(engine: str, batched: bool, quick: bool) -> list[tuple[str, float, int]]:
+def sweep(engine: str, batched: bool, quick: bool, deep: int = 0) -> list[tuple[str, float, int]]:
     """(integrator, dt, substeps) points. Full: dt halves from 0.02 s (to 0.625 ms for first-order methods in
     1 env, 1.25 ms batched, 2.5 ms for RK4, whose error is far smaller), plus dt = 0.02 s with 4 and 16
-    substeps (the same substep as dt = 5 and 1.25 ms, for the price of fewer Python-level steps).
+    substeps (the same substep as dt = 5 and 1.25 ms, for the price of fewer Python-level steps); --deep: that
+    many more halvings.
     Genesis: Euler and implicitfast only; its build is slow, so a shorter dt range. Quick: dt = 0.02 and 0.005 s."""
     pts = []
     integs = GENESIS_INTEGRATORS if engine == "genesis" else INTEGRATORS
@@ -70,7 +71,7 @@ def sweep(engine: str, batched: bool, quick: bool) -> list[tuple[str, float, int
         elif engine == "genesis":
             dts, subs = [0.01, 0.005, 0.0025, 0.00125], []
         else:
-            n = 4 if integ == "RK4" else (5 if batched else 6)
+            n = (4 if integ == "RK4" else (5 if batched else 6)) + deep
             dts = [0.02 / 2**k for k in range(n)]
             subs = [] if engine == "mujoco" else ([4] if integ == "RK4" else [4, 16])
         pts += [(integ, dt, 1) for dt in dts] + [(integ, 0.02, s) for s in subs]
@@ -120,10 +121,16 @@ def _gl_tile(x, n_envs, dtype):
     return t.unsqueeze(0).repeat(n_envs, 1) if n_envs else t
 
 
+# --rigid: RigidOptions fields (JSON) every genesis_lite build of the run sets, through the environment so that the
+# worker processes see them too
+RIGID_ENV = "GS_WP_RIGID"
+
+
 def _gl_opts(gs, integrator, dt, substeps, collision, limits=True):
+    extra = json.loads(os.environ.get(RIGID_ENV) or "{}")
     return dict(sim_options=gs.options.SimOptions(dt=dt, substeps=substeps, gravity=(0.0, 0.0, -S.G)),
                 rigid_options=gs.options.RigidOptions(integrator=getattr(gs.integrator, integrator),
-                                                      enable_collision=collision, enable_joint_limit=limits))
+                                                      enable_collision=collision, enable_joint_limit=limits, **extra))
 
 
 @contextlib.contextmanager
@@ -770,7 +777,7 @@ QUICK_BATCHED = ("panda",)  # --quick runs the batch on these scenes only
 
 
 def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=print, integrators=None,
-        f32=False) -> dict:
+        f32=False, deep=0) -> dict:
     """The whole study: {scene: {"reference": ..., "envs": {n: {engine: [points with error]}}}}. Real Genesis
     runs 1 env only (its CPU backend with 1,024 envs would take the better part of an hour per scene here), and not
     in --quick (its first scene compiles for minutes); --quick runs the batch on QUICK_BATCHED only. f32: also
@@ -823,7 +830,7 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
                 if wps.sweep is not None:  # the scene's own sweep (its scheme is not one of INTEGRATORS' choices)
                     pts = wps.sweep(engine, n_envs > 1, quick)
                 else:
-                    pts = [p for p in sweep(engine, n_envs > 1, quick) if not integrators or p[0] in integrators]
+                    pts = [p for p in sweep(engine, n_envs > 1, quick, deep) if not integrators or p[0] in integrators]
                 if engine.startswith("genesis_lite"):
                     res, err = run_gl(key, files, pts, n_envs, repeats,
                                       precision="32" if engine == "genesis_lite_f32" else "64")
@@ -1019,6 +1026,7 @@ def plot(results, n_envs: str, path: Path, title: str) -> bool:
 
 
 def main():
+    global QUAD_REF, QUAD_REF_CHECK, PUSH_REF, PUSH_REF_CHECK
     if "--worker" in sys.argv:
         return _worker_main(sys.argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -1031,6 +1039,11 @@ def main():
     ap.add_argument("--f32", action="store_true", help="also genesis_lite in float32 (gs.init's default precision), "
                     "against the float64 reference")
     ap.add_argument("--md", type=Path, default=None, help="write the equal-error summary and the tables here")
+    ap.add_argument("--rigid", default=None, help='RigidOptions fields for every genesis_lite build, as JSON '
+                    '(\'{"friction_smoothing_accel": 0.1}\'); named in each scene\'s notes')
+    ap.add_argument("--deep", type=int, default=0, help="halve dt this many more times (MuJoCo and genesis_lite)")
+    ap.add_argument("--ref-dt", type=float, default=None, help="the fine references' dt (the check run at twice it; "
+                    f"default {QUAD_REF[1]:g} s) of the quadrupeds and the push")
     ap.add_argument("--from-json", type=Path, nargs="+", default=None,
                     help="no run: the results of earlier --json files (merged, later files' scenes win)")
     a = ap.parse_args()
@@ -1040,8 +1053,20 @@ def main():
             merged.update(json.loads(f.read_text()))
         res = {k: merged[k] for k in list(SCENES) + list(merged) if k in merged}  # the scenes' order
     else:
+        if a.rigid:
+            json.loads(a.rigid)  # fail here, not in every worker
+            os.environ[RIGID_ENV] = a.rigid
+        if a.ref_dt:
+            QUAD_REF = PUSH_REF = ("RK4", a.ref_dt)
+            QUAD_REF_CHECK = PUSH_REF_CHECK = ("RK4", 2 * a.ref_dt)
         with tempfile.TemporaryDirectory(prefix="bench_wp_") as tmp:
-            res = run(a.scenes.split(","), [0, a.envs], a.quick, a.repeats, not a.no_genesis, Path(tmp), f32=a.f32)
+            res = run(a.scenes.split(","), [0, a.envs], a.quick, a.repeats, not a.no_genesis, Path(tmp), f32=a.f32,
+                      deep=a.deep)
+        for entry in res.values():
+            if a.rigid:
+                entry.setdefault("notes", []).append(f"genesis_lite with RigidOptions fields {a.rigid}")
+            if a.deep:
+                entry.setdefault("notes", []).append(f"--deep {a.deep}: the sweep's dt halved {a.deep} more times")
     text = tables(res)
     for t in text:
         print(t)
