@@ -121,8 +121,8 @@ def _gl_tile(x, n_envs, dtype):
     return t.unsqueeze(0).repeat(n_envs, 1) if n_envs else t
 
 
-# --rigid: RigidOptions fields (JSON) every genesis_lite build of the run sets, through the environment so that the
-# worker processes see them too
+# RigidOptions fields (JSON) every genesis_lite build sets (rigid_options, --rigid): in the environment, so that the
+# worker processes (run_gl) see them too
 RIGID_ENV = "GS_WP_RIGID"
 
 
@@ -135,22 +135,17 @@ def _gl_opts(gs, integrator, dt, substeps, collision, limits=True):
 
 @contextlib.contextmanager
 def rigid_options(**fields):
-    """The genesis_lite builders called inside set these RigidOptions fields too (contact_damping=1e4, say):
-    the convergence studies' variations of a scene."""
-    global _gl_opts
-    opts = _gl_opts
-
-    def with_fields(*args, **kw):
-        d = opts(*args, **kw)
-        for k, v in fields.items():
-            setattr(d["rigid_options"], k, v)
-        return d
-
-    _gl_opts = with_fields
+    """The genesis_lite builders called inside, in this process or in the workers it starts, set these RigidOptions
+    fields too (contact_damping=1e4, say): the convergence studies' variations of a scene, and --rigid."""
+    before = os.environ.get(RIGID_ENV)
+    os.environ[RIGID_ENV] = json.dumps({**json.loads(before or "{}"), **fields})
     try:
         yield
     finally:
-        _gl_opts = opts
+        if before is None:
+            os.environ.pop(RIGID_ENV, None)
+        else:
+            os.environ[RIGID_ENV] = before
 
 
 def _gl_build_arm(urdf_key, q0, v0):
@@ -1053,13 +1048,10 @@ def main():
             merged.update(json.loads(f.read_text()))
         res = {k: merged[k] for k in list(SCENES) + list(merged) if k in merged}  # the scenes' order
     else:
-        if a.rigid:
-            json.loads(a.rigid)  # fail here, not in every worker
-            os.environ[RIGID_ENV] = a.rigid
         if a.ref_dt:
             QUAD_REF = PUSH_REF = ("RK4", a.ref_dt)
             QUAD_REF_CHECK = PUSH_REF_CHECK = ("RK4", 2 * a.ref_dt)
-        with tempfile.TemporaryDirectory(prefix="bench_wp_") as tmp:
+        with rigid_options(**json.loads(a.rigid or "{}")), tempfile.TemporaryDirectory(prefix="bench_wp_") as tmp:
             res = run(a.scenes.split(","), [0, a.envs], a.quick, a.repeats, not a.no_genesis, Path(tmp), f32=a.f32,
                       deep=a.deep)
         for entry in res.values():

@@ -161,14 +161,14 @@ the margin, where the force is below 1e-8 k delta, and where the force of the cu
 predicted state both stop pushing: fast separation; a slot predicted out by more than a few widths is linearised
 again at u1 whether it counts as acting or as a candidate, passes.func_relinearise_share), the removals of steps
 2 and 4 and the rounds' choices (continuous in the frictionless solve: a contact enters or leaves where its
-force is 0, see above) and the bound rounds' tolerance band (continuous, piecewise linear). Not continuous (measured 2026-12-05): where a law enters the normal system
-at zero force, the system A2 that step 3 uses for Coulomb's response gains that law's whole stiffness, so the
-slips it predicts, and the viscosities of step 4, jump (a 2 kg box set exactly on its face, with the heavy-pair
-threshold tried at 1 kg: 1.5e-5 m in one step between starting heights 1.5e-9 m apart; a 6 kg box landing on a corner
-with the fixed damper is kinked every ~1e-6 m of its drop height, tests/test_contact.py). Gradients are the
-exact derivatives of this smoothed, time-discretised model where it is smooth (what tests/test_contact.py
-checks against finite differences); they approach those of hard contact and exact Coulomb friction only as
-delta, eps and dt go to 0.
+force is 0, see above) and the bound rounds' tolerance band (continuous, piecewise linear). Not continuous
+(measured 2026-12-05): where a law enters the normal system at zero force, the system A2 that step 3 uses for
+Coulomb's response gains that law's whole stiffness, so the slips it predicts, and the viscosities of step 4, jump
+(a 2 kg box set exactly on its face, with the heavy-pair threshold tried at 1 kg: 1.5e-5 m in one step between
+starting heights 1.5e-9 m apart; a 6 kg box landing on a corner with the fixed damper is kinked every ~1e-6 m of
+its drop height, tests/test_contact.py). Gradients are the exact derivatives of this smoothed, time-discretised
+model where it is smooth (what tests/test_contact.py checks against finite differences); they approach those of
+hard contact and exact Coulomb friction only as delta, eps and dt go to 0.
 
 The part of J^T W J that lives on one kinematic tree (a contact against a static geom, and the two
 diagonal blocks J_a^T W J_a, J_b^T W J_b of a contact between moving links a and b) is accumulated like

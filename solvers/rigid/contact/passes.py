@@ -665,7 +665,8 @@ def func_bound_count(s: ti.template(), i_b, e, r):
             if (rel == 0) & (c.sl_in_now[i_b, i_s] == 1):
                 eta = c.sl_eta_now[i_b, i_s]
                 bound = func_coulomb_bound(s, i_b, i_s, u3)
-                n += ti.select(func_bound_next(bound, func_tangential(s, i_b, i_s, u3), eta, func_slip_eps(c, i_b)) < eta, 1, 0)
+                n += ti.select(func_bound_next(bound, func_tangential(s, i_b, i_s, u3), eta,
+                                               func_slip_eps(c, i_b)) < eta, 1, 0)
         c.bnd_rel[i_b, r, i_s] = rel
         n += ti.select(rel > 0, 1, 0)
     return n
