@@ -57,6 +57,22 @@ def test_equal_error_ratio_on_a_known_pair():
     assert wp.equal_error_ratio(a, [_pt(1.0, 0.5)]) is None
 
 
+def test_time_to_error_follows_each_integrator_and_a_run_more_never_raises_it():
+    """Between two runs of one integrator the time is the log-log line through them; a run of another integrator
+    that lands between them (error between theirs, time just below the finer one's) does not raise it, as it
+    did when the line ran along the front of all runs together (here 14.9 at 1e-3 instead of 10; the
+    quadruped's Euler run among implicitfast's, 2026-12-06)."""
+    imp = [dict(_pt(1.0, 1e-2), integrator="implicitfast"), dict(_pt(100.0, 1e-4), integrator="implicitfast")]
+    eul = [dict(_pt(99.0, 2e-4), integrator="Euler")]
+    assert wp.time_to_error(imp, 1e-3) == pytest.approx(10.0)
+    assert wp.time_to_error(imp + eul, 1e-3) == pytest.approx(10.0)
+    assert wp.time_to_error(imp + eul, 2e-4) == pytest.approx(100.0 ** (np.log(50.0) / np.log(100.0)))
+    assert wp.time_to_error(imp + [dict(_pt(20.0, 2e-4), integrator="Euler")], 2e-4) == 20.0  # the cheaper run
+    assert wp.time_to_error(imp + eul, 1e-5) == math.inf
+    peer = [_pt(5.0, 1e-2), _pt(50.0, 1e-4)]
+    assert wp.equal_error_ratio(imp + eul, peer)[0] <= wp.equal_error_ratio(imp, peer)[0] + 1e-12
+
+
 def test_time_at_equal_error_interpolates_between_runs():
     """Between two runs of a front the time to an error is the log-log line through them (error ~ dt^p, time ~
     1 / dt), above the cheapest run its time (no extrapolation), below the best run none. Two engines running the
