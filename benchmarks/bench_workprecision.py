@@ -897,8 +897,9 @@ def time_to_error(points, e, interpolate=True):
     user choosing a step moves along one integrator's runs), the least over its integrators (time_at's steps
     with interpolate=False). Until 2026-12-06 the interpolation ran along the front of all runs together, where
     a run of another integrator that lands between two runs of one raised the time between them (and a line
-    between two integrators' runs is no step a user can choose): the quadruped at 1,024 envs, Euler at 20 ms / 16 substeps (7.38e-4 m in 3.04 s)
-    between implicitfast's 8.94e-4 m in 1.63 s and 4.23e-4 m in 3.08 s, gave 3.04 s at 7.4e-4 m, not 1.9 s."""
+    between two integrators' runs is no step a user can choose): the quadruped at 1,024 envs, Euler at 20 ms / 16
+    substeps (7.38e-4 m in 3.04 s) between implicitfast's 8.94e-4 m in 1.63 s and 4.23e-4 m in 3.08 s, gave 3.04 s
+    at 7.4e-4 m, not 1.9 s."""
     at = time_at_interp if interpolate else time_at
     fams = {}
     for p in points:
@@ -1115,8 +1116,8 @@ def summary(res) -> str:
     reach and each engine's smallest error (below the other's, the comparison has no common range)."""
     lines = ["Run time at equal error, genesis_lite / MuJoCo: the least time each engine needs to reach an error (any "
              "integrator, dt or substeps; interpolated log-log between the two runs of an integrator's front that "
-             f"bracket the error, the least over the integrators), on a log grid of the errors both reach (<= {ERR_CAP}); below the smaller error range's end one "
-             "engine reaches errors the other does not.", "",
+             f"bracket the error, the least over the integrators), on a log grid of the errors both reach (<= "
+             f"{ERR_CAP}); below the smaller error range's end one engine reaches errors the other does not.", "",
              "| scene | envs | genesis_lite precision | error range compared | max ratio | median ratio | "
              "smallest error genesis_lite | smallest error MuJoCo |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     e = lambda x: "-" if x is None else f"{x:.1e}"  # noqa: E731

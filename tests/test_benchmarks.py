@@ -57,7 +57,7 @@ def test_equal_error_ratio_on_a_known_pair():
     assert wp.equal_error_ratio(a, [_pt(1.0, 0.5)]) is None
 
 
-def test_time_to_error_follows_each_integrator_and_a_run_more_never_raises_it():
+def test_time_to_error_follows_each_integrator_not_the_front_of_all_runs():
     """Between two runs of one integrator the time is the log-log line through them; a run of another integrator
     that lands between them (error between theirs, time just below the finer one's) does not raise it, as it
     did when the line ran along the front of all runs together (here 14.9 at 1e-3 instead of 10; the

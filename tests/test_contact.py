@@ -42,6 +42,17 @@ def _scene(requires_grad=False, substeps=1, **rigid):
                     rigid_options=gs.options.RigidOptions(**rigid))
 
 
+def _roll_body(scene, s0, body, m, mu, dofs_velocity, steps):
+    """The finite-difference tests' rollout: from state s0, body's mass, friction and dof velocities set (torch
+    tensors, so that gradients reach them), then `steps` steps."""
+    scene.reset(s0)
+    body.set_links_mass(m.reshape(1))
+    body.set_friction(mu)
+    body.set_dofs_velocity(dofs_velocity)
+    for _ in range(steps):
+        scene.step()
+
+
 def _sink_bound(*stack, i=-1, points=1):
     """How far body i of a resting stack (bodies from the ground up) can have sunk: every interface under it
     pressed by all the weight above that interface, shared by `points` contact points (at least; 4 for a box's
@@ -254,12 +265,7 @@ def test_grad_with_friction_smoothing_accel_against_finite_differences():
     s0 = scene.get_state()
 
     def loss(m, mu, v):
-        scene.reset(s0)
-        box.set_links_mass(m.reshape(1))
-        box.set_friction(mu)
-        box.set_dofs_velocity(torch.cat([v, torch.zeros(3, dtype=F64)]))
-        for _ in range(60):
-            scene.step()
+        _roll_body(scene, s0, box, m, mu, torch.cat([v, torch.zeros(3, dtype=F64)]), 60)
         p = box.get_pos()
         return p[0] + 0.3 * p[1] + 2 * p[2]
 
@@ -970,12 +976,7 @@ def test_grad_through_contact_between_moving_bodies():
     s0 = scene.get_state()
 
     def loss(m, mu, v):
-        scene.reset(s0)
-        top.set_links_mass(m.reshape(1))
-        top.set_friction(mu)
-        top.set_dofs_velocity(torch.cat([v, torch.zeros(3, dtype=F64)]))
-        for _ in range(40):
-            scene.step()
+        _roll_body(scene, s0, top, m, mu, torch.cat([v, torch.zeros(3, dtype=F64)]), 40)
         p, q = top.get_pos(), lower.get_pos()
         return p[0] + 0.3 * p[1] + 2 * p[2] + q[0]
 
@@ -1665,12 +1666,7 @@ def test_grad_through_mesh_against_mesh_contact(mesh_files, moving):
     s0 = scene.get_state()
 
     def loss(m, mu, v):
-        scene.reset(s0)
-        top.set_links_mass(m.reshape(1))
-        top.set_friction(mu)
-        top.set_dofs_velocity(torch.cat([v, _t([0.3, -0.5, 0.8])]))
-        for _ in range(25):
-            scene.step()
+        _roll_body(scene, s0, top, m, mu, torch.cat([v, _t([0.3, -0.5, 0.8])]), 25)
         p = top.get_pos()
         out = p[0] + 0.3 * p[1] + 2 * p[2]
         return out + lower.get_pos()[0] - 0.5 * lower.get_pos()[1] if moving else out
