@@ -91,18 +91,21 @@ def main():
     gs.init(backend=gs.cpu, precision="64", logging_level="warning")
     files = W._quad_files(Path(tempfile.mkdtemp()))
     halving = [5e-3 / 2**k for k in range(9)]  # 5 ms .. 19.5 us
-    fixed = {"contact_stiffness": 1e6, "contact_damping": 4e4}  # the default contact until 2026-12-05
-    at_1e6 = {"contact_stiffness": 1e6}
+    # the variants below the defaults keep friction's slip speed fixed (friction_smoothing_accel=None, the default
+    # until 2026-12-06), so that each is the model it names
+    eps = {"friction_smoothing_accel": None}
+    fixed = {"contact_stiffness": 1e6, "contact_damping": 4e4, **eps}  # the default contact until 2026-12-05
+    at_1e6 = {"contact_stiffness": 1e6, **eps}
     models = [("the defaults (Genesis's armature of 0.1 kg m^2 on every joint; since 2026-12-05 the contact 1e5 N/m "
-               "per point, critically damped for the mass it moves; friction's load with Coulomb's forces applied), "
-               "implicitfast", {"armature": 0.1}, "implicitfast", halving),
+               "per point, critically damped for the mass it moves; friction's load with Coulomb's forces applied; "
+               "since 2026-12-06 friction's slip speed at most 0.25 h m/s, below h = 4 ms), implicitfast",
+               {"armature": 0.1}, "implicitfast", halving),
               ("the defaults (armature 0.1), RK4", {"armature": 0.1}, "RK4", halving),
-              ("armature 0.1, RigidOptions(friction_smoothing_accel=0.1) (friction's slip speed at most 0.1 h m/s, so "
-               "that it shrinks with the step below 10 ms), implicitfast",
-               {"armature": 0.1, "friction_smoothing_accel": 0.1}, "implicitfast", halving),
-              ("armature 0.1, friction_smoothing_accel=0.1, RK4", {"armature": 0.1, "friction_smoothing_accel": 0.1},
-               "RK4", halving),
+              ("armature 0.1, friction's slip speed fixed at 1e-3 m/s (RigidOptions(friction_smoothing_accel=None), "
+               "the default until 2026-12-06), implicitfast", {"armature": 0.1, **eps}, "implicitfast", halving),
+              ("armature 0.1, the slip speed fixed, RK4", {"armature": 0.1, **eps}, "RK4", halving),
               ("no armature, the defaults, RK4", {}, "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
+              ("no armature, the slip speed fixed, RK4", dict(eps), "RK4", [4e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 1.25e-5]),
               ("armature 0.1, the contact of before 2026-12-05 (1e6 N/m, fixed damping 4e4 N s/m), implicitfast",
                {"armature": 0.1, **fixed}, "implicitfast", halving),
               ("armature 0.1, the contact of before (1e6 N/m, 4e4 N s/m), RK4", {"armature": 0.1, **fixed}, "RK4",

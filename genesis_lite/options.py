@@ -150,17 +150,16 @@ class RigidOptions(_Options):
     0.3 ms) and a standing quadruped's posture converges (tests/test_contact.py). "frictionless" takes the
     frictionless solve's normal forces, the model before that day (3.2e-3 m at 0.3 ms, growing as dt shrank).
 
-    Contact model (solvers/rigid/contact.py): contact_smoothing (m) is the width over which the normal
+    Contact model (solvers/rigid/contact/): contact_smoothing (m) is the width over which the normal
     force softens near zero depth (softplus), friction_smoothing (m/s) the slip velocity below which
     Coulomb friction becomes viscous (smaller: less creep on slopes, stiffer gradients).
-    friction_smoothing_accel (m/s^2, None by default): friction_smoothing at most this times the step
-    (substep) h, so that the model converges at first order to exact Coulomb friction as dt shrinks, where with
-    a fixed slip speed a body resting on a slope creeps at about (tan / mu) friction_smoothing whatever the
-    step and steps finer than ~ friction_smoothing / (mu g) leave the coarser ones' limit (0.1: unchanged at
-    dt = 10 ms and up; a box on 15 degrees at mu = 0.5 creeps 54 um/s at 1 ms instead of 0.54 mm/s). The
-    sharper law makes the gradients of landings rougher (a mesh raft's loss kinked within 1e-7 m of its
-    height), hence not the default; and at 0.25 or 0.5 a 30-link chain whipping on the ground at dt = 10 ms with 8
-    substeps gained energy and diverged (2026-12-06, not yet traced; README, contact section).
+    friction_smoothing_accel (m/s^2, 0.25 by default since 2026-12-06; None: off): friction_smoothing at most
+    this times the step (substep, or RK4 stage) h, so that the model converges at first order to exact Coulomb
+    friction as dt shrinks. With a fixed slip speed a body resting on a slope creeps at about (tan / mu)
+    friction_smoothing whatever the step, and steps finer than ~ friction_smoothing / (mu g) leave the coarser
+    ones' limit (ANYmal standing sank 1.3e-5 m more per halving of dt below 25 us). At 0.25 the cap acts below
+    h = 4 ms only (10 and 5 ms steps keep the fixed slip speed); a box on 15 degrees at mu = 0.5 creeps at
+    0.54 mm/s at 10 and 5 ms, ~0.13 mm/s at 1 ms and half that at each halving (tests/test_contact.py).
     max_mesh_contact_points caps the hull points a collision mesh contacts with (more: smoother, slower).
     ignore_unsupported_pairs lets pairs the contact model cannot handle (a plane on a moving link)
     pass through each other instead of raising at build.
@@ -195,7 +194,7 @@ class RigidOptions(_Options):
     check_nan: bool = True
     contact_smoothing: float = 5e-6
     friction_smoothing: float = 1e-3
-    friction_smoothing_accel: Optional[float] = None
+    friction_smoothing_accel: Optional[float] = 0.25
     max_mesh_contact_points: int = 32
     ignore_unsupported_pairs: bool = False
     specialize_kernels: Optional[bool] = None

@@ -30,7 +30,9 @@ depth moves the two sides as the integrator does, each link turned by exactly h 
 (func_rot_excess: the tangent h (w x r) plus Rodrigues' remainder), not along the tangent: with the
 tangent alone, a box spinning at 1e3 rad/s 6 cm above the ground "reached" 1.7 m below it and the
 ground threw it at 28.8 m/s; two boxes 1 m apart pushed each other (issue #21). Friction follows
-Coulomb's law with the normal force the step actually applies, and is viscous below the slip speed eps.
+Coulomb's law with the normal force the step actually applies, and is viscous below the slip speed eps:
+RigidOptions.friction_smoothing (1e-3 m/s), at most friction_smoothing_accel times h (0.25 m/s^2 by default:
+below h = 4 ms; passes.func_slip_eps), so that the law converges to Coulomb's as dt shrinks.
 
 Limits (issue #21). A penalty contact stops a body within a step only when (k + c / h) times the
 depth it allows outweighs the body's momentum per step and its load: a box at 1e6 m/s (1e4 m per step)

@@ -58,7 +58,7 @@ class ContactPlan:
         self.d = 0.0 if ratio is not None else float(fixed)
         self.delta = float(options.contact_smoothing)
         self.eps = float(options.friction_smoothing)
-        # RigidOptions.friction_smoothing_accel: eps at most this times the step (0: off, the default)
+        # RigidOptions.friction_smoothing_accel: eps at most this times the step (None, here 0: off)
         accel = getattr(options, "friction_smoothing_accel", None)
         self.slip_accel = float(accel) if accel is not None else 0.0
         # friction's load (RigidOptions.friction_load): > 0 the normal force predicted with Coulomb's forces
