@@ -499,3 +499,29 @@ def test_genesis_scripts_recorded_column_round_trip(tmp_path):
     assert "**The Genesis column is a recorded run**, not today's: genesis-world 0.4.5, 2026-11-25" in text
     row = next(l for l in text.splitlines() if l.startswith("| pyramid |"))
     assert "boxes_mean_z: max abs diff 0.0006" in row
+
+
+def test_chain_drop_mjcf_is_the_urdf_chain():
+    """chain_drop.py's MJCF (MuJoCo's side of the chain drops) against Pinocchio's reading of the URDF: the hinges'
+    block of the mass matrix at a bent configuration (the free base's block depends on each library's frame for
+    its velocity), the total mass, the limits, and links that collide with the ground only."""
+    mujoco = pytest.importorskip("mujoco")
+    pin = pytest.importorskip("pinocchio")
+    import chain_drop as cd
+    model = mujoco.MjModel.from_xml_string(cd.mjcf(3.2))
+    data = mujoco.MjData(model)
+    qh = 0.5 * np.sin(1.0 + np.arange(30))  # every joint bent, none alike
+    data.qpos[:] = np.concatenate([[0.0, 0.0, 3.2, 1.0, 0.0, 0.0, 0.0], qh])
+    mujoco.mj_forward(model, data)
+    m_mj = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, m_mj)
+    pm = pin.buildModelFromUrdf(str(cd.URDF), pin.JointModelFreeFlyer())
+    m_pin = pin.crba(pm, pm.createData(), np.concatenate([[0.0, 0.0, 3.2, 0.0, 0.0, 0.0, 1.0], qh]))
+    m_pin = np.triu(m_pin) + np.triu(m_pin, 1).T
+    assert model.nv == pm.nv == 36
+    np.testing.assert_allclose(m_mj[6:, 6:], m_pin[6:, 6:], rtol=1e-9, atol=1e-15)
+    assert model.body_mass.sum() == pytest.approx(sum(i.mass for i in pm.inertias))
+    np.testing.assert_allclose(model.jnt_range[1:], np.tile([-3.1416, 3.1416], (30, 1)))
+    plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
+    assert plane.sum() == 1 and (model.geom_contype[~plane] & model.geom_conaffinity[~plane] == 0).all()
+    assert (model.geom_contype[~plane] & model.geom_conaffinity[plane] == 1).all()
