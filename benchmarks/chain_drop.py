@@ -93,7 +93,8 @@ def mjcf(z0):
 
     def body(name, joint, ind):
         link = links[name]
-        out = [f'{ind}<body name="{name}" ' + (f'pos="0 0 {z0}">' if joint is None else _pose(joint.find("origin")) + ">")]
+        where = f'pos="0 0 {z0}"' if joint is None else _pose(joint.find("origin"))
+        out = [f'{ind}<body name="{name}" {where}>']
         if joint is None:
             out.append(f"{ind}  <freejoint/>")
         else:
@@ -127,7 +128,8 @@ def mjcf(z0):
         '<mujoco model="chain30">',
         '  <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>',
         '  <option gravity="0 0 -9.81"/>',
-        '  <default><joint damping="0" armature="0"/><geom contype="1" conaffinity="0" friction="1 0.005 0.0001"/></default>',
+        '  <default><joint damping="0" armature="0"/>',
+        '    <geom contype="1" conaffinity="0" friction="1 0.005 0.0001"/></default>',
         "  <worldbody>",
         '    <geom type="plane" size="0 0 1" contype="0" conaffinity="1"/>',
         *body(base, None, "    "),
@@ -185,7 +187,8 @@ def main():
         else:
             status, de, vmax = mj_drop(mujoco, z0, *args)
         rows.append((engine, variant, z0, status, de, vmax))
-    lines = ["| engine | variant | z0 m | result | max E - E0 (J) | max abs dof velocity |", "| --- | --- | --- | --- | --- | --- |"]
+    lines = ["| engine | variant | z0 m | result | max E - E0 (J) | max abs dof velocity |",
+             "| --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {e} | {v} | {z0:g} | {s} | {de:+.3g} | {vm:.3g} |" for e, v, z0, s, de, vm in rows]
     tally = {}
     for e, v, _z0, s, _de, _vm in rows:
@@ -195,8 +198,8 @@ def main():
     lines += [f"| {e} | {v} | {d} / {n} |" for (e, v), (n, d) in tally.items()]
     if not a.quick and state is not None:
         z0, sub, k = FREE_FROM
-        lines += ["", f"The chain in the air (no ground), from the state after step {k} of genesis_lite's capped run from "
-                  f"{z0} m at {sub} substeps, energy change over 10 ms (J):", "",
+        lines += ["", f"The chain in the air (no ground), from the state after step {k} of genesis_lite's capped run "
+                  f"from {z0} m at {sub} substeps, energy change over 10 ms (J):", "",
                   "| integrator | h = 1.25 ms | h / 4 | h / 16 | h / 64 |", "| --- | --- | --- | --- | --- |"]
         for integ in ("approximate_implicitfast", "implicitfast", "Euler", "RK4"):
             lines.append(f"| {integ} | " + " | ".join(f"{gl_free_flight(gs, state, integ, div):+.4g}"
