@@ -1,10 +1,11 @@
 """A 30-link chain (assets/urdf/chain30.urdf: a 1 kg base, 30 links of 0.1 kg, no damping, no armature) hanging
 from height z0 and dropped onto the ground, as tests/test_contact.py's stress test: from several heights, with
-genesis_lite (dt = 10 ms, substeps 8, 16 and 32, both friction slip-speed laws) and with MuJoCo (an MJCF generated
-from the same URDF, links colliding with the ground only, at the same steps h = 1.25, 0.625, 0.3125 ms), whether the
-run diverges and the most its energy rose. The chain whips on the ground (joint speeds of 100-200 rad/s), where a
-first-order step of 1.25 ms gains energy: the second table runs the chain in the air (no ground) from one state
-of genesis_lite's capped run at 8 substeps for 10 ms at h / 1, 4, 16, 64 with each integrator.
+genesis_lite (dt = 10 ms, substeps 8, 16 and 32, both friction slip-speed laws) and with MuJoCo (the same URDF
+through scenes.mujoco_from_urdf, links colliding with the ground only, at the same steps h = 1.25, 0.625,
+0.3125 ms), whether the run diverges and the most its energy rose. The chain whips on the ground (joint speeds of
+100-200 rad/s), where a first-order step of 1.25 ms gains energy: the second table runs the chain in the air (no
+ground) from one state of genesis_lite's capped run at 8 substeps for 10 ms at h / 1, 4, 16, 64 with each
+integrator.
 
     python benchmarks/chain_drop.py [--quick] [--md benchmarks/results/chain_drop.md]
 
@@ -13,10 +14,13 @@ stability, not speed.
 """
 import argparse
 import math
-import xml.etree.ElementTree as ET
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import scenes as S  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 URDF = ROOT / "assets" / "urdf" / "chain30.urdf"
@@ -36,7 +40,7 @@ def _gl_scene(gs, z0, substeps, accel):
 
 
 def gl_drop(gs, z0, substeps, accel, keep_step=None):
-    """(status, max E - E0, max |dof velocity|, final max |dof velocity|, the state after step keep_step or None)."""
+    """(status, max E - E0, max |dof velocity|, the state after step keep_step or None)."""
     scene, chain = _gl_scene(gs, z0, substeps, accel)
     e0 = float(chain.get_total_energy())
     emax, vmax, kept, status = e0, 0.0, None, "ok"
@@ -50,8 +54,7 @@ def gl_drop(gs, z0, substeps, accel, keep_step=None):
         vmax = max(vmax, float(chain.get_dofs_velocity().abs().max()))
         if k == keep_step:
             kept = (chain.get_qpos().clone(), chain.get_dofs_velocity().clone())
-    vend = float(chain.get_dofs_velocity().abs().max()) if status == "ok" else math.nan
-    return status, emax - e0, vmax, vend, kept
+    return status, emax - e0, vmax, kept
 
 
 def gl_free_flight(gs, state, integrator, div):
@@ -71,78 +74,19 @@ def gl_free_flight(gs, state, integrator, div):
 
 
 # --- MuJoCo ------------------------------------------------------------------------------------------------------
-def _floats(s, default="0 0 0"):
-    return [float(v) for v in (s if s is not None else default).split()]
-
-
-def _pose(origin):
-    """MJCF pos (and quat) of a URDF <origin> (the chain's have no rotation: checked)."""
-    xyz = _floats(origin.get("xyz")) if origin is not None else [0.0] * 3
-    rpy = _floats(origin.get("rpy")) if origin is not None else [0.0] * 3
-    if any(rpy):
-        raise ValueError("chain_drop.py: a rotated origin in the URDF; only translations are converted")
-    return 'pos="%.12g %.12g %.12g"' % tuple(xyz)
-
-
-def mjcf(z0):
-    """The chain as MJCF: a free base at height z0, hinges with the URDF's axes and limits, each link's inertial
-    (diagonal, checked) and collision boxes and cylinders, colliding with the ground plane only."""
-    root = ET.parse(URDF).getroot()
-    links = {link.get("name"): link for link in root.findall("link")}
-    joints = {j.find("parent").get("link"): j for j in root.findall("joint")}  # a chain: one child a link
-
-    def body(name, joint, ind):
-        link = links[name]
-        where = f'pos="0 0 {z0}"' if joint is None else _pose(joint.find("origin"))
-        out = [f'{ind}<body name="{name}" {where}>']
-        if joint is None:
-            out.append(f"{ind}  <freejoint/>")
-        else:
-            lim = joint.find("limit")
-            axis = "%.12g %.12g %.12g" % tuple(_floats(joint.find("axis").get("xyz")))
-            out.append(f'{ind}  <joint type="hinge" axis="{axis}" range="{lim.get("lower")} {lim.get("upper")}"/>')
-        inertial = link.find("inertial")
-        inertia = inertial.find("inertia")
-        if any(float(inertia.get(k, "0")) for k in ("ixy", "ixz", "iyz")):
-            raise ValueError("chain_drop.py: products of inertia are not converted")
-        diag = " ".join(inertia.get(k) for k in ("ixx", "iyy", "izz"))
-        out.append(f'{ind}  <inertial {_pose(inertial.find("origin"))} mass="{inertial.find("mass").get("value")}" '
-                   f'diaginertia="{diag}"/>')
-        for col in link.findall("collision"):
-            geom = col.find("geometry")
-            if geom.find("box") is not None:
-                size = " ".join("%.12g" % (v / 2) for v in _floats(geom.find("box").get("size")))
-                out.append(f'{ind}  <geom type="box" {_pose(col.find("origin"))} size="{size}"/>')
-            else:
-                cyl = geom.find("cylinder")
-                out.append(f'{ind}  <geom type="cylinder" {_pose(col.find("origin"))} '
-                           f'size="{cyl.get("radius")} {float(cyl.get("length")) / 2:.12g}"/>')
-        child = joints.get(name)
-        if child is not None:
-            out += body(child.find("child").get("link"), child, ind + "  ")
-        out.append(f"{ind}</body>")
-        return out
-
-    base = (set(links) - {j.find("child").get("link") for j in joints.values()}).pop()
-    return "\n".join([
-        '<mujoco model="chain30">',
-        '  <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>',
-        '  <option gravity="0 0 -9.81"/>',
-        '  <default><joint damping="0" armature="0"/>',
-        '    <geom contype="1" conaffinity="0" friction="1 0.005 0.0001"/></default>',
-        "  <worldbody>",
-        '    <geom type="plane" size="0 0 1" contype="0" conaffinity="1"/>',
-        *body(base, None, "    "),
-        "  </worldbody>",
-        "</mujoco>"])
+def mj_model(z0):
+    """MuJoCo's chain (scenes.mujoco_from_urdf: a free base at height z0, the URDF's inertials, axes and limits,
+    no damping or armature, links colliding with a ground plane of friction 1 only), with MuJoCo's default
+    pyramidal friction cones: with elliptic ones the chain landed on its end and stood there for the 4 s from
+    every height (joint speeds at most 2.2 rad/s), so nothing whipped and no step's stability was compared; the
+    pyramid's asymmetry topples it, as genesis_lite's chain falls."""
+    return S.mujoco_from_urdf(URDF, free=True, base_pos=(0.0, 0.0, z0), floor_mu=1.0, elliptic=False)
 
 
 def mj_drop(mujoco, z0, integrator, h):
     """MuJoCo's drop over the same 4 s: (status, max E - E0, max |qvel|); energy = mj_energyPos + mj_energyVel
     (without the soft constraints' stored energy)."""
-    model = mujoco.MjModel.from_xml_string(mjcf(z0))
-    model.opt.timestep = h
-    model.opt.integrator = getattr(mujoco.mjtIntegrator, "mjINT_" + integrator.upper())
+    model = S.set_mujoco_integrator(mj_model(z0), integrator, h)
     model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
     data = mujoco.MjData(model)
 
@@ -182,7 +126,7 @@ def main():
     for engine, variant, z0, args in tqdm(runs, desc="chain drops"):
         if engine == "genesis_lite":
             keep = FREE_FROM[2] if (z0, args[0], args[1]) == (FREE_FROM[0], FREE_FROM[1], 0.25) else None
-            status, de, vmax, _vend, kept = gl_drop(gs, z0, *args, keep_step=keep)
+            status, de, vmax, kept = gl_drop(gs, z0, *args, keep_step=keep)
             state = kept if kept is not None else state
         else:
             status, de, vmax = mj_drop(mujoco, z0, *args)

@@ -151,11 +151,13 @@ def box_slide_analytic(t):
 # --- MuJoCo ----------------------------------------------------------------------------------------------
 
 
-MJ_INTEGRATORS = {"Euler": "mjINT_EULER", "implicitfast": "mjINT_IMPLICITFAST", "RK4": "mjINT_RK4"}
+MJ_INTEGRATORS = {"Euler": "mjINT_EULER", "implicitfast": "mjINT_IMPLICITFAST", "implicit": "mjINT_IMPLICIT",
+                  "RK4": "mjINT_RK4"}
 
 
 def set_mujoco_integrator(m, integrator: str, dt: float):
-    """Set MuJoCo's integrator by genesis_lite's name (Euler / implicitfast / RK4) and its time step (s)."""
+    """Set MuJoCo's integrator by genesis_lite's name (Euler / implicitfast / RK4; or MuJoCo's implicit) and its time
+    step (s)."""
     import mujoco
 
     m.opt.integrator = getattr(mujoco.mjtIntegrator, MJ_INTEGRATORS[integrator])

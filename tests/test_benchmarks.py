@@ -501,14 +501,14 @@ def test_genesis_scripts_recorded_column_round_trip(tmp_path):
     assert "boxes_mean_z: max abs diff 0.0006" in row
 
 
-def test_chain_drop_mjcf_is_the_urdf_chain():
-    """chain_drop.py's MJCF (MuJoCo's side of the chain drops) against Pinocchio's reading of the URDF: the hinges'
-    block of the mass matrix at a bent configuration (the free base's block depends on each library's frame for
+def test_chain_drop_mujoco_model_is_the_urdf_chain():
+    """chain_drop.py's MuJoCo model (scenes.mujoco_from_urdf with a free base) against Pinocchio's reading of the
+    URDF: the hinges' block of the mass matrix at a bent configuration (the free base's block depends on each library's frame for
     its velocity), the total mass, the limits, and links that collide with the ground only."""
     mujoco = pytest.importorskip("mujoco")
     pin = pytest.importorskip("pinocchio")
     import chain_drop as cd
-    model = mujoco.MjModel.from_xml_string(cd.mjcf(3.2))
+    model = cd.mj_model(3.2)
     data = mujoco.MjData(model)
     qh = 0.5 * np.sin(1.0 + np.arange(30))  # every joint bent, none alike
     data.qpos[:] = np.concatenate([[0.0, 0.0, 3.2, 1.0, 0.0, 0.0, 0.0], qh])

@@ -1059,9 +1059,9 @@ def test_stress_chain30_falls_on_the_ground(assets_dir, z0):
     share of a step's energy change was at most 0 in all but two steps): the first-order integrators' error at
     joint speeds of ~100 rad/s. At 16 substeps no run from seven heights in 3.15-3.25 m gained energy, with
     either slip speed (benchmarks/chain_drop.py; MuJoCo's Euler and implicitfast at h = 1.25 ms diverged from 6
-    of the 7, at 0.3125 ms from 2). Energy never grows, the chain comes to rest on the ground. The links' own inertia,
-    without the default armature (0.1 kg m^2 a joint, ~1,000x a link's): with it the chain lands on its end and
-    stays standing for the 4 s checked."""
+    of the 7, at 0.3125 ms from 2). Energy never grows, the chain comes to rest on the ground. The links' own
+    inertia, without the default armature (0.1 kg m^2 a joint, ~1,000x a link's): with it the chain lands on its
+    end and stays standing for the 4 s checked."""
     scene = _scene(substeps=16)
     scene.add_entity(gs.morphs.Plane())
     chain = scene.add_entity(gs.morphs.URDF(file=str(assets_dir / "urdf" / "chain30.urdf"), fixed=False, pos=(0, 0, z0),
