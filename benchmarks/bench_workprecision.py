@@ -10,8 +10,9 @@ runs the scene for t_end seconds of simulated time and records
   from a tight reference the table names (an analytic solution, Pinocchio + DOP853, or the same engine in
   float64 at a far smaller dt, with that reference's own change when its dt is halved);
 - the wall time of the stepping loop (build, compile, resets and reads of the observables excluded): the
-  median of `repeats` runs. genesis_lite: a Python loop of scene.step(); MuJoCo: mujoco.rollout (C loop;
-  1 thread for 1 env, 2 threads for the batch); Genesis: a Python loop of scene.step().
+  median of `repeats` runs (one run when the first takes over LONG_RUN_S). genesis_lite: a Python loop of
+  scene.step(); MuJoCo: mujoco.rollout (C loop; 1 thread for 1 env, 2 threads for the batch); Genesis: a Python
+  loop of scene.step().
 A scene's error is the mean over its environments of each one's error. Most scenes start every environment
 from the same state; the quadrupeds start them from QUAD_STARTS different ones (env i from start i % 16, start 0
 the one-env row's), each measured against its own reference, so that one start whose error happens to cross
@@ -48,6 +49,8 @@ import scenes as S  # noqa: E402
 
 INTEGRATORS = ("Euler", "implicitfast", "RK4")
 GENESIS_INTEGRATORS = ("Euler", "implicitfast")  # Genesis 1.4.5 has no RK4
+LONG_RUN_S = 20.0  # a run whose first timing exceeds this is timed once (its median of one): the noise of a
+# run that long is a few per cent, and the deep sweeps' runs of minutes would otherwise cost three times as much
 MJ_CHUNK = 200  # steps per mujoco.rollout call: bounds the state output array (n_envs x chunk x nstate)
 DIVERGED = 1e3  # an error above this (rad or m) is a blown-up run, whatever its floats say
 ERR_CAP = 0.1  # equal-error comparisons only at errors <= 0.1 (rad or m): larger ones are no useful accuracy
@@ -640,7 +643,7 @@ def worker_gl(scene_key, files, points, n_envs, repeats, precision="64") -> dict
                 scene.step()
             observe()
             walls, obs = [], None
-            for _ in range(repeats):
+            while len(walls) < repeats and not (walls and walls[0] > LONG_RUN_S):
                 reset()
                 wall, got = 0.0, []
                 for n in chunks:
@@ -694,9 +697,9 @@ def run_mj(wps: WPScene, files, points, n_envs, repeats) -> dict:
             chunks = _samples(wps, dt)
             bufs = {}
 
-            def once():
+            def once(warm_up=False):
                 state, wall, got = init.copy(), 0.0, []
-                for n in chunks:
+                for n in ([min(chunks[0], MJ_CHUNK)] if warm_up else chunks):
                     left = n
                     while left:
                         k = min(left, MJ_CHUNK)
@@ -709,9 +712,11 @@ def run_mj(wps: WPScene, files, points, n_envs, repeats) -> dict:
                     got.append(observe(state))
                 return wall, np.concatenate(got, axis=1)
 
-            once()  # warm-up: creates the thread pool
+            once(warm_up=True)  # creates the thread pool (one rollout call)
             warned = _mj_bad(datas)
-            runs = [once() for _ in range(repeats)]
+            runs = []
+            while len(runs) < repeats and not (runs and runs[0][0] > LONG_RUN_S):
+                runs.append(once())
             rec.update(wall=statistics.median(r[0] for r in runs), walls=[r[0] for r in runs],
                        obs=runs[-1][1].tolist(), steps=sum(chunks))
             if warned or _mj_bad(datas):

@@ -525,3 +525,18 @@ def test_chain_drop_mujoco_model_is_the_urdf_chain():
     plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
     assert plane.sum() == 1 and (model.geom_contype[~plane] & model.geom_conaffinity[~plane] == 0).all()
     assert (model.geom_contype[~plane] & model.geom_conaffinity[plane] == 1).all()
+
+
+def test_mujoco_runs_longer_than_long_run_s_are_timed_once(tmp_path, monkeypatch):
+    """bench_workprecision times a run `repeats` times, but once when its first timing exceeds LONG_RUN_S (the
+    deep sweeps' runs of minutes); its warm-up is one rollout call, not a whole run. The observables must not
+    depend on either."""
+    pytest.importorskip("mujoco")
+    wps = wp.SCENES["pendulum"]
+    files = wps.files(tmp_path)
+    pts = [("Euler", 0.005, 1)]
+    many = wp.run_mj(wps, files, pts, 0, 3)["points"][0]
+    monkeypatch.setattr(wp, "LONG_RUN_S", 0.0)
+    once = wp.run_mj(wps, files, pts, 0, 3)["points"][0]
+    assert len(many["walls"]) == 3 and len(once["walls"]) == 1
+    assert once["obs"] == many["obs"] and once["steps"] == many["steps"] == 200
