@@ -617,6 +617,11 @@ def _samples(scene: WPScene, dt):
     return out
 
 
+def _time_again(walls, repeats) -> bool:
+    """Whether to time a run once more: `repeats` timings, or one when the first took over LONG_RUN_S."""
+    return len(walls) < repeats and not (walls and walls[0] > LONG_RUN_S)
+
+
 # --- genesis_lite worker (child process) ---------------------------------------------------------------------
 
 
@@ -643,7 +648,7 @@ def worker_gl(scene_key, files, points, n_envs, repeats, precision="64") -> dict
                 scene.step()
             observe()
             walls, obs = [], None
-            while len(walls) < repeats and not (walls and walls[0] > LONG_RUN_S):
+            while _time_again(walls, repeats):
                 reset()
                 wall, got = 0.0, []
                 for n in chunks:
@@ -715,7 +720,7 @@ def run_mj(wps: WPScene, files, points, n_envs, repeats) -> dict:
             once(warm_up=True)  # creates the thread pool (one rollout call)
             warned = _mj_bad(datas)
             runs = []
-            while len(runs) < repeats and not (runs and runs[0][0] > LONG_RUN_S):
+            while _time_again([r[0] for r in runs], repeats):
                 runs.append(once())
             rec.update(wall=statistics.median(r[0] for r in runs), walls=[r[0] for r in runs],
                        obs=runs[-1][1].tolist(), steps=sum(chunks))

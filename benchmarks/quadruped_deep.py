@@ -67,16 +67,17 @@ def run_engine(engine, wps, files, pts, n_envs, repeats):
 
 def measure(key, n_envs, quick, log=print):
     wps = W.SCENES[key]
-    out = {"scene": key, "envs": n_envs, "reference": f"each engine's {REF[0]} at dt = {REF[1]:.4g} s (16 starts), its check at "
-                                       f"{CHECK[1]:.4g} s", "engines": {}}
-    ref_pts = [REF, CHECK] if not quick else [("Euler", 0.02 / 64, 1), ("Euler", 0.02 / 32, 1)]
+    fine, check = (REF, CHECK) if not quick else (("Euler", 0.02 / 64, 1), ("Euler", 0.02 / 32, 1))
+    out = {"scene": key, "envs": n_envs, "reference": f"each engine's {fine[0]} at dt = {fine[1]:.4g} s (16 starts), "
+                                                      f"its check at {check[1]:.4g} s", "engines": {}}
     with tempfile.TemporaryDirectory(prefix="quad_deep_") as tmp:
         files = wps.files(Path(tmp))
         for engine in PLANS[key]:
             t0 = time.time()
-            fine, check = run_engine(engine, wps, files, ref_pts, wps.starts, 1)
-            ref = np.asarray(fine["obs"])
-            self_err = W._error(check["obs"], ref, key)
+            ref, self_err, err = W._fine_reference(engine, wps, files, W.Reference("fine", "", fine=fine, check=check))
+            if err:
+                raise SystemExit(f"quadruped_deep.py: {engine}'s reference failed: {err}")
+            ref = np.asarray(ref)
             log(f"{engine}: reference in {time.time() - t0:.0f} s; its check run differs by {self_err:.2e} m")
             t0 = time.time()
             pts = run_engine(engine, wps, files, points(key, engine, quick), n_envs, 1 if quick else 3)
