@@ -540,3 +540,27 @@ def test_mujoco_runs_longer_than_long_run_s_are_timed_once(tmp_path, monkeypatch
     once = wp.run_mj(wps, files, pts, 0, 3)["points"][0]
     assert len(many["walls"]) == 3 and len(once["walls"]) == 1
     assert once["obs"] == many["obs"] and once["steps"] == many["steps"] == 200
+
+
+def test_step_convergence_variants_change_only_their_own_mujoco_model(tmp_path):
+    """step_convergence.py --variant rebuilds MuJoCo's model of a scene with other solver or contact settings (to see
+    whether a scene's non-convergence is those settings'): the variant's model has them, and neither the scene of
+    bench_workprecision.SCENES nor a model built from it afterwards does."""
+    pytest.importorskip("mujoco")
+    import mujoco
+    import step_convergence as sc
+
+    wps = wp.SCENES["box"]
+    files = wps.files(tmp_path)
+    before = wps.mj_build(files, "Euler", 1e-3)[0]
+    tight = sc.with_variant(wps, "tight").mj_build(files, "Euler", 1e-3)[0]
+    pyr = sc.with_variant(wps, "pyramidal").mj_build(files, "Euler", 1e-3)[0]
+    stiff = sc.with_variant(wps, "stiff").mj_build(files, "Euler", 1e-3)[0]
+    after = wp.SCENES["box"].mj_build(files, "Euler", 1e-3)[0]
+    assert tight.opt.tolerance == 1e-15 and tight.opt.iterations == 500
+    assert pyr.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    assert np.all(stiff.geom_solref == [0.004, 1.0])
+    for m in (before, after):
+        assert m.opt.tolerance == before.opt.tolerance != 1e-15 and m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+        assert np.all(m.geom_solref[:, 0] == 0.02)
+    assert wp.SCENES["box"].mj_build is wp._mj_build_box

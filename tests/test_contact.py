@@ -179,6 +179,40 @@ def test_sliding_box_converges_to_coulomb_as_the_step_shrinks():
     assert all(b < 0.6 * a for a, b in zip(errs, errs[1:])), rows
 
 
+# 2026-12-06: friction's load (contact/__init__.py, step 3) is the normal force predicted with Coulomb's forces of the
+# frictionless loads f2, one linear response. Where the contacts' depths are within a few contact_smoothing widths
+# (5e-6 m) of 0, their slopes differ (front and back of a sliding box), f2 sums to less than the weight (0.936 of it
+# for a 100 g box, RK4 at 0.25 ms) and the prediction misses part of the load that friction's torque moves onto the
+# leading edge (1.2 % there). With RK4 at 0.25 ms a 1 kg box on the default 1e5 N/m (resting 2.4e-5 m deep) brakes
+# 0.005 % short of mu g, a 300 g box 0.33 %, a 100 g box 0.66 %, and a 1 kg box at contact_stiffness=1e6 as the
+# 100 g one (the +3.9e-3 m the package docstring notes at 0.3125 ms). The bound rounds (step 5) correct only
+# friction above Coulomb's bound.
+LIGHT_LOAD_GAP = ("friction's load predicted from the frictionless solve misses part of the load shift where the "
+                  "contacts are within a few contact_smoothing widths of zero depth (comment above)")
+
+
+@pytest.mark.parametrize("rho,rigid", [
+    pytest.param(125.0, {}, id="1kg"),
+    pytest.param(12.5, {}, id="100g", marks=pytest.mark.xfail(strict=True, reason=LIGHT_LOAD_GAP)),
+    pytest.param(125.0, {"contact_stiffness": 1e6}, id="1kg_1e6", marks=pytest.mark.xfail(strict=True,
+                                                                                        reason=LIGHT_LOAD_GAP))])
+def test_a_sliding_box_brakes_at_mu_g_whatever_its_weight_on_the_contacts(rho, rigid):
+    """A 0.2 m box launched at 2 m/s along a floor (mu = 0.5, dt = 1 ms, the default integrator) has lost mu g t
+    of its speed after t = 0.3 s of sliding, within 0.1 %, however light it is and however stiff its contacts.
+    Measured 2026-12-06: 1 kg -0.005 %; 100 g and 1 kg at 1e6 N/m -0.57 % both (strict xfails: LIGHT_LOAD_GAP)."""
+    mu, v0, dt, t = 0.5, 2.0, 1e-3, 0.3
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), rigid_options=gs.options.RigidOptions(**rigid))
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)),
+                           material=gs.materials.Rigid(friction=mu, rho=rho))
+    scene.build()
+    box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+    for _ in range(int(round(t / dt))):
+        scene.step()
+    lost = v0 - float(box.get_vel()[0])
+    assert abs(lost / (mu * G * t) - 1.0) < 1e-3, lost / (mu * G * t) - 1.0
+
+
 def test_friction_load_refuses_an_unknown_value():
     with pytest.raises(ValueError, match=r"friction_load='normal'.*\"coulomb\" \(the default\) or \"frictionless\""):
         gs.options.RigidOptions(friction_load="normal")
