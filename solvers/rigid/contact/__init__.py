@@ -25,8 +25,12 @@ weight (0.936 of it for a 100 g box at 1e5 N/m, RK4 at dt = 0.25 ms), and fricti
 forces of those f2 (step 3), misses part of the load that friction's torque moves onto the leading edge (1.2 %
 there): the box brakes 0.57 % short of mu g at dt = 1 ms (0.66 % with RK4 at 0.25 ms), a 100 g box at the default
 stiffness as a 1 kg box at 1e6 N/m (their depths are equal; with contact_smoothing=5e-7 the 100 g box brakes 0.0045
-% short, RK4 at 0.25 ms). Open (neither tried): a second prediction from the first's loads, or bound rounds that
-also raise friction found below the bound; strict xfails in tests/test_contact.py (LIGHT_LOAD_GAP).
+% short, RK4 at 0.25 ms). Open. A probe of 2026-12-06 (not kept): a second prediction in the fused step, Coulomb's
+forces of the first prediction's loads applied to A2 again (one more back-substitution), brought the 100 g box to
+-0.021 %, a 300 g box to -0.0055 % and the 1 kg box to -4e-5 %, and cost the 1,024-env quadruped 7-18 % a step (RK4,
+implicitfast), where its feet rest many smoothing widths deep and need no second one: a cure should run it only
+where contacts are that shallow (and on the gradient path too). Strict xfails in tests/test_contact.py
+(LIGHT_LOAD_GAP).
 The normal force is a spring on the end-of-step depth plus a damper on the overlap gained over the
 step, (c / h)(d'+ - d+), which for a contact that stays in overlap is -c (u' . n) (the familiar
 spring-damper) and for one that starts apart acts only on the part of the step spent in overlap.
