@@ -761,17 +761,26 @@ def run_genesis(scene_key, files, points, n_envs, repeats, timeout=3600):
 # --- the study ----------------------------------------------------------------------------------------------------
 
 
+def run_engine(engine, wps: WPScene, files, points, n_envs, repeats, timeout=3600):
+    """(result, None), or (None, why the run failed), of one engine's runs of `points` (integrator, dt, substeps) on
+    scene wps: genesis_lite in float64, or "genesis_lite_f32" in float32, in a worker process (from the scene's key);
+    MuJoCo in this process, from wps.mj_build (so a changed copy of the scene runs its own model); real Genesis in
+    its own venv."""
+    if engine.startswith("genesis_lite"):
+        return run_gl(wps.key, files, points, n_envs, repeats, timeout=timeout,
+                      precision="32" if engine == "genesis_lite_f32" else "64")
+    if engine == "mujoco":
+        return run_mj(wps, files, points, n_envs, repeats), None
+    return run_genesis(wps.key, files, points, n_envs, repeats, timeout=timeout)
+
+
 def _fine_reference(engine, wps, files, ref: Reference):
     """(obs, self-difference, note) of an engine's own fine float64 run (and its check run)."""
     pts = [(*ref.fine, 1)[:3], (*ref.check, 1)[:3]]  # (integrator, dt[, substeps])
     n = wps.starts if wps.starts > 1 else 0  # one env a start (real Genesis: start 0 alone, its one-env rows')
-    if engine == "genesis_lite":
-        res, err = run_gl(wps.key, files, pts, n, 1)
-    elif engine == "mujoco":
-        res, err = run_mj(wps, files, pts, n, 1), None
-    else:
-        gpts = [("implicitfast", ref.fine[1], 1), ("implicitfast", ref.check[1], 1)]  # no RK4 in Genesis
-        res, err = run_genesis(wps.key, files, gpts, 0, 1)
+    if engine == "genesis":
+        pts, n = [("implicitfast", ref.fine[1], 1), ("implicitfast", ref.check[1], 1)], 0  # no RK4 in Genesis
+    res, err = run_engine(engine, wps, files, pts, n, 1)
     if res is None:
         return None, None, err
     a, b = res["points"]
@@ -839,13 +848,7 @@ def run(scene_keys, env_counts, quick, repeats, with_genesis, tmp: Path, log=pri
                     pts = wps.sweep(engine, n_envs > 1, quick)
                 else:
                     pts = [p for p in sweep(engine, n_envs > 1, quick, deep) if not integrators or p[0] in integrators]
-                if engine.startswith("genesis_lite"):
-                    res, err = run_gl(key, files, pts, n_envs, repeats,
-                                      precision="32" if engine == "genesis_lite_f32" else "64")
-                elif engine == "mujoco":
-                    res, err = run_mj(wps, files, pts, n_envs, repeats), None
-                else:
-                    res, err = run_genesis(key, files, pts, n_envs, repeats)
+                res, err = run_engine(engine, wps, files, pts, n_envs, repeats)
                 if res is None:
                     per[engine] = {"error": err, "points": []}
                     log(f"  {key} {n_envs} envs {engine}: FAILED: {err}")

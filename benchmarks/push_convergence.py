@@ -21,7 +21,8 @@ FINE, REF = ("RK4", 2.5e-5, 1), ("RK4", W.PUSH_REF[1], 1)
 def main():
     with tempfile.TemporaryDirectory(prefix="push_conv_") as tmp:
         files = W.SCENES["push"].files(Path(tmp))
-        res, err = W.run_gl("push", files, [FINE, REF] + [("implicitfast", dt, 1) for dt in DTS], 0, 1)
+        res, err = W.run_engine("genesis_lite", W.SCENES["push"], files,
+                                [FINE, REF] + [("implicitfast", dt, 1) for dt in DTS], 0, 1)
     if res is None:
         raise SystemExit(f"push_convergence.py: the run failed: {err}")
     obs = [np.asarray(p["obs"]) for p in res["points"]]

@@ -56,15 +56,6 @@ def points(key, engine, quick=False):
     return out
 
 
-def run_engine(engine, wps, files, pts, n_envs, repeats):
-    if engine == "genesis_lite":
-        res, err = W.run_gl(wps.key, files, pts, n_envs, repeats, timeout=3 * 3600)
-        if res is None:
-            raise SystemExit(f"quadruped_deep.py: genesis_lite's run failed: {err}")
-        return res["points"]
-    return W.run_mj(wps, files, pts, n_envs, repeats)["points"]
-
-
 def measure(key, n_envs, quick, log=print):
     wps = W.SCENES[key]
     fine, check = (REF, CHECK) if not quick else (("Euler", 0.02 / 64, 1), ("Euler", 0.02 / 32, 1))
@@ -80,7 +71,11 @@ def measure(key, n_envs, quick, log=print):
             ref = np.asarray(ref)
             log(f"{engine}: reference in {time.time() - t0:.0f} s; its check run differs by {self_err:.2e} m")
             t0 = time.time()
-            pts = run_engine(engine, wps, files, points(key, engine, quick), n_envs, 1 if quick else 3)
+            res, err = W.run_engine(engine, wps, files, points(key, engine, quick), n_envs, 1 if quick else 3,
+                                    timeout=3 * 3600)
+            if res is None:
+                raise SystemExit(f"quadruped_deep.py: {engine}'s run failed: {err}")
+            pts = res["points"]
             for p in pts:
                 p["error"] = None if p.get("obs") is None else W._error(p["obs"], ref, key)
                 p["diverged"] = bool(p.get("failed")) or p["error"] is None or p["error"] > W.DIVERGED

@@ -140,12 +140,9 @@ def main():
         files = wps.files(Path(tmp))
         for integ, dts in PLAN.items():
             pts, t0 = [(integ, dt, 1) for dt in dts], time.time()
-            if a.engine == "mujoco":
-                res = W.run_mj(wps, files, pts, wps.starts, 1)
-            else:
-                res, err = W.run_gl(a.scene, files, pts, wps.starts, 1)
-                if res is None:
-                    raise SystemExit(f"step_convergence.py: the run failed: {err}")
+            res, err = W.run_engine(a.engine, wps, files, pts, wps.starts, 1)
+            if res is None:
+                raise SystemExit(f"step_convergence.py: the run failed: {err}")
             obs = [p.get("obs") for p in res["points"]]
             print(f"{a.engine}{'' if a.variant == 'default' else ' (' + a.variant + ')'} {integ} "
                   f"({time.time() - t0:.0f} s)", flush=True)
