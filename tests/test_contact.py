@@ -131,6 +131,17 @@ def test_sliding_box_stops_after_v2_over_2mug(mu, v0, load):
     assert float(box.get_vel().abs().max()) < 1e-3  # it has stopped (no creep)
 
 
+def _launched_box(dt, mu=0.5, v0=2.0, rho=125.0, **rigid):
+    """(scene, box): a 0.2 m box (1 kg at rho = 125) set on a floor of friction mu and launched along +x at v0."""
+    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), rigid_options=gs.options.RigidOptions(**rigid))
+    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
+    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)),
+                           material=gs.materials.Rigid(friction=mu, rho=rho))
+    scene.build()
+    box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+    return scene, box
+
+
 def _coulomb_slide(**rigid):
     """A box launched along a floor (0.2 m cube, v0 2 m/s, mu 0.5) against the exact Coulomb slide x(t) =
     v0 t - mu g t^2 / 2, which stops at v0 / (mu g) = 0.41 s, at dt = 10 / 2.5 / 0.625 / 0.3125 ms: per step
@@ -140,12 +151,7 @@ def _coulomb_slide(**rigid):
     exact = v0 * t_stop - 0.5 * mu * G * t_stop ** 2
     rows = []
     for dt in (0.01, 0.0025, 0.000625, 0.0003125):
-        scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), rigid_options=gs.options.RigidOptions(**rigid))
-        scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
-        box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)),
-                               material=gs.materials.Rigid(friction=mu, rho=125.0))
-        scene.build()
-        box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+        scene, box = _launched_box(dt, mu, v0, **rigid)
         fn = ft = 0.0
         for k in range(int(round(1.0 / dt))):
             scene.step()
@@ -187,13 +193,8 @@ def test_a_sliding_box_stays_on_its_four_corners():
     less than 1e-3 rad. (MuJoCo 4.0.1's model of the same slide hops, on fewer than four corners in 90 %
     of its steps and rising up to 2.5 mm: benchmarks/step_convergence.py --trace --scene box.) Measured 2026-12-06:
     four in every step, height within 6.4e-7 m of rest after 25 ms, tilt at most 1.2e-4 rad."""
-    mu, v0, dt = 0.5, 2.0, 1e-3
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt))
-    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
-    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)),
-                           material=gs.materials.Rigid(friction=mu, rho=125.0))
-    scene.build()
-    box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+    dt = 1e-3
+    scene, box = _launched_box(dt)
     rows = []
     for k in range(int(round(0.5 / dt))):
         scene.step()
@@ -233,12 +234,7 @@ def test_a_sliding_box_brakes_at_mu_g_whatever_its_weight_on_the_contacts(rho, r
     of its speed after t = 0.3 s of sliding, within 0.1 %, however light it is and however stiff its contacts.
     Measured 2026-12-06: 1 kg -0.005 %; 100 g and 1 kg at 1e6 N/m -0.57 % both (strict xfails: LIGHT_LOAD_GAP)."""
     mu, v0, dt, t = 0.5, 2.0, 1e-3, 0.3
-    scene = gs.Scene(sim_options=gs.options.SimOptions(dt=dt), rigid_options=gs.options.RigidOptions(**rigid))
-    scene.add_entity(gs.morphs.Plane(), material=gs.materials.Rigid(friction=mu))
-    box = scene.add_entity(gs.morphs.Box(size=(0.2, 0.2, 0.2), pos=(0, 0, 0.1)),
-                           material=gs.materials.Rigid(friction=mu, rho=rho))
-    scene.build()
-    box.set_dofs_velocity(_t([v0, 0, 0, 0, 0, 0]))
+    scene, box = _launched_box(dt, mu, v0, rho, **rigid)
     for _ in range(int(round(t / dt))):
         scene.step()
     lost = v0 - float(box.get_vel()[0])
