@@ -564,3 +564,19 @@ def test_step_convergence_variants_change_only_their_own_mujoco_model(tmp_path):
         assert m.opt.tolerance == before.opt.tolerance != 1e-15 and m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
         assert np.all(m.geom_solref[:, 0] == 0.02)
     assert wp.SCENES["box"].mj_build is wp._mj_build_box
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--variant", "tight", "--engine", "genesis_lite"], "--variant changes MuJoCo's model: give --engine mujoco"),
+    (["--trace", "--scene", "quadruped"], "--trace follows the box of --scene push or box")])
+def test_step_convergence_refuses_arguments_it_cannot_run(argv, message, monkeypatch, capsys):
+    """step_convergence.py stops at once, naming the wrong argument and what to give, for a MuJoCo variant asked of
+    genesis_lite and a box trace asked of a scene without the box: no run starts."""
+    import step_convergence as sc
+
+    monkeypatch.setattr(sys, "argv", ["step_convergence.py", *argv])
+    monkeypatch.setattr(sc.W, "run_engine", lambda *a, **k: pytest.fail("a run started"))
+    monkeypatch.setattr(sc, "trace", lambda *a, **k: pytest.fail("a trace started"))
+    with pytest.raises(SystemExit) as e:
+        sc.main()
+    assert e.value.code == 2 and message in capsys.readouterr().err
